@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# Install torchsoil and everything it needs on a fresh machine (Debian/Ubuntu, Python >= 3.10).
+# Idempotent: fast when everything is already there.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+
+# System libraries: Open3D's wheel links libusb-1.0 and libgomp.
+missing=()
+for lib in usb-1.0 gomp; do
+  "$PY" -c "import ctypes.util, sys; sys.exit(0 if ctypes.util.find_library('$lib') else 1)" \
+    || missing+=("$lib")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+  SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+  echo "[setup] installing system libraries: libusb-1.0-0 libgomp1"
+  $SUDO apt-get update -qq >/dev/null
+  $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
+fi
+
+# torch: the CPU build 2.13.0 when none is installed (an unpinned torch pulls a CUDA build).
+if ! "$PY" -c "import torch" 2>/dev/null; then
+  echo "[setup] installing torch==2.13.0"
+  "$PY" -m pip install -q torch==2.13.0
+fi
+if ! "$PY" -c "import torchsoil, open3d, rosbags, gymnasium, numba, pytest, hypothesis" 2>/dev/null; then
+  echo "[setup] installing torchsoil and its dependencies"
+  "$PY" -m pip install -q -e ".[dev]"
+fi

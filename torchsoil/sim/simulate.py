@@ -1,0 +1,155 @@
+"""The forward model S(H_f, T_ref, F, theta) of the paper (Algorithm 1), batched over theta."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import NamedTuple
+
+import torch
+
+from torchsoil.grid import Grid
+from torchsoil.robot import Robot
+from torchsoil.sim.deposition import deposit
+from torchsoil.sim.geometry import WheelGeometry, wheel_geometry
+from torchsoil.sim.params import ParamSpec
+from torchsoil.sim.relaxation import relax
+from torchsoil.sim.sinkage import reference_height, sink, taper
+
+MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avoids tan overflow
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Simulator settings (configs/default.yaml, section `sim`). Lengths in metres or cells."""
+
+    dx: float = 0.02
+    tau: float = 0.01
+    eps_scale: float = 4.0
+    max_iter: int = 2000
+    fixed_iter: int | None = None
+    ref_radius: float = 0.5
+    band_width: float = 1.0
+    relax_margin: float = 2.0
+    pose_spacing: float = 0.5
+    backend: str = "auto"
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> SimConfig:
+        d = dict(d or {})
+        known = {f.name for f in fields(cls)}
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown sim settings {sorted(unknown)}; known: {sorted(known)}")
+        return cls(**d)
+
+
+class Modifiers(NamedTuple):
+    """Hooks through which model extensions change the base physics (all optional).
+
+    depth_scale:   (B, K, N) factor on the sinkage of wheel k at resampled pose n.
+    radius_scale:  (B,) factor on the footprint radius (contact patch wider or narrower).
+    tan_beta_wall: (B,) tangent of the angle at which dug cells (rut walls and floor)
+                   settle; deposits keep tan(beta).
+    """
+
+    depth_scale: torch.Tensor | None = None
+    radius_scale: torch.Tensor | None = None
+    tan_beta_wall: torch.Tensor | None = None
+
+
+class SimResult(NamedTuple):
+    """h: (B, X, Y) simulated surface, m; h_unrelaxed: (B, X, Y) after sinkage and deposition;
+    removed, deposited, lost: (B,) volumes, m^3; iterations: (B,) relaxation updates;
+    capped: (B,) bool, relaxation stopped by the iteration cap."""
+
+    h: torch.Tensor
+    h_unrelaxed: torch.Tensor
+    removed: torch.Tensor
+    deposited: torch.Tensor
+    lost: torch.Tensor
+    iterations: torch.Tensor
+    capped: torch.Tensor
+
+
+def _check_heights(h: torch.Tensor, shape) -> torch.Tensor:
+    if h.ndim == 2:
+        h = h[None]
+    if h.ndim != 3 or tuple(h.shape[1:]) != tuple(shape):
+        raise ValueError(f"heights must be (B, X, Y) = (B, {shape[0]}, {shape[1]}), got {tuple(h.shape)}")
+    bad = ~torch.isfinite(h.detach())
+    if bad.any():
+        b, i, j = torch.nonzero(bad)[0].tolist()
+        raise ValueError(f"heights contain {int(bad.sum())} NaN/inf cells (first: batch {b}, cell [{i}, {j}]);"
+                         " fill or crop them before simulating")
+    return h
+
+
+def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
+             config: SimConfig = SimConfig(), spec: ParamSpec | None = None,
+             modifiers: Modifiers = Modifiers(), h_ref: torch.Tensor | None = None) -> SimResult:
+    """Simulate the robot's passage over h_front for a batch of parameter sets.
+
+    Args:
+        h_front: (X, Y) or (B, X, Y) surface before the robot, m (finite everywhere).
+        geom: wheel-path geometry from `wheel_geometry` on the same grid.
+        theta: (B, P) parameters (d_1..d_T [m], chi, beta [rad], then any extension
+            parameters, which are read through `modifiers`).
+        config: simulator settings.
+        spec: parameter layout and bounds (default: the base layout for geom's tracks).
+        modifiers: extension hooks (see `Modifiers`).
+        h_ref: (B|1, X, Y) reference height; default: h_front smoothed over a disc of
+            radius config.ref_radius * wheel_width / 2.
+
+    Returns:
+        SimResult with (B, X, Y) surfaces on theta's device and dtype.
+    """
+    spec = spec or ParamSpec.base(geom.n_tracks)
+    theta = spec.check(theta)
+    h = _check_heights(h_front.to(theta.dtype), geom.shape)
+    B = theta.shape[0]
+    if h.shape[0] not in (1, B):
+        raise ValueError(f"h_front batch {h.shape[0]} does not match theta batch {B}")
+    T = geom.n_tracks
+    d, chi, beta = theta[:, :T], theta[:, T], theta[:, T + 1]
+    dt = theta.dtype
+    dist, lateral = geom.dist.to(dt)[None], geom.lateral.to(dt)[None]   # (1, K, X, Y)
+
+    radius = geom.radius * (modifiers.radius_scale.to(dt)[:, None, None, None]
+                            if modifiers.radius_scale is not None else 1.0)
+    covered = dist <= radius                                    # (B|1, K, X, Y)
+    s = taper(lateral / radius, geom.flat_fraction)
+    depth = d[:, geom.track][:, :, None, None]                  # (B, K, 1, 1)
+    if modifiers.depth_scale is not None:
+        idx = geom.pose_index.flatten(1)[None].expand(B, -1, -1)
+        depth = depth * modifiers.depth_scale.to(dt).gather(2, idx).reshape(B, *geom.dist.shape)
+
+    if h_ref is None:
+        h_ref = reference_height(h, config.ref_radius * geom.radius, geom.dx)
+    h_dug, removed = sink(h, h_ref, covered, s, depth)
+
+    covered_any = covered.any(dim=1, keepdim=True)
+    wheel_ids = torch.arange(covered.shape[1], device=covered.device)[:, None, None]
+    owner = covered & (wheel_ids == torch.where(covered, s + 1, torch.zeros_like(s)).argmax(1, keepdim=True))
+    band = (dist > radius) & (dist <= radius + geom.band_width) & ~covered_any
+    added, lost = deposit(removed, owner, band, geom.bin_index, geom.n_bins, chi)
+    h_pre = h_dug + added
+
+    tan_beta = torch.tan(beta).clamp(max=MAX_TAN_BETA)
+    if modifiers.tan_beta_wall is not None:
+        wall = modifiers.tan_beta_wall.to(dt).clamp(max=MAX_TAN_BETA)[:, None, None]
+        tan_beta = torch.where(covered_any[:, 0], wall, tan_beta[:, None, None])
+    rr = relax(h_pre, tan_beta, geom.dx, geom.domain, config.tau, config.max_iter,
+               config.fixed_iter, config.eps_scale, config.backend)
+    cell = geom.dx**2
+    return SimResult(rr.h, h_pre, removed.flatten(1).sum(1) * cell,
+                     added.flatten(1).sum(1) * cell, lost * cell, rr.iterations, rr.capped)
+
+
+def simulate_path(h_front: torch.Tensor, grid: Grid, poses, robot: Robot, theta: torch.Tensor,
+                  config: SimConfig = SimConfig(), **kwargs) -> SimResult:
+    """Convenience: geometry for (grid, poses, robot), then `simulate`."""
+    geom = wheel_geometry(grid, poses, robot, pose_spacing=config.pose_spacing,
+                          band_width=config.band_width, relax_margin=config.relax_margin,
+                          device=theta.device, dtype=theta.dtype)
+    return simulate(h_front, geom, theta, config, **kwargs)
