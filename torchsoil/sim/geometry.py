@@ -2,6 +2,8 @@
 
 Everything here depends on the trajectory, the robot and the grid only, never on the soil
 parameters, so an estimator computes it once per window and reuses it for every simulation.
+The wheel-cell incidence is sparse: E entries (wheel k, cell c) for the cells within reach of
+wheel k's footprint or deposition band; everything else on the grid is left alone.
 """
 
 from __future__ import annotations
@@ -15,48 +17,95 @@ from scipy.spatial import cKDTree
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 
-FAR = 1e6  # m, distance stored for cells out of reach of every pose
+INF = float("inf")
+
+
+class Footprint(NamedTuple):
+    """Which entries dig and which receive deposits, at one footprint radius.
+
+    covered: (B|1, E) bool, the entry's cell lies inside wheel k's swept footprint.
+    s:       (B|1, E) centrality taper of wheel k at the cell, in [0, 1].
+    owner:   (B|1, E) bool, wheel k is the one that digs the cell (the most central wheel;
+             ties go to the lower wheel index).
+    band:    (B|1, E) bool, the cell lies in wheel k's deposition band and in no footprint.
+    covered_any: (B|1, X, Y) bool, the cell lies inside some footprint.
+    """
+
+    covered: torch.Tensor
+    s: torch.Tensor
+    owner: torch.Tensor
+    band: torch.Tensor
+    covered_any: torch.Tensor
 
 
 class WheelGeometry(NamedTuple):
-    """Per-cell geometry of K wheel paths on an (X, Y) grid.
+    """Sparse geometry of K wheel paths on an (X, Y) grid.
 
-    dist:       (K, X, Y) distance from the cell centre to the nearest pose of wheel k, m
-                (FAR beyond the search radius).
-    lateral:    (K, X, Y) signed offset of the cell from wheel k's centre line at that pose,
-                left positive, m.
-    pose_index: (K, X, Y) int64, index of that pose in `poses`.
-    bin_index:  (K, X, Y) int64, deposition bin (k * n_bins + arc-length bin of the pose).
-    track:      (K,) int64, sinkage parameter index of each wheel.
-    domain:     (X, Y) bool, relaxation domain (cells near any wheel path).
-    poses:      (N, 4) resampled poses t [s], x, y [m], yaw [rad].
-    n_bins:     deposition bins per wheel.
-    radius:     nominal footprint radius (half the wheel width), m.
+    cell:    (E,) int64 flat cell index i * Y + j of each entry.
+    wheel:   (E,) int64 wheel index k of each entry.
+    dist:    (E,) distance from the cell centre to wheel k's nearest pose, m.
+    lateral: (E,) signed offset of the cell from wheel k's centre line there, left positive, m.
+    pose:    (E,) int64 index of that pose in `poses`.
+    bin:     (E,) int64 deposition bin: k * n_bins + arc-length bin (2 cells) of the pose.
+    track:   (K,) int64 sinkage parameter index of each wheel.
+    domain:  (X, Y) bool relaxation domain (cells near any wheel path).
+    poses:   (N, 4) resampled poses t [s], x, y [m], yaw [rad].
+    shape:   (X, Y).
+    n_bins:  deposition bins per wheel.
+    radius:  nominal footprint radius (half the wheel width), m.
     flat_fraction: tyre taper f (FORMATS.md section 2).
-    dx:         cell edge, m.
+    dx:      cell edge, m.
     band_width: deposition band width, m.
+    nominal: Footprint at the nominal radius, precomputed.
     """
 
+    cell: torch.Tensor
+    wheel: torch.Tensor
     dist: torch.Tensor
     lateral: torch.Tensor
-    pose_index: torch.Tensor
-    bin_index: torch.Tensor
+    pose: torch.Tensor
+    bin: torch.Tensor
     track: torch.Tensor
     domain: torch.Tensor
     poses: torch.Tensor
+    shape: tuple[int, int]
     n_bins: int
     radius: float
     flat_fraction: float
     dx: float
     band_width: float
+    nominal: Footprint
 
     @property
     def n_tracks(self) -> int:
         return int(self.track.max().item()) + 1
 
     @property
-    def shape(self) -> tuple[int, int]:
-        return tuple(self.dist.shape[1:])
+    def n_wheels(self) -> int:
+        return int(self.track.shape[0])
+
+
+def footprint(geom: WheelGeometry, radius_scale: torch.Tensor | None = None,
+              dtype=None) -> Footprint:
+    """Footprint masks at the nominal radius times radius_scale ((B,) or None)."""
+    from torchsoil.sim.sinkage import taper
+
+    dtype = dtype or geom.dist.dtype
+    dist, lateral = geom.dist.to(dtype)[None], geom.lateral.to(dtype)[None]
+    radius = geom.radius if radius_scale is None else geom.radius * radius_scale.to(dtype)[:, None]
+    covered = dist <= radius
+    s = taper(lateral / radius, geom.flat_fraction)
+    B = covered.shape[0]
+    X, Y = geom.shape
+    cell = geom.cell.expand(B, -1)
+    covered_any = torch.zeros(B, X * Y, dtype=dtype, device=dist.device).scatter_reduce(
+        1, cell, covered.to(dtype), "amax") > 0
+    rank = torch.where(covered, s + 1, torch.zeros_like(s)) - 1e-6 * geom.wheel.to(dtype)
+    best = torch.full((B, X * Y), -INF, dtype=dtype, device=dist.device).scatter_reduce(
+        1, cell, rank, "amax")
+    owner = covered & (rank == best.gather(1, cell))
+    band = (dist > radius) & (dist <= radius + geom.band_width) & ~covered_any.gather(1, cell)
+    return Footprint(covered, s, owner, band, covered_any.reshape(B, X, Y))
 
 
 def planar_poses(poses) -> np.ndarray:
@@ -135,42 +184,48 @@ def wheel_geometry(
     p = resample_poses(planar_poses(poses), robot.wheels[:, :2], pose_spacing * dx)
     w = wheel_positions(p, robot.wheels[:, :2])  # (K, N, 2)
     radius = robot.wheel_width / 2
-    reach = max(radius * max_radius_scale + (band_width + 1) * dx,
-                radius + relax_margin * robot.wheel_width) + dx
+    reach = radius * max_radius_scale + (band_width + 0.5) * dx
+    domain_reach = radius + relax_margin * robot.wheel_width
     bin_len = 2 * dx
     xs, ys = grid.centers()
     cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
-    K, N = w.shape[:2]
-    dist = np.full((K, len(cells)), FAR)
-    lateral = np.zeros((K, len(cells)))
-    pidx = np.zeros((K, len(cells)), dtype=np.int64)
-    bins = np.zeros((K, len(cells)), dtype=np.int64)
-    arcs = np.concatenate([np.zeros((K, 1)), np.cumsum(np.linalg.norm(np.diff(w, axis=1), axis=-1), 1)], 1)
+    arcs = np.concatenate([np.zeros((len(w), 1)),
+                           np.cumsum(np.linalg.norm(np.diff(w, axis=1), axis=-1), axis=1)], axis=1)
     n_bins = int(np.floor(arcs[:, -1].max() / bin_len)) + 1
-    for k in range(K):
+    near = np.full(len(cells), np.inf)
+    cols = {n: [] for n in ("cell", "wheel", "dist", "lateral", "pose", "bin")}
+    for k in range(len(w)):
         head = _headings(w[k], p[:, 3], 1e-6 * dx)
-        d, i = cKDTree(w[k]).query(cells, distance_upper_bound=reach)
-        hit = np.isfinite(d)
-        ih = i[hit]
-        rel = cells[hit] - w[k, ih]
-        dist[k, hit] = d[hit]
-        lateral[k, hit] = -np.sin(head[ih]) * rel[:, 0] + np.cos(head[ih]) * rel[:, 1]
-        pidx[k, hit] = ih
-        bins[k, hit] = k * n_bins + np.floor(arcs[k, ih] / bin_len).astype(np.int64)
-    domain = dist.min(axis=0) <= radius + relax_margin * robot.wheel_width
-    shape = (K, *grid.shape)
-    kw = dict(device=device)
-    return WheelGeometry(
-        dist=torch.as_tensor(dist.reshape(shape), dtype=dtype, **kw),
-        lateral=torch.as_tensor(lateral.reshape(shape), dtype=dtype, **kw),
-        pose_index=torch.as_tensor(pidx.reshape(shape), **kw),
-        bin_index=torch.as_tensor(bins.reshape(shape), **kw),
-        track=torch.as_tensor(robot.track, **kw),
-        domain=torch.as_tensor(domain.reshape(grid.shape), **kw),
-        poses=torch.as_tensor(p, dtype=torch.float64, **kw),
+        d, i = cKDTree(w[k]).query(cells, distance_upper_bound=max(reach, domain_reach))
+        near = np.minimum(near, d)
+        c = np.flatnonzero(d <= reach)
+        rel = cells[c] - w[k, i[c]]
+        h = head[i[c]]
+        cols["cell"].append(c)
+        cols["wheel"].append(np.full(len(c), k))
+        cols["dist"].append(d[c])
+        cols["lateral"].append(-np.sin(h) * rel[:, 0] + np.cos(h) * rel[:, 1])
+        cols["pose"].append(i[c])
+        cols["bin"].append(k * n_bins + np.floor(arcs[k, i[c]] / bin_len).astype(np.int64))
+    col = {n: np.concatenate(v) for n, v in cols.items()}
+    ints = dict(device=device, dtype=torch.int64)
+    floats = dict(device=device, dtype=dtype)
+    geom = WheelGeometry(
+        cell=torch.as_tensor(col["cell"], **ints),
+        wheel=torch.as_tensor(col["wheel"], **ints),
+        dist=torch.as_tensor(col["dist"], **floats),
+        lateral=torch.as_tensor(col["lateral"], **floats),
+        pose=torch.as_tensor(col["pose"], **ints),
+        bin=torch.as_tensor(col["bin"], **ints),
+        track=torch.as_tensor(robot.track, **ints),
+        domain=torch.as_tensor((near <= domain_reach).reshape(grid.shape), device=device),
+        poses=torch.as_tensor(p, dtype=torch.float64, device=device),
+        shape=grid.shape,
         n_bins=n_bins,
         radius=radius,
         flat_fraction=robot.wheel_flat_fraction,
         dx=dx,
         band_width=band_width * dx,
+        nominal=None,
     )
+    return geom._replace(nominal=footprint(geom))

@@ -11,10 +11,10 @@ import torch
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.sim.deposition import deposit
-from torchsoil.sim.geometry import WheelGeometry, wheel_geometry
+from torchsoil.sim.geometry import WheelGeometry, footprint, wheel_geometry
 from torchsoil.sim.params import ParamSpec
 from torchsoil.sim.relaxation import relax
-from torchsoil.sim.sinkage import reference_height, sink, taper
+from torchsoil.sim.sinkage import reference_height, sink
 
 MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avoids tan overflow
 
@@ -80,14 +80,14 @@ def _check_heights(h: torch.Tensor, shape) -> torch.Tensor:
     bad = ~torch.isfinite(h.detach())
     if bad.any():
         b, i, j = torch.nonzero(bad)[0].tolist()
-        raise ValueError(f"heights contain {int(bad.sum())} NaN/inf cells (first: batch {b}, cell [{i}, {j}]);"
-                         " fill or crop them before simulating")
+        raise ValueError(f"heights contain {int(bad.sum())} NaN/inf cells (first: batch {b}, "
+                         f"cell [{i}, {j}]); fill or crop them before simulating")
     return h
 
 
 def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
-             config: SimConfig = SimConfig(), spec: ParamSpec | None = None,
-             modifiers: Modifiers = Modifiers(), h_ref: torch.Tensor | None = None) -> SimResult:
+             config: SimConfig | None = None, spec: ParamSpec | None = None,
+             modifiers: Modifiers | None = None, h_ref: torch.Tensor | None = None) -> SimResult:
     """Simulate the robot's passage over h_front for a batch of parameter sets.
 
     Args:
@@ -104,6 +104,8 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     Returns:
         SimResult with (B, X, Y) surfaces on theta's device and dtype.
     """
+    config = config or SimConfig()
+    modifiers = modifiers or Modifiers()
     spec = spec or ParamSpec.base(geom.n_tracks)
     theta = spec.check(theta)
     h = _check_heights(h_front.to(theta.dtype), geom.shape)
@@ -113,32 +115,23 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     T = geom.n_tracks
     d, chi, beta = theta[:, :T], theta[:, T], theta[:, T + 1]
     dt = theta.dtype
-    dist, lateral = geom.dist.to(dt)[None], geom.lateral.to(dt)[None]   # (1, K, X, Y)
-
-    radius = geom.radius * (modifiers.radius_scale.to(dt)[:, None, None, None]
-                            if modifiers.radius_scale is not None else 1.0)
-    covered = dist <= radius                                    # (B|1, K, X, Y)
-    s = taper(lateral / radius, geom.flat_fraction)
-    depth = d[:, geom.track][:, :, None, None]                  # (B, K, 1, 1)
+    fp = geom.nominal if modifiers.radius_scale is None else footprint(geom, modifiers.radius_scale, dt)
+    depth = d[:, geom.track[geom.wheel]]                                   # (B, E)
     if modifiers.depth_scale is not None:
-        idx = geom.pose_index.flatten(1)[None].expand(B, -1, -1)
-        depth = depth * modifiers.depth_scale.to(dt).gather(2, idx).reshape(B, *geom.dist.shape)
-
+        K, N = geom.n_wheels, geom.poses.shape[0]
+        scale = modifiers.depth_scale.to(dt).reshape(B, K * N)
+        depth = depth * scale[:, geom.wheel * N + geom.pose]
     if h_ref is None:
         h_ref = reference_height(h, config.ref_radius * geom.radius, geom.dx)
-    h_dug, removed = sink(h, h_ref, covered, s, depth)
-
-    covered_any = covered.any(dim=1, keepdim=True)
-    wheel_ids = torch.arange(covered.shape[1], device=covered.device)[:, None, None]
-    owner = covered & (wheel_ids == torch.where(covered, s + 1, torch.zeros_like(s)).argmax(1, keepdim=True))
-    band = (dist > radius) & (dist <= radius + geom.band_width) & ~covered_any
-    added, lost = deposit(removed, owner, band, geom.bin_index, geom.n_bins, chi)
+    h_dug, removed = sink(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth)
+    added, lost = deposit(removed, geom.cell, fp.owner, fp.band, geom.bin,
+                          geom.n_bins * geom.n_wheels, chi)
     h_pre = h_dug + added
 
     tan_beta = torch.tan(beta).clamp(max=MAX_TAN_BETA)
     if modifiers.tan_beta_wall is not None:
         wall = modifiers.tan_beta_wall.to(dt).clamp(max=MAX_TAN_BETA)[:, None, None]
-        tan_beta = torch.where(covered_any[:, 0], wall, tan_beta[:, None, None])
+        tan_beta = torch.where(fp.covered_any, wall, tan_beta[:, None, None])
     rr = relax(h_pre, tan_beta, geom.dx, geom.domain, config.tau, config.max_iter,
                config.fixed_iter, config.eps_scale, config.backend)
     cell = geom.dx**2
@@ -147,8 +140,9 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
 
 
 def simulate_path(h_front: torch.Tensor, grid: Grid, poses, robot: Robot, theta: torch.Tensor,
-                  config: SimConfig = SimConfig(), **kwargs) -> SimResult:
+                  config: SimConfig | None = None, **kwargs) -> SimResult:
     """Convenience: geometry for (grid, poses, robot), then `simulate`."""
+    config = config or SimConfig()
     geom = wheel_geometry(grid, poses, robot, pose_spacing=config.pose_spacing,
                           band_width=config.band_width, relax_margin=config.relax_margin,
                           device=theta.device, dtype=theta.dtype)

@@ -18,16 +18,15 @@ def taper(q: torch.Tensor, flat_fraction: float = 0.0) -> torch.Tensor:
     s = 1 for |q| <= f, then (1 + cos(pi (|q| - f) / (1 - f))) / 2 down to 0 at |q| = 1,
     0 beyond (FORMATS.md section 2).
     """
-    a = q.abs()
-    u = ((a - flat_fraction) / (1.0 - flat_fraction)).clamp(0.0, 1.0)
+    u = ((q.abs() - flat_fraction) / (1.0 - flat_fraction)).clamp(0.0, 1.0)
     return 0.5 * (1.0 + torch.cos(math.pi * u))
 
 
-def disc_kernel(radius_cells: float, like: torch.Tensor) -> torch.Tensor:
-    """(1, 1, k, k) 0/1 kernel of the cells whose centres lie within radius_cells of the centre."""
+def disc_offsets(radius_cells: float) -> list[tuple[int, int]]:
+    """Integer cell offsets (di, dj) whose centres lie within radius_cells of the centre."""
     r = int(math.floor(radius_cells))
-    ax = torch.arange(-r, r + 1, device=like.device, dtype=like.dtype)
-    return ((ax[:, None] ** 2 + ax[None, :] ** 2) <= radius_cells**2 + 1e-9).to(like.dtype)[None, None]
+    return [(i, j) for i in range(-r, r + 1) for j in range(-r, r + 1)
+            if i * i + j * j <= radius_cells**2 + 1e-9]
 
 
 def reference_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
@@ -35,30 +34,38 @@ def reference_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
 
     Near the map edge the mean is over the cells that exist. (B, X, Y) -> (B, X, Y), m.
     """
-    k = disc_kernel(radius / dx, h)
-    if k.shape[-1] == 1:
+    offsets = disc_offsets(radius / dx)
+    r = max(max(abs(i), abs(j)) for i, j in offsets)
+    if r == 0:
         return h
-    pad = k.shape[-1] // 2
-    num = F.conv2d(h[:, None], k, padding=pad)[:, 0]
-    den = F.conv2d(torch.ones_like(h[:1, None]), k, padding=pad)[:, 0]
+    X, Y = h.shape[1:]
+    hp = F.pad(h[:, None], (r, r, r, r))[:, 0]
+    ones = F.pad(torch.ones_like(h[:1, None]), (r, r, r, r))[:, 0]
+    num = sum(hp[:, r + i:r + i + X, r + j:r + j + Y] for i, j in offsets)
+    den = sum(ones[:, r + i:r + i + X, r + j:r + j + Y] for i, j in offsets)
     return num / den
 
 
-def sink(h: torch.Tensor, h_ref: torch.Tensor, covered: torch.Tensor, s: torch.Tensor,
-         depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Dig every footprint in one step (the min over poses commutes; h_ref is fixed).
+def sink(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torch.Tensor,
+         s: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Dig every footprint at once (the min over poses commutes because h_ref is fixed).
 
     Args:
-        h: (B, X, Y) surface before the wheels, m.
-        h_ref: (B, X, Y) reference height, m.
-        covered: (B|1, K, X, Y) bool, cell inside wheel k's swept footprint.
-        s: (B|1, K, X, Y) centrality taper of wheel k at the cell.
-        depth: (B, K, X, Y) or (B, K, 1, 1) sinkage of wheel k, m.
+        h: (B|1, X, Y) surface before the wheels, m.
+        h_ref: (B|1, X, Y) reference height, m.
+        cell: (E,) int64 flat cell index of each wheel-cell entry.
+        covered: (B|1, E) bool, the entry's cell is inside its wheel's footprint.
+        s: (B|1, E) centrality taper of the entry.
+        depth: (B, E) sinkage of the entry's wheel at its pose, m.
 
     Returns:
         h_dug (B, X, Y) and removed height r = h - h_dug >= 0 (B, X, Y), m.
     """
-    target = h_ref[:, None] - s * depth
-    target = torch.where(covered, target, torch.full_like(target, math.inf)).amin(dim=1)
-    h_dug = torch.minimum(h, target)
+    B = max(h.shape[0], depth.shape[0])
+    h = h.expand(B, -1, -1)
+    target = (h_ref.flatten(1)[:, cell] - s * depth).expand(B, -1)
+    target = target.masked_fill(~covered, math.inf)
+    floor = torch.full((B, h[0].numel()), math.inf, dtype=h.dtype, device=h.device)
+    floor = floor.scatter_reduce(1, cell.expand(B, -1), target, "amin")
+    h_dug = torch.minimum(h, floor.reshape(h.shape))
     return h_dug, h - h_dug

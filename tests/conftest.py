@@ -1,0 +1,38 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchsoil.grid import Grid
+from torchsoil.robot import Robot, paper_platform
+
+
+@pytest.fixture(scope="session")
+def robot() -> Robot:
+    return paper_platform()
+
+
+def straight_window(dx=0.02, length=0.6, half_width=1.0, y0=0.003, noise=0.003, seed=0,
+                    step=0.02, slope=(0.0, 0.0), robot=None):
+    """A straight drive along +x over a small noisy field: (grid, poses (N, 3), h (X, Y) f64)."""
+    robot = robot or paper_platform()
+    margin = robot.wheel_width / 2
+    grid = Grid.covering(-margin, -half_width, length + margin, half_width, dx)
+    reach = robot.wheels[:, 0].max() + margin
+    xs = np.arange(-reach - 0.05, length + reach + 0.05 + 1e-9, step)
+    poses = np.column_stack([xs, np.full_like(xs, y0), np.zeros_like(xs)])
+    rng = np.random.default_rng(seed)
+    x, y = grid.centers()
+    plane = slope[0] * x[:, None] + slope[1] * y[None, :]
+    h = torch.as_tensor(plane + rng.normal(0.0, noise, grid.shape))
+    return grid, poses, h
+
+
+@pytest.fixture
+def window():
+    return straight_window()
+
+
+def deg(a):
+    return math.radians(a)
