@@ -1,0 +1,195 @@
+"""Read a recording (FORMATS.md section 1) with `rosbags`: ROS 2 (sqlite3, mcap) or ROS 1.
+
+`read_recording(path, ...)` returns the front and back sweeps decoded to numpy and the
+lidar extrinsics from `/tf_static`. A missing topic, a wrong message type or a bag that
+cannot be opened or read to its end raises `BagError` naming the bag and the topic; a
+single message that cannot be decoded is skipped and reported in `Recording.problems`
+(its sweep index and time), so the run continues with that span flagged.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from torchsoil.io.pointcloud import Cloud, decode
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+TFMESSAGE = "tf2_msgs/msg/TFMessage"
+
+
+class BagError(ValueError):
+    """A recording that cannot be used; the message names the bag and the topic."""
+
+
+@dataclass
+class Recording:
+    """Decoded sweeps of both lidars.
+
+    front, back: time-ordered sweeps (sensor frame), one Cloud each.
+    extrinsics: frame name -> (4, 4) float64 pose of that frame in `base_frame`.
+    problems: human-readable notes on skipped or suspicious messages (topic, index, time).
+    start, end: first and last message time in the bag, s.
+    """
+
+    front: list[Cloud]
+    back: list[Cloud]
+    extrinsics: dict[str, np.ndarray] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+    start: float = 0.0
+    end: float = 0.0
+
+    @property
+    def duration(self) -> float:
+        return self.end - self.start
+
+
+def transform_matrix(translation, quaternion_xyzw) -> np.ndarray:
+    """(3,) translation [m] and (4,) quaternion (x, y, z, w) -> (4, 4) homogeneous transform."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(np.asarray(quaternion_xyzw, dtype=np.float64)).as_matrix()
+    T[:3, 3] = np.asarray(translation, dtype=np.float64)
+    return T
+
+
+def xyzrpy_matrix(xyzrpy) -> np.ndarray:
+    """(6,) x, y, z [m], roll, pitch, yaw [rad] -> (4, 4) transform."""
+    v = np.asarray(xyzrpy, dtype=np.float64)
+    if v.shape != (6,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"extrinsic must be 6 finite numbers x y z roll pitch yaw, got {v}")
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", v[3:]).as_matrix()
+    T[:3, 3] = v[:3]
+    return T
+
+
+def resolve_frames(edges: dict[str, tuple[str, np.ndarray]], base_frame: str) -> dict:
+    """Static transforms child -> (parent, parent_T_child) -> {frame: base_T_frame} for every
+    frame whose chain of parents reaches `base_frame`."""
+    out = {base_frame: np.eye(4)}
+    for frame in edges:
+        chain, T, f, seen = [], np.eye(4), frame, set()
+        while f in edges and f != base_frame and f not in seen:
+            seen.add(f)
+            parent, P = edges[f]
+            T = P @ T
+            chain.append(f)
+            f = parent
+        if f == base_frame:
+            out[frame] = T
+    return out
+
+
+def _open(path: Path):
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if not path.exists():
+        raise FileNotFoundError(f"recording not found: {path}")
+    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    try:
+        reader.open()
+    except Exception as e:  # rosbags raises several reader-specific errors
+        raise BagError(f"{path}: cannot open the bag ({type(e).__name__}: {e}); "
+                       "is it truncated or corrupt?") from None
+    return reader
+
+
+def _check_topic(reader, path: Path, topic: str, msgtype: str):
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        have = sorted({f"{c.topic} [{c.msgtype}]" for c in reader.connections})
+        raise BagError(f"{path}: topic '{topic}' not found; the bag holds: {have}")
+    wrong = [c.msgtype for c in conns if c.msgtype != msgtype]
+    if wrong:
+        raise BagError(f"{path}: topic '{topic}' has type {wrong[0]}, expected {msgtype}")
+    return conns
+
+
+def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
+                   back_topic: str = "/lidar_back/points", tf_topic: str = "/tf_static",
+                   base_frame: str = "base_link", require_tf: bool = False,
+                   progress: Callable[[int], None] | None = None) -> Recording:
+    """Read both lidar streams and the static extrinsics of a bag.
+
+    Args:
+        path: ROS 2 bag directory (sqlite3 or mcap) or ROS 1 `.bag` file.
+        front_topic, back_topic: PointCloud2 topics.
+        tf_topic: TFMessage topic with the static extrinsics; may be absent unless
+            `require_tf` (the caller then supplies extrinsics itself).
+        base_frame: frame the extrinsics are expressed in.
+        progress: called with the number of messages read since the last call.
+    """
+    path = Path(path)
+    reader = _open(path)
+    try:
+        conns = {name: _check_topic(reader, path, topic, POINTCLOUD2)
+                 for name, topic in (("front", front_topic), ("back", back_topic))}
+        tf_conns = [c for c in reader.connections if c.topic == tf_topic]
+        if tf_conns:
+            tf_conns = _check_topic(reader, path, tf_topic, TFMESSAGE)
+        elif require_tf:
+            raise BagError(f"{path}: topic '{tf_topic}' not found and no extrinsics given")
+        rec = Recording([], [], start=reader.start_time * 1e-9, end=reader.end_time * 1e-9)
+        stream_of = {c.id: name for name, cs in conns.items() for c in cs}
+        topic_of = {"front": front_topic, "back": back_topic}
+        tf_ids = {c.id for c in tf_conns}
+        edges: dict[str, tuple[str, np.ndarray]] = {}
+        counts = {"front": 0, "back": 0}
+        wanted = [c for cs in conns.values() for c in cs] + list(tf_conns)
+        it = reader.messages(connections=wanted)
+        while True:
+            try:
+                conn, stamp, raw = next(it)
+            except StopIteration:
+                break
+            except Exception as e:
+                done = ", ".join(f"{k}: {v} sweeps" for k, v in counts.items())
+                raise BagError(f"{path}: reading stopped with {type(e).__name__}: {e} after "
+                               f"{done}; the bag is truncated or corrupt") from None
+            if progress is not None:
+                progress(1)
+            if conn.id in tf_ids:
+                try:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    for tr in msg.transforms:
+                        q, p = tr.transform.rotation, tr.transform.translation
+                        edges[tr.child_frame_id] = (tr.header.frame_id, transform_matrix(
+                            (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+                except Exception as e:
+                    rec.problems.append(f"{tf_topic} message at t={stamp * 1e-9:.3f} s skipped: {e}")
+                continue
+            name = stream_of[conn.id]
+            index = counts[name]
+            counts[name] += 1
+            try:
+                cloud = decode(reader.deserialize(raw, conn.msgtype))
+            except Exception as e:
+                rec.problems.append(f"{topic_of[name]} sweep {index} at t={stamp * 1e-9:.3f} s "
+                                    f"skipped: cannot decode ({type(e).__name__}: {e})")
+                continue
+            getattr(rec, name).append(cloud)
+        rec.extrinsics = resolve_frames(edges, base_frame)
+    finally:
+        reader.close()
+    for name in ("front", "back"):
+        if counts[name] == 0:
+            raise BagError(f"{path}: topic '{topic_of[name]}' holds no messages")
+        if not getattr(rec, name):
+            raise BagError(f"{path}: none of the {counts[name]} sweeps on '{topic_of[name]}' "
+                           f"could be decoded; first problem: {rec.problems[0]}")
+        getattr(rec, name).sort(key=lambda c: c.stamp)
+    return rec
+
+
+def count_messages(path: str | Path, topics: list[str]) -> int:
+    """Number of messages on `topics` (for progress bars)."""
+    reader = _open(Path(path))
+    try:
+        return sum(c.msgcount for c in reader.connections if c.topic in topics)
+    finally:
+        reader.close()
