@@ -58,7 +58,7 @@ def run(quick: bool = False) -> dict[str, float]:
         out[f"sim_geometry_ms_dx{dx}"] = _median_ms(partial(wheel_geometry, grid, poses, robot), 3)
         for B in (1, 5):
             theta = spec.make(B, d1=0.03, d2=0.025, chi=0.8, beta=math.radians(30))
-            cfg = SimConfig(dx=dx)
+            cfg = SimConfig()
             res = simulate(h, geom, theta, cfg)
             key = f"dx{dx}_b{B}"
             out[f"sim_forward_ms_{key}"] = _median_ms(partial(simulate, h, geom, theta, cfg), repeat)
@@ -70,7 +70,7 @@ def run(quick: bool = False) -> dict[str, float]:
             out[f"sim_relax_iterations_{key}"] = it
             out[f"sim_cell_iterations_per_s_{key}"] = B * it * float(geom.domain.sum()) / (t_relax / 1e3)
             if B == 5:
-                torch_cfg = SimConfig(dx=dx, backend="torch")
+                torch_cfg = SimConfig(backend="torch")
                 out[f"sim_forward_torch_ms_{key}"] = _median_ms(
                     partial(simulate, h, geom, theta, torch_cfg), max(3, repeat // 4))
                 out[f"sim_forward_backward_ms_{key}"] = _median_ms(

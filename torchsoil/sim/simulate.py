@@ -23,7 +23,6 @@ MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avo
 class SimConfig:
     """Simulator settings (configs/default.yaml, section `sim`). Lengths in metres or cells."""
 
-    dx: float = 0.02
     tau: float = 0.01
     eps_scale: float = 4.0
     max_iter: int = 2000

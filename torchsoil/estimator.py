@@ -1,0 +1,196 @@
+"""Online soil-parameter estimation along a drive (paper section IV-C).
+
+`Estimator(pair, config)` cuts the drive into windows, fits (d_1..d_T, chi, beta) in each one
+from the measured H_f (never from an earlier window's simulation), warm-started from the
+previous window, and scores the fit on the window itself (residual) and one window length
+ahead, on ground it did not see (prediction).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from torchsoil.cost import weighted_l1
+from torchsoil.optimizer import FitResult, fit
+from torchsoil.sim import ParamSpec, SimConfig, simulate
+from torchsoil.windows import WindowData, WindowSpec, path_index, plan_windows, prepare_window
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+class WindowOutput(NamedTuple):
+    """row: the params.csv row (metres, beta in degrees); reference: deformation signal and
+    noise floor of the window, m; data: the window; h_sim: (X, Y) simulated H_b on the crop at
+    the fitted parameters (None when the window was skipped); fit: optimizer result."""
+
+    row: dict
+    reference: dict
+    data: WindowData | None
+    h_sim: torch.Tensor | None
+    fit: FitResult | None
+
+
+class Estimator:
+    """Sliding-window estimator over one terrain pair (an object with grid, robot, poses,
+    h_front, h_back, dx; see torchsoil.terrain.TerrainPair).
+
+    Args:
+        pair: the terrain pair.
+        config: the full configuration (sections `sim` and `estimator`).
+        device: torch device (default: config estimator.device).
+    """
+
+    def __init__(self, pair, config: dict, device=None, dtype=torch.float64):
+        self.pair = pair
+        self.est = config["estimator"]
+        self.sim = SimConfig.from_dict(config["sim"])
+        self.device = torch.device(device) if device is not None else pick_device(self.est["device"])
+        self.dtype = dtype
+        robot = pair.robot
+        self.spec = ParamSpec.base(robot.n_tracks)
+        reach = max(self.est["corridor"] / 2, self.est["floor_outer"] * robot.wheel_width + np.abs(
+            robot.wheels[:, 1]).max()) + robot.wheel_width
+        self.index = path_index(pair.grid, pair.poses, robot, reach)
+        self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), self.est["window"],
+                                                      self.est["stride"])
+        ratio = self.est["window"] / self.est["stride"]
+        self.ahead = int(round(ratio)) if abs(ratio - round(ratio)) < 1e-6 else None
+        T = robot.n_tracks
+        self.names = self.spec.names
+        # optimizer variables: all parameters, or one shared sinkage (merged ablation)
+        self.expand = ([0] * T + [1, 2]) if self.est["merged_sinkage"] else list(range(T + 2))
+        n_free = max(self.expand) + 1
+        kinds = [("d" if n.startswith("d") else n) for n in self.names]
+        free_kind = [kinds[self.expand.index(i)] for i in range(n_free)]
+        kw = dict(device=self.device, dtype=dtype)
+        lo, hi = self.spec.bounds(torch.zeros(1, **kw))
+        self.lower = torch.stack([lo[self.expand.index(i)] for i in range(n_free)])
+        self.upper = torch.stack([hi[self.expand.index(i)] for i in range(n_free)])
+        self.scale = torch.tensor([self.est["scale"][k] for k in free_kind], **kw)
+        self.lr = torch.tensor([self.est["lr"][k] for k in free_kind], **kw)
+        self.fd_step = torch.tensor([self.est["fd_step"][k] for k in free_kind], **kw)
+        init = self.est["init"]
+        full = [init["d"]] * T + [init["chi"], math.radians(init["beta_deg"])]
+        self.theta0 = torch.tensor([full[self.expand.index(i)] for i in range(n_free)], **kw)
+        self._cache: dict[int, WindowData | None] = {}
+
+    # ------------------------------------------------------------------ helpers
+    def full_theta(self, free: torch.Tensor) -> torch.Tensor:
+        """(B, P_free) optimizer variables -> (B, P) simulator parameters."""
+        return free[:, self.expand]
+
+    def data(self, k: int) -> WindowData | None:
+        if k not in self._cache:
+            spec = self.windows[k]
+            self._cache[k] = prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device,
+                                            self.dtype)
+        return self._cache[k]
+
+    def objective(self, wd: WindowData):
+        def cost(free: torch.Tensor) -> torch.Tensor:
+            r = simulate(wd.h_front, wd.geom, self.full_theta(free), self.sim, self.spec, h_ref=wd.h_ref)
+            return weighted_l1(r.h, wd.h_back, wd.weight)
+
+        return cost
+
+    def fit_window(self, wd: WindowData, theta0: torch.Tensor) -> FitResult:
+        e = self.est
+        return fit(self.objective(wd), theta0, self.lower, self.upper, scale=self.scale, rule=e["optimizer"],
+                   step=e["step"], lr=self.lr, max_iter=e["max_iter"], step_tol=e["step_tol"],
+                   grad=e["grad"], fd_step=self.fd_step)
+
+    def predict(self, free: torch.Tensor, wd: WindowData) -> tuple[torch.Tensor, float]:
+        """Simulated H_b (X, Y) and cost of parameters `free` on window data wd."""
+        with torch.no_grad():
+            r = simulate(wd.h_front, wd.geom, self.full_theta(free[None]), self.sim, self.spec, h_ref=wd.h_ref)
+            return r.h[0], float(weighted_l1(r.h, wd.h_back, wd.weight)[0])
+
+    # --------------------------------------------------------------------- run
+    def run(self, start: int = 0, theta: torch.Tensor | None = None) -> Iterator[WindowOutput]:
+        """Fit windows start, start+1, ... in order, yielding each as soon as it is done.
+
+        theta: warm start (P_free,) (default: config estimator.init).
+        """
+        theta = self.theta0.clone() if theta is None else theta.to(self.theta0)
+        for k in range(start, len(self.windows)):
+            t0 = time.perf_counter()
+            spec = self.windows[k]
+            wd = self.data(k)
+            for old in [i for i in self._cache if i < k]:
+                del self._cache[old]
+            reference = {"signal": math.nan, "floor": math.nan}
+            if wd is None or "few_valid" in wd.flags:
+                flags = ("empty",) if wd is None else wd.flags
+                yield WindowOutput(self._row(spec, wd, None, math.nan, math.nan, 0, time.perf_counter() - t0,
+                                             flags), reference, wd, None, None)
+                continue
+            res = self.fit_window(wd, theta)
+            theta = res.theta
+            h_sim, residual = self.predict(theta, wd)
+            prediction = math.nan
+            ahead = self._ahead_data(k)
+            if ahead is not None and "few_valid" not in ahead.flags:
+                prediction = self.predict(theta, ahead)[1]
+            with torch.no_grad():
+                reference["signal"] = float(weighted_l1(wd.h_front[0], wd.h_back, wd.weight))
+                reference["floor"] = float(weighted_l1(wd.h_front[0], wd.h_back, wd.floor.to(self.dtype)))
+            flags = list(wd.flags) + ([] if res.converged else ["not_converged"])
+            row = self._row(spec, wd, theta, residual, prediction, res.iterations, time.perf_counter() - t0,
+                            tuple(flags))
+            yield WindowOutput(row, reference, wd, h_sim, res)
+
+    def _ahead_data(self, k: int) -> WindowData | None:
+        if self.ahead is not None:
+            return self.data(k + self.ahead) if k + self.ahead < len(self.windows) else None
+        spec = self.windows[k]
+        if spec.s1 + self.est["window"] > self.index.arc[-1]:
+            return None
+        ahead = WindowSpec(-1, spec.s1, spec.s1 + self.est["window"])
+        return prepare_window(self.pair, self.index, ahead, self.est, self.sim, self.device, self.dtype)
+
+    def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags) -> dict:
+        row = {"s": spec.centre,
+               "t": wd.t if wd else math.nan, "x": wd.x if wd else math.nan, "y": wd.y if wd else math.nan}
+        full = self.full_theta(free[None])[0].tolist() if free is not None else [math.nan] * len(self.names)
+        for name, value in zip(self.names, full, strict=True):
+            row[name] = math.degrees(value) if name == "beta" else value
+        row.update(residual=residual, prediction=prediction, iterations=iterations, seconds=seconds,
+                   flags="|".join(flags))
+        return row
+
+    def free_from_row(self, row: dict) -> torch.Tensor | None:
+        """Warm start from a params.csv row (None when the row holds no fit)."""
+        full = [float(row[n]) for n in self.names]
+        if any(math.isnan(v) for v in full):
+            return None
+        full[-1] = math.radians(full[-1])
+        return torch.tensor([full[self.expand.index(i)] for i in range(max(self.expand) + 1)],
+                            device=self.device, dtype=self.dtype)
+
+
+class Stitcher:
+    """Simulated H_b over the whole grid: each cell from the window whose centre is nearest."""
+
+    def __init__(self, shape, s_index: np.ndarray, h_sim: np.ndarray | None = None):
+        self.h_sim = np.full(shape, np.nan, np.float32) if h_sim is None else h_sim.astype(np.float32)
+        self.best = np.full(shape, np.inf)
+        if h_sim is not None:
+            self.best[np.isfinite(h_sim)] = 0.0  # cells restored from a previous run stay
+        self.s = s_index
+
+    def add(self, wd: WindowData, h_sim: torch.Tensor) -> None:
+        i0, i1, j0, j1 = wd.crop
+        dist = np.abs(self.s[i0:i1, j0:j1] - wd.spec.centre)
+        take = wd.ground.cpu().numpy() & (dist < self.best[i0:i1, j0:j1])
+        self.best[i0:i1, j0:j1][take] = dist[take]
+        self.h_sim[i0:i1, j0:j1][take] = h_sim.detach().cpu().numpy()[take]

@@ -1,0 +1,178 @@
+"""Estimation windows along the drive (paper section IV-C): where each window's ground lies,
+which cells its cost counts, and the cropped, simulation-ready data of one window."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from torchsoil.grid import Grid
+from torchsoil.robot import Robot
+from torchsoil.sim import SimConfig, WheelGeometry, wheel_geometry
+from torchsoil.sim.geometry import resample_poses, wheel_positions
+from torchsoil.sim.sinkage import reference_height
+
+
+class PathIndex(NamedTuple):
+    """Every cell's place relative to the drive; (X, Y) arrays, inf/NaN far from the path.
+
+    s: arc length of the nearest base_link path point, m. offset: distance to the base_link
+    path, m. wheel_dist: distance to the nearest wheel path, m. arc: (N,) arc length at each
+    pose, m.
+    """
+
+    s: np.ndarray
+    offset: np.ndarray
+    wheel_dist: np.ndarray
+    arc: np.ndarray
+
+
+def path_arc(poses: np.ndarray) -> np.ndarray:
+    """(N,) cumulative base_link path length at each (N, 7) pose, m."""
+    step = np.linalg.norm(np.diff(poses[:, 1:3], axis=0), axis=1)
+    return np.concatenate([[0.0], np.cumsum(step)])
+
+
+def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float) -> PathIndex:
+    """Arc length and distances for the cells within `reach` [m] of the path."""
+    arc = path_arc(poses)
+    planar = poses[:, [0, 1, 2, 6]]
+    dense = resample_poses(planar, robot.wheels[:, :2], grid.dx / 2)
+    dense_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense[:, 1:3], axis=0), axis=1))])
+    xs, ys = grid.centers()
+    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    d, i = cKDTree(dense[:, 1:3]).query(cells, distance_upper_bound=reach)
+    hit = np.isfinite(d)
+    s = np.full(len(cells), np.nan)
+    s[hit] = dense_arc[i[hit]]
+    wheels = wheel_positions(dense, robot.wheels[:, :2]).reshape(-1, 2)
+    wd, _ = cKDTree(wheels).query(cells, distance_upper_bound=reach)
+    return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc)
+
+
+@dataclass(frozen=True)
+class WindowSpec:
+    """Window `index` covers the ground whose nearest path point lies at arc length [s0, s1), m."""
+
+    index: int
+    s0: float
+    s1: float
+
+    @property
+    def centre(self) -> float:
+        return 0.5 * (self.s0 + self.s1)
+
+
+def plan_windows(length: float, window: float, stride: float, start: float = 0.0) -> list[WindowSpec]:
+    """Full windows of `window` m every `stride` m along a path of `length` m."""
+    if window <= 0 or stride <= 0:
+        raise ValueError(f"window ({window}) and stride ({stride}) must be positive lengths in metres")
+    n = int(np.floor((length - start - window) / stride + 1e-9)) + 1
+    return [WindowSpec(k, start + k * stride, start + k * stride + window) for k in range(max(n, 0))]
+
+
+class WindowData(NamedTuple):
+    """One window cropped from the terrain pair, ready to simulate (tensors on one device).
+
+    crop: (i0, i1, j0, j1) cells of the full grid. grid: the crop's Grid. geom: wheel geometry
+    of the poses that pass over the crop. h_front: (1, X, Y) measured surface, gaps filled
+    from the nearest measured cell, m. h_ref: (1, X, Y) reference height. h_back: (X, Y)
+    measured surface after the wheels (0 where unmeasured), m. weight: (X, Y) cost weight
+    (window ground, measured before and after, near a wheel path). floor: (X, Y) bool cells
+    beside the rut for the noise floor. ground: (X, Y) bool window ground. t, x, y: time [s]
+    and position [m] at the window centre. flags: reasons to distrust the window.
+    """
+
+    spec: WindowSpec
+    crop: tuple[int, int, int, int]
+    grid: Grid
+    geom: WheelGeometry
+    h_front: torch.Tensor
+    h_ref: torch.Tensor
+    h_back: torch.Tensor
+    weight: torch.Tensor
+    floor: torch.Tensor
+    ground: torch.Tensor
+    t: float
+    x: float
+    y: float
+    flags: tuple[str, ...]
+
+
+def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
+    """The robot moved slower than `speed` [m/s] for more than `duration` [s] in these poses."""
+    if len(poses) < 2:
+        return False
+    dt = np.diff(poses[:, 0])
+    v = np.linalg.norm(np.diff(poses[:, 1:3], axis=0), axis=1) / np.maximum(dt, 1e-9)
+    slow = np.where(v < speed, dt, 0.0)
+    run = best = 0.0
+    for d in slow:
+        run = run + d if d > 0 else 0.0
+        best = max(best, run)
+    return best > duration
+
+
+def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: SimConfig,
+                   device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = ()) -> WindowData | None:
+    """Crop, fill and index one window. Returns None when the window holds no ground at all."""
+    robot = pair.robot
+    w = robot.wheel_width
+    ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est["corridor"] / 2)
+    near = index.wheel_dist <= max(est["weight_width"] * w, w / 2 + sim.relax_margin * w)
+    cells = np.argwhere(ground_full & near)
+    if len(cells) == 0:
+        return None
+    margin = int(np.ceil(0.1 / pair.dx))
+    X, Y = ground_full.shape
+    i0, j0 = np.maximum(cells.min(0) - margin, 0)
+    i1, j1 = np.minimum(cells.max(0) + margin + 1, (X, Y))
+    crop = (int(i0), int(i1), int(j0), int(j1))
+    sl = (slice(i0, i1), slice(j0, j1))
+    grid = pair.grid.crop(*crop)
+
+    reach = np.abs(robot.wheels[:, 0]).max() + w / 2 + 0.1
+    sel = (index.arc >= spec.s0 - reach) & (index.arc <= spec.s1 + reach)
+    first, last = np.flatnonzero(sel)[[0, -1]]
+    poses = pair.poses[max(first - 1, 0):last + 2]
+    geom = wheel_geometry(grid, poses, robot, pose_spacing=sim.pose_spacing, band_width=sim.band_width,
+                          relax_margin=sim.relax_margin, device=device, dtype=dtype)
+
+    hf = np.asarray(pair.h_front[sl], dtype=np.float64)
+    hb = np.asarray(pair.h_back[sl], dtype=np.float64)
+    measured_f = np.isfinite(hf)
+    flags = list(extra_flags)
+    if not measured_f.any():
+        return None
+    if not measured_f.all():  # gaps: nearest measured value (kept out of the cost)
+        idx = ndimage.distance_transform_edt(~measured_f, return_distances=False, return_indices=True)
+        hf = hf[tuple(idx)]
+    ground = ground_full[sl]
+    zone = ground & (index.wheel_dist[sl] <= est["weight_width"] * w)
+    weight = zone & measured_f & np.isfinite(hb)
+    floor = (ground & measured_f & np.isfinite(hb) & (index.wheel_dist[sl] >= est["floor_inner"] * w)
+             & (index.wheel_dist[sl] <= est["floor_outer"] * w))
+    if weight.sum() < est["min_valid_fraction"] * max(zone.sum(), 1):
+        flags.append("few_valid")
+    in_window = pair.poses[(index.arc >= spec.s0) & (index.arc <= spec.s1)]
+    if _stopped(in_window, est["stop_speed"], est["stop_time"]):
+        flags.append("stopped")
+    c = spec.centre
+    kw = dict(device=device, dtype=dtype)
+    h_front = torch.as_tensor(hf, **kw)[None]
+    return WindowData(
+        spec=spec, crop=crop, grid=grid, geom=geom, h_front=h_front,
+        h_ref=reference_height(h_front, sim.ref_radius * w / 2, pair.dx),
+        h_back=torch.as_tensor(np.where(np.isfinite(hb), hb, 0.0), **kw),
+        weight=torch.as_tensor(weight, **kw), floor=torch.as_tensor(floor, device=device),
+        ground=torch.as_tensor(ground, device=device),
+        t=float(np.interp(c, index.arc, pair.poses[:, 0])),
+        x=float(np.interp(c, index.arc, pair.poses[:, 1])),
+        y=float(np.interp(c, index.arc, pair.poses[:, 2])),
+        flags=tuple(flags),
+    )
