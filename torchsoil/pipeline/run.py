@@ -1,0 +1,257 @@
+"""The lidar pipeline as one call: a recording in, a terrain pair out (paper section III).
+
+    result = process_bag("run.bag", robot, PipelineConfig.from_yaml("configs/pipeline.yaml"))
+    result.terrain.save("terrain.npz")
+
+Stages: read (torchsoil.io.bag) -> fuse front + back in base_link -> reference map and
+trajectory (mapping) -> re-registration of each stream onto P_ref (reregister) -> corridor
+extraction and rasterization (raster). Sweeps the stages could not use are flagged per
+sweep (`scan_flags` in the output, bit names in `mapping.FLAG_NAMES`) and summarised in
+`result.problems` with their times.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import Rotation
+
+from torchsoil.io.bag import Recording, read_recording, xyzrpy_matrix
+from torchsoil.pipeline import icp, mapping
+from torchsoil.pipeline.mapping import MappingConfig, Sweep, build_map
+from torchsoil.pipeline.raster import Accumulator, RasterConfig, corridor
+from torchsoil.pipeline.reregister import ReregisterConfig, register_sweep
+from torchsoil.robot import Robot
+from torchsoil.terrain import TerrainPair
+
+
+@dataclass
+class ReadConfig:
+    """Topics and frames. extrinsics: {frame: [x, y, z, roll, pitch, yaw]} in base_frame
+    (m, rad), overriding /tf_static for that frame."""
+
+    front_topic: str = "/lidar_front/points"
+    back_topic: str = "/lidar_back/points"
+    tf_topic: str = "/tf_static"
+    base_frame: str = "base_link"
+    extrinsics: dict[str, list[float]] = field(default_factory=dict)
+
+
+@dataclass
+class PipelineConfig:
+    read: ReadConfig = field(default_factory=ReadConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    reregister: ReregisterConfig = field(default_factory=ReregisterConfig)
+    raster: RasterConfig = field(default_factory=RasterConfig)
+
+    @classmethod
+    def from_dict(cls, doc: dict | None, source: str = "pipeline config") -> PipelineConfig:
+        """Defaults overridden by a nested mapping {stage: {key: value}}; unknown keys are
+        an error naming the stage and the key."""
+        cfg = cls()
+        for stage, values in (doc or {}).items():
+            if stage not in {f.name for f in fields(cls)}:
+                raise ValueError(f"{source}: unknown stage '{stage}' "
+                                 f"(known: {[f.name for f in fields(cls)]})")
+            sub = getattr(cfg, stage)
+            for key, value in (values or {}).items():
+                if key not in {f.name for f in fields(sub)}:
+                    raise ValueError(f"{source}: unknown key '{stage}.{key}' "
+                                     f"(known: {[f.name for f in fields(sub)]})")
+                setattr(sub, key, value)
+        return cfg
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> PipelineConfig:
+        path = Path(path)
+        doc = yaml.safe_load(path.read_text())
+        return cls.from_dict(doc.get("pipeline", doc) if isinstance(doc, dict) else doc, str(path))
+
+    def to_dict(self) -> dict:
+        return {f.name: {g.name: getattr(getattr(self, f.name), g.name)
+                         for g in fields(getattr(self, f.name))}
+                for f in fields(self) if is_dataclass(getattr(self, f.name))}
+
+
+class PipelineResult(NamedTuple):
+    """terrain: the terrain pair (with extras); mapping: the MappingResult (T_ref, P_ref);
+    timings: seconds per stage; problems: messages naming flagged sweeps and times;
+    duration: recording length, s."""
+
+    terrain: TerrainPair
+    mapping: mapping.MappingResult
+    timings: dict[str, float]
+    problems: list[str]
+    duration: float
+
+
+def extrinsics_for(rec: Recording, cfg: ReadConfig, frames: list[str]) -> dict[str, np.ndarray]:
+    """{frame: base_T_frame} from /tf_static, overridden by cfg.extrinsics; error if missing."""
+    out = dict(rec.extrinsics)
+    for frame, v in cfg.extrinsics.items():
+        out[frame] = xyzrpy_matrix(v)
+    for frame in frames:
+        if frame not in out:
+            raise ValueError(f"no extrinsic for lidar frame '{frame}': neither {cfg.tf_topic} "
+                             f"links it to '{cfg.base_frame}' nor does the configuration "
+                             "(read.extrinsics) or the robot YAML (lidars) give it")
+    return out
+
+
+def fuse(front: list[Sweep], back: list[Sweep], period: float) -> tuple[list[Sweep], np.ndarray]:
+    """Each front sweep merged with the back sweep nearest in time (within half a period);
+    returns fused sweeps (stamped like the front ones) and (S,) flags (MISSING_BACK)."""
+    bstamps = np.array([b.stamp for b in back])
+    out, flags = [], np.zeros(len(front), dtype=np.int64)
+    for k, f in enumerate(front):
+        j = int(np.argmin(np.abs(bstamps - f.stamp))) if len(back) else -1
+        if j < 0 or abs(bstamps[j] - f.stamp) > period / 2:
+            out.append(f)
+            flags[k] |= mapping.MISSING_BACK
+            continue
+        b = back[j]
+        out.append(Sweep(f.stamp, np.concatenate([f.points, b.points]),
+                         np.concatenate([f.t, b.t + (b.stamp - f.stamp)])))
+    return out, flags
+
+
+def _to_base(clouds, T: np.ndarray) -> list[Sweep]:
+    return [Sweep(c.stamp, icp.apply(T, c.xyz.astype(np.float64)), c.t.astype(np.float64))
+            for c in clouds]
+
+
+def poses_to_rows(stamps: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(S,) times and (S, 4, 4) poses -> (S, 7) FORMATS rows t, x, y, z, roll, pitch, yaw."""
+    rpy = Rotation.from_matrix(poses[:, :3, :3]).as_euler("xyz")
+    return np.column_stack([stamps, poses[:, :3, 3], rpy])
+
+
+def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]:
+    """Human-readable runs of flagged sweeps: 'sweeps 40-75 (t = 4.00-7.50 s): degenerate'."""
+    out = []
+    for bit, name in mapping.FLAG_NAMES.items():
+        on = (flags & bit) != 0
+        k = 0
+        while k < len(on):
+            if not on[k]:
+                k += 1
+                continue
+            j = k
+            while j + 1 < len(on) and on[j + 1]:
+                j += 1
+            out.append(f"sweeps {k}-{j} (t = {stamps[k] - t0:.2f}-{stamps[j] - t0:.2f} s after "
+                       f"the start): {name}")
+            k = j + 1
+    return out
+
+
+def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | None = None,
+                progress: bool = False) -> PipelineResult:
+    """Recording -> terrain pair (H_f, H_b on one grid, T_ref) with per-sweep flags.
+
+    Args:
+        bag_path: ROS 2 bag directory or ROS 1 file (FORMATS.md section 1).
+        robot: wheel layout (written into the terrain pair; also bounds the ground each
+            lidar may measure: ahead of the front wheels, behind the rear wheels).
+        config: stage settings (defaults: configs/pipeline.yaml values).
+        progress: show tqdm progress bars.
+    Raises:
+        BagError / ValueError naming the bag, topic or frame when the input is unusable;
+        nothing is written by this function.
+    """
+    cfg = config or PipelineConfig()
+    timings: dict[str, float] = {}
+    bar = _bars(progress)
+    t0 = time.perf_counter()
+    rec = read_recording(bag_path, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
+                         cfg.read.base_frame, progress=bar("read", None))
+    frames = [rec.front[0].frame, rec.back[0].frame]
+    ext = extrinsics_for(rec, cfg.read, frames)
+    front = _to_base(rec.front, ext[frames[0]])
+    back = _to_base(rec.back, ext[frames[1]])
+    del rec.front[:], rec.back[:]
+    timings["read"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    stamps = np.array([s.stamp for s in front])
+    period = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.1
+    fused, flags = fuse(front, back, period)
+    maps = build_map(fused, cfg.mapping, progress=bar("mapping", len(fused)))
+    flags |= maps.flags
+    del fused
+    timings["mapping"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    target = icp.make_target(maps.map_points, cfg.mapping.normal_radius, maps.map_normals)
+    ref_ok = (maps.flags & (mapping.POOR_FIT | mapping.EMPTY)) == 0
+    ref_stamps, ref_poses = maps.stamps[ref_ok], maps.poses[ref_ok]
+    grid, mask = corridor(ref_poses[:, :2, 3], cfg.raster.corridor_width, cfg.raster.dx)
+    acc = {"front": Accumulator(grid, mask), "back": Accumulator(grid, mask)}
+    wheel_x = robot.wheels[:, 0]
+    edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
+    stats = {}
+    tick = bar("re-register", len(front) + len(back))
+    for name, sweeps, fail_bit in (("front", front, mapping.REREG_FRONT_FAILED),
+                                   ("back", back, mapping.REREG_BACK_FAILED)):
+        n = len(sweeps)
+        fit, rmse, ok = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
+        for k, sw in enumerate(sweeps):
+            tick(1)
+            if len(sw.points) == 0:
+                continue
+            pts, T, fit[k], rmse[k], ok[k], _ = register_sweep(
+                sw.points, sw.t, sw.stamp, ref_stamps, ref_poses, target, cfg.reregister, period)
+            if not ok[k]:
+                j = int(np.argmin(np.abs(stamps - sw.stamp)))
+                flags[j] |= fail_bit
+                continue
+            rng = np.linalg.norm(sw.points, axis=1)  # distance from base_link, m
+            sel = rng < cfg.raster.max_range
+            sel &= (pts[:, 0] > wheel_x.max() + edge) if name == "front" else \
+                (pts[:, 0] < wheel_x.min() - edge)
+            acc[name].add(icp.apply(T, pts[sel]))
+        stats[name] = (fit, rmse, ok)
+    timings["reregister_raster"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    hf = acc["front"].heightmap(cfg.raster.fill_radius)
+    hb = acc["back"].heightmap(cfg.raster.fill_radius)
+    extras = {
+        "valid_front": hf.valid, "valid_back": hb.valid,
+        "measured_front": hf.measured, "measured_back": hb.measured,
+        "count_front": hf.count, "count_back": hb.count,
+        "var_front": hf.var, "var_back": hb.var,
+        "scan_stamps": stamps, "scan_flags": flags,
+        "map_fitness": maps.fitness, "map_rmse": maps.rmse,
+        "rereg_fitness_front": stats["front"][0], "rereg_rmse_front": stats["front"][1],
+        "rereg_fitness_back": stats["back"][0], "rereg_rmse_back": stats["back"][1],
+        "roi_mask": mask,
+    }
+    terrain = TerrainPair(grid.dx, np.array(grid.origin), hf.h, hb.h,
+                          poses_to_rows(ref_stamps, ref_poses), robot.wheels, robot.wheel_width,
+                          robot.wheel_flat_fraction, extras)
+    timings["finish"] = time.perf_counter() - t0
+    problems = list(rec.problems) + flagged_spans(stamps, flags, rec.start)
+    for name in ("front", "back"):
+        kept = stats[name][2].mean() if len(stats[name][2]) else 0.0
+        if kept < 0.5:
+            problems.append(f"only {kept:.0%} of the {name} sweeps were re-registered")
+    return PipelineResult(terrain, maps, timings, problems, rec.duration)
+
+
+def _bars(enabled: bool):
+    """Factory of progress callbacks: bar(name, total) -> callable(n)."""
+    if not enabled:
+        return lambda name, total: (lambda n: None)
+    from tqdm.auto import tqdm
+
+    def make(name, total):
+        b = tqdm(total=total, desc=name, unit="msg" if total is None else "sweep", leave=False)
+        return b.update
+
+    return make
