@@ -1,0 +1,99 @@
+"""rosbag2 output through `rosbags`: PointCloud2 lidar sweeps and /tf_static (FORMATS.md
+section 1), in sqlite3 or mcap storage (mcap optionally with zstd chunk compression)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+from rosbags.typesys import Stores, get_typestore
+
+POINT_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"),
+                        ("t", "<u4"), ("ring", "<u2")])
+_DATATYPE = {"<f4": 7, "<u4": 6, "<u2": 4}   # sensor_msgs/PointField constants
+
+TYPESTORE = get_typestore(Stores.ROS2_HUMBLE)
+_T = TYPESTORE.types
+_ZERO = QosTime(0, 0)
+TF_STATIC_QOS = Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+                    _ZERO, _ZERO, QosLiveliness.AUTOMATIC, _ZERO, False)
+
+
+def stamp(t_ns: int):
+    """builtin_interfaces/Time from integer nanoseconds."""
+    return _T["builtin_interfaces/msg/Time"](sec=int(t_ns // 1_000_000_000), nanosec=int(t_ns % 1_000_000_000))
+
+
+def pointcloud2(points: np.ndarray, frame_id: str, t_ns: int):
+    """An unorganized PointCloud2 from a structured array of POINT_DTYPE (N,)."""
+    if points.dtype != POINT_DTYPE:
+        raise ValueError(f"points must have dtype {POINT_DTYPE}, got {points.dtype}")
+    PF = _T["sensor_msgs/msg/PointField"]
+    fields = [PF(name=n, offset=POINT_DTYPE.fields[n][1], datatype=_DATATYPE[POINT_DTYPE.fields[n][0].str],
+                 count=1) for n in POINT_DTYPE.names]
+    data = np.frombuffer(np.ascontiguousarray(points).tobytes(), dtype=np.uint8)
+    header = _T["std_msgs/msg/Header"](stamp=stamp(t_ns), frame_id=frame_id)
+    return _T["sensor_msgs/msg/PointCloud2"](
+        header=header, height=1, width=len(points), fields=fields, is_bigendian=False,
+        point_step=POINT_DTYPE.itemsize, row_step=POINT_DTYPE.itemsize * len(points), data=data,
+        is_dense=True)
+
+
+def tf_message(transforms: list[tuple[str, str, np.ndarray, np.ndarray]], t_ns: int):
+    """TFMessage from (parent, child, translation (3,), quaternion xyzw (4,)) tuples."""
+    G = _T["geometry_msgs/msg/TransformStamped"]
+    out = []
+    for parent, child, xyz, q in transforms:
+        tr = _T["geometry_msgs/msg/Transform"](
+            translation=_T["geometry_msgs/msg/Vector3"](x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])),
+            rotation=_T["geometry_msgs/msg/Quaternion"](x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+        out.append(G(header=_T["std_msgs/msg/Header"](stamp=stamp(t_ns), frame_id=parent),
+                     child_frame_id=child, transform=tr))
+    return _T["tf2_msgs/msg/TFMessage"](transforms=out)
+
+
+class BagWriter:
+    """Write lidar sweeps and static transforms to a new rosbag2 directory.
+
+    Use as a context manager; `storage` is "sqlite3" or "mcap"; `compress` (mcap only)
+    zstd-compresses the mcap chunks, which ROS 2 tools read natively.
+    """
+
+    def __init__(self, path: str | Path, storage: str = "mcap", compress: bool = True):
+        self.path = Path(path)
+        if self.path.exists():
+            raise FileExistsError(f"bag output {self.path} already exists; remove it or choose another path")
+        plugins = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
+        if storage not in plugins:
+            raise ValueError(f"storage must be sqlite3 or mcap, got {storage!r}")
+        self.writer = Writer(self.path, version=9, storage_plugin=plugins[storage])
+        if compress and storage == "mcap":
+            self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self.connections: dict[str, object] = {}
+
+    def __enter__(self) -> BagWriter:
+        self.writer.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.writer.close()
+
+    def _conn(self, topic: str, msgtype: str, qos=()):
+        if topic not in self.connections:
+            self.connections[topic] = self.writer.add_connection(topic, msgtype, typestore=TYPESTORE,
+                                                                 offered_qos_profiles=qos)
+        return self.connections[topic]
+
+    def write_cloud(self, topic: str, frame_id: str, points: np.ndarray, stamp_ns: int, log_ns: int) -> None:
+        """points: (N,) POINT_DTYPE; stamp_ns: header stamp (sweep start); log_ns: bag time."""
+        msg = pointcloud2(points, frame_id, stamp_ns)
+        conn = self._conn(topic, "sensor_msgs/msg/PointCloud2")
+        self.writer.write(conn, int(log_ns), TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+
+    def write_tf_static(self, transforms, stamp_ns: int) -> None:
+        msg = tf_message(transforms, stamp_ns)
+        conn = self._conn("/tf_static", "tf2_msgs/msg/TFMessage", (TF_STATIC_QOS,))
+        self.writer.write(conn, int(stamp_ns), TYPESTORE.serialize_cdr(msg, "tf2_msgs/msg/TFMessage"))

@@ -1,0 +1,143 @@
+"""Physics the base model leaves out: the catalogue effects of FORMATS.md section 4 plus
+out-of-catalogue ones, each a plausible law with its own parameters.
+
+Every effect scales a base quantity by a factor 1 + k * phi(x) of a covariate x that is 0
+under the base model's conditions, with a choosable functional form phi:
+
+    linear:      phi(x) = x
+    power:       phi(x) = sign(x) |x|^p
+    saturating:  phi(x) = x_s * tanh(x / x_s)        (linear near 0, bounded by +-x_s)
+
+| id | covariate x | scaled quantity |
+| --- | --- | --- |
+| multi_pass_hardening | pass index - 1 (0 on the first pass) | sinkage d (k < 0: later passes sink less) |
+| speed_dependent_sinkage | v / v_ref - 1 | sinkage d |
+| slip_sinkage | traction demand a / g + sin(grade) | sinkage d |
+| lateral_load_transfer | per wheel -side * 2 h_cg / track * (a_lat / g + sin(roll)) | sinkage d of that wheel |
+| cohesive_walls | c0 + soil moisture | tan(beta) of dug cells (rut walls, floor) |
+| footprint_width | local d / d_ref | footprint radius |
+| tread (out of catalogue) | arc length along the wheel path | extra floor depth amp * (1 + cos(2 pi s / wavelength)) / 2 |
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+CATALOGUE = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage",
+             "lateral_load_transfer", "cohesive_walls", "footprint_width")
+OUT_OF_CATALOGUE = ("tread",)
+EFFECTS = CATALOGUE + OUT_OF_CATALOGUE
+FORMS = ("linear", "power", "saturating")
+G = 9.81  # m/s^2
+
+DEFAULTS: dict[str, dict] = {
+    "multi_pass_hardening": {"form": "saturating", "k": -0.6, "p": 1.0, "x_s": 1.0},
+    "speed_dependent_sinkage": {"form": "linear", "k": 0.6, "p": 1.0, "x_s": 0.5, "v_ref": 1.0},
+    "slip_sinkage": {"form": "linear", "k": 6.0, "p": 1.0, "x_s": 0.1},
+    "lateral_load_transfer": {"form": "linear", "k": 1.5, "p": 1.0, "x_s": 0.5, "h_cg": 0.6},
+    "cohesive_walls": {"form": "linear", "k": 0.8, "p": 1.0, "x_s": 1.0, "c0": 1.0},
+    "footprint_width": {"form": "linear", "k": 0.5, "p": 1.0, "x_s": 1.0, "d_ref": 0.05},
+    "tread": {"amp": 0.007, "wavelength": 0.2},
+}
+
+
+def phi(x, form: str, p: float = 1.0, x_s: float = 1.0) -> np.ndarray:
+    """The shape function of an effect law (see module docstring); x any array."""
+    x = np.asarray(x, dtype=np.float64)
+    if form == "linear":
+        return x
+    if form == "power":
+        return np.sign(x) * np.abs(x) ** p
+    if form == "saturating":
+        return x_s * np.tanh(x / x_s)
+    raise ValueError(f"effect form must be one of {FORMS}, got {form!r}")
+
+
+def factor(x, params: dict, lo: float = 0.05, hi: float = 10.0) -> np.ndarray:
+    """1 + k * phi(x), clipped to [lo, hi]."""
+    f = 1.0 + params["k"] * phi(x, params["form"], params["p"], params["x_s"])
+    return np.clip(f, lo, hi)
+
+
+def resolve(effects: dict | None) -> dict[str, dict]:
+    """Scenario `effects` section -> {id: full parameter dict} of the effects switched on.
+
+    Accepts `{id: {param: value, enabled: bool}}` or `{id: true}`; unknown ids or parameters
+    raise ValueError naming them."""
+    out = {}
+    for name, params in (effects or {}).items():
+        if name not in EFFECTS:
+            raise ValueError(f"unknown effect {name!r}; known: {EFFECTS}")
+        if params is False or params is None:
+            continue
+        params = {} if params is True else dict(params)
+        if not params.pop("enabled", True):
+            continue
+        unknown = set(params) - set(DEFAULTS[name])
+        if unknown:
+            raise ValueError(f"effect {name}: unknown parameters {sorted(unknown)}; "
+                             f"known: {sorted(DEFAULTS[name])}")
+        full = DEFAULTS[name] | params
+        if "form" in full and full["form"] not in FORMS:
+            raise ValueError(f"effect {name}: form must be one of {FORMS}, got {full['form']!r}")
+        out[name] = full
+    return out
+
+
+def pose_depth_factor(effects: dict[str, dict], speed, accel, pitch, roll, yaw_rate,
+                      wheels_y: np.ndarray, track_width: float) -> np.ndarray:
+    """Per-wheel, per-pose sinkage factor of the pose-driven effects.
+
+    speed, accel [m/s, m/s^2], pitch, roll [rad], yaw_rate [rad/s]: (N,) at the poses;
+    wheels_y: (K,) lateral wheel offsets, m. Returns (K, N) factors (1 without effects).
+    """
+    N, K = len(speed), len(wheels_y)
+    f = np.ones((K, N))
+    if "speed_dependent_sinkage" in effects:
+        e = effects["speed_dependent_sinkage"]
+        f = f * factor(np.asarray(speed) / e["v_ref"] - 1.0, e)[None]
+    if "slip_sinkage" in effects:
+        e = effects["slip_sinkage"]
+        demand = np.asarray(accel) / G + np.sin(-np.asarray(pitch))   # climbing: pitch < 0
+        f = f * factor(demand, e)[None]
+    if "lateral_load_transfer" in effects:
+        e = effects["lateral_load_transfer"]
+        a_lat = np.asarray(speed) * np.asarray(yaw_rate)             # towards the turn centre
+        side = np.sign(wheels_y)[:, None]                            # +1 left, -1 right
+        shift = 2 * e["h_cg"] / track_width * (a_lat / G + np.sin(np.asarray(roll)))[None]
+        f = f * factor(-side * shift, e)
+    return f
+
+
+def pass_depth_factor(effects: dict[str, dict], pass_index: np.ndarray) -> np.ndarray | float:
+    """Sinkage factor for cells visited for the pass_index-th time (1 = first)."""
+    if "multi_pass_hardening" not in effects:
+        return 1.0
+    return factor(np.asarray(pass_index, dtype=np.float64) - 1.0, effects["multi_pass_hardening"])
+
+
+def wall_tan_beta(effects: dict[str, dict], tan_beta: np.ndarray, moisture: np.ndarray) -> np.ndarray:
+    """tan of the angle at which dug cells settle (cohesive walls stand steeper)."""
+    if "cohesive_walls" not in effects:
+        return tan_beta
+    e = effects["cohesive_walls"]
+    return np.minimum(tan_beta * factor(e["c0"] + moisture, e, lo=1.0),
+                      math.tan(math.radians(89.0)))
+
+
+def radius_scale(effects: dict[str, dict], d: float) -> float:
+    """Footprint radius factor for local sinkage d [m], within [0.5, 1.5]."""
+    if "footprint_width" not in effects:
+        return 1.0
+    e = effects["footprint_width"]
+    return float(np.clip(factor(d / e["d_ref"], e), 0.5, 1.5))
+
+
+def tread_depth(effects: dict[str, dict], arc: np.ndarray) -> np.ndarray | float:
+    """Extra floor depth of a lugged tyre at wheel arc length `arc` [m] (0 without tread)."""
+    if "tread" not in effects:
+        return 0.0
+    e = effects["tread"]
+    return e["amp"] * 0.5 * (1.0 + np.cos(2 * math.pi * np.asarray(arc) / e["wavelength"]))

@@ -1,0 +1,154 @@
+"""A full synthetic recording: scenario -> truth -> dual-lidar sweeps -> rosbag2.
+
+Files written for `make_recording(..., out=PATH)`:
+
+    PATH/                 the rosbag2 directory (FORMATS.md section 1), nothing else inside
+    PATH.robot.yaml       the robot description (FORMATS.md section 2)
+    PATH.pair.npz         terrain pair straight from the truth, 3 mm per-cell noise (section 3)
+    PATH.truth.npz        the truth: noise-free surfaces, per-visit states and times, soil
+                          fields, true poses, time of last wheel passage (tools under test
+                          must not read it)
+    PATH.truth.json       scenario, effects and parameters, seed, extrinsics, timings
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from torchsoil.synth import effects as fx
+from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter
+from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
+from torchsoil.synth.scenario import Truth, build_truth, terrain_pair_from_truth
+
+T0_NS = 1_750_000_000 * 1_000_000_000   # bag clock of trajectory time 0, ns
+
+
+def sidecar(out: str | Path, suffix: str) -> Path:
+    """PATH.<suffix> beside the bag directory PATH."""
+    out = Path(out)
+    return out.with_name(out.name + "." + suffix)
+
+
+def lidars_for(truth: Truth) -> list[LidarSpec]:
+    lid = truth.scenario["lidar"]
+    return paper_lidars(int(lid["columns"]), float(lid["rate_hz"]))
+
+
+def scene_for(truth: Truth) -> Scene:
+    w = truth.world
+    return Scene(truth.field, truth.h_field.astype(np.float32), truth.corridor,
+                 w.states.astype(np.float32), w.visit_time.astype(np.float32),
+                 truth.landmarks.cylinders, truth.landmarks.boxes)
+
+
+def sweep_points(sw: dict) -> np.ndarray:
+    """Valid returns of one sweep as a POINT_DTYPE array (row-major over ring, column)."""
+    ok = np.isfinite(sw["xyz"][..., 0])
+    pts = np.empty(int(ok.sum()), dtype=POINT_DTYPE)
+    pts["x"], pts["y"], pts["z"] = (sw["xyz"][..., i][ok] for i in range(3))
+    pts["intensity"] = sw["intensity"][ok]
+    pts["t"] = sw["t_ns"][ok]
+    pts["ring"] = sw["ring"][ok]
+    return pts
+
+
+def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
+                   storage: str = "mcap", compress: bool = True, duration: float | None = None,
+                   columns: int | None = None, progress: bool = False) -> dict:
+    """Write the bag directory `out` and its sidecar files (module docstring).
+
+    duration: record only the first `duration` s of the drive (default: all of it);
+    columns: override the scenario's lidar columns. Returns a dict of figures (timings [s],
+    bag size [MB], number of sweeps and points)."""
+    out = Path(out)
+    t0 = time.perf_counter()
+    truth = build_truth(scenario, seed, dx)
+    if columns is not None:
+        truth.scenario["lidar"]["columns"] = int(columns)
+    t1 = time.perf_counter()
+    specs = lidars_for(truth)
+    scene = scene_for(truth)
+    lid = truth.scenario["lidar"]
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
+    end = truth.traj.duration if duration is None else min(duration, truth.traj.duration)
+    period = 1.0 / specs[0].rate_hz
+    starts = np.arange(0.0, end - period + 1e-9, period)
+    n_points = 0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(starts), unit="sweep", desc=f"recording {out.name}")
+    with BagWriter(out, storage=storage, compress=compress) as bag:
+        tfs = [("base_link", s.name, np.asarray(s.xyz), matrix_quaternion(s.transform()[:3, :3]))
+               for s in specs]
+        bag.write_tf_static(tfs, T0_NS)
+        for ts in starts:
+            stamp_ns = T0_NS + int(round(ts * 1e9))
+            for s in specs:
+                pts = sweep_points(scan(scene, s, truth.traj.poses, float(ts), rng,
+                                        float(lid["range_noise"]), float(lid["dropout"])))
+                n_points += len(pts)
+                bag.write_cloud(f"/{s.name}/points", s.name, pts, stamp_ns,
+                                stamp_ns + int(round(period * 1e9)))
+            if bar is not None:
+                bar.update(1)
+    if bar is not None:
+        bar.close()
+    t2 = time.perf_counter()
+    write_sidecars(truth, out, seed, specs)
+    t3 = time.perf_counter()
+    size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+    return {"truth_s": t1 - t0, "lidar_s": t2 - t1, "sidecars_s": t3 - t2, "total_s": t3 - t0,
+            "drive_s": float(end), "sweeps": float(2 * len(starts)), "points": float(n_points),
+            "bag_mb": size / 1e6}
+
+
+def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | None = None) -> None:
+    """Robot YAML, terrain pair and truth files beside the bag path `out`."""
+    specs = specs or lidars_for(truth)
+    sidecar(out, "robot.yaml").write_text(yaml.safe_dump(truth.robot.to_dict(), sort_keys=False))
+    np.savez_compressed(sidecar(out, "pair.npz"), **terrain_pair_from_truth(truth, seed))
+    w = truth.world
+    np.savez_compressed(
+        sidecar(out, "truth.npz"),
+        dx=np.float64(w.grid.dx), origin=np.asarray(w.grid.origin),
+        h_before=w.h_before.astype(np.float32), h_after=w.h_after.astype(np.float32),
+        states=w.states.astype(np.float32), visit_time=w.visit_time.astype(np.float32),
+        n_visits=w.n_visits.astype(np.int16), t_last_wheel=w.t_last_wheel.astype(np.float32),
+        poses=truth.traj.poses, speed=truth.traj.speed, accel=truth.traj.accel,
+        yaw_rate=truth.traj.yaw_rate, arc=truth.traj.arc,
+        soil_d=w.soil["d"].astype(np.float32), soil_chi=w.soil["chi"].astype(np.float32),
+        soil_beta=w.soil["beta"].astype(np.float32), soil_moisture=w.soil["moisture"].astype(np.float32),
+        cylinders=truth.landmarks.cylinders, boxes=truth.landmarks.boxes,
+    )
+    eff = fx.resolve(truth.scenario.get("effects"))
+    meta = {
+        "scenario": truth.scenario.get("name"),
+        "seed": int(seed),
+        "effects": eff,
+        "catalogue_effects": [e for e in eff if e in fx.CATALOGUE],
+        "out_of_catalogue_effects": [e for e in eff if e in fx.OUT_OF_CATALOGUE],
+        "scenario_spec": truth.scenario,
+        "bag_time_of_t0_ns": T0_NS,
+        "time_note": "truth and pair pose times t are seconds after bag_time_of_t0_ns",
+        "extrinsics": {s.name: {"parent": "base_link", "xyz": list(s.xyz), "rpy": list(s.rpy),
+                                "beams": s.beams, "vfov_deg": s.vfov_deg, "columns": s.columns,
+                                "rate_hz": s.rate_hz} for s in specs},
+        "timings": truth.timings,
+    }
+    sidecar(out, "truth.json").write_text(json.dumps(meta, indent=1, default=_jsonable))
+
+
+def _jsonable(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"not JSON serializable: {type(o)}")

@@ -1,0 +1,279 @@
+"""The world soil model: the base model's stages (torchsoil.sim) with spatially varying soil
+and switchable extra physics (torchsoil.synth.effects), run along the true trajectory.
+
+The path is simulated in short chunks of base_link arc length, each with the soil of its
+own cells (sinkage d and angle of repose beta per cell, chi per chunk). The reference
+height h~ of a cell is taken from the surface just before the robot's current visit to it,
+so both wheels of a track dig to the same depth and a later pass digs from the rut the
+earlier one left. A visit starts when a wheel comes near a cell after the robot has
+travelled more than `revisit_gap` since it last did.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from torchsoil.grid import Grid
+from torchsoil.robot import Robot
+from torchsoil.sim.relaxation import relax
+from torchsoil.sim.sinkage import reference_height, taper
+from torchsoil.synth import effects as fx
+from torchsoil.synth.terrain import soil_at
+from torchsoil.synth.trajectory import Trajectory
+
+MAX_VISITS = 6
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """World model settings (the paper's values). Lengths in metres unless said.
+
+    tau, eps_scale, max_iter, backend: relaxation stop, rate (eps = eps_scale / dx^2), cap
+    and kernel (torchsoil.sim.relax); ref_radius: reference-height disc radius as a fraction
+    of the footprint radius; band_width: deposition band width, cells; relax_margin:
+    relaxation domain beyond the footprint, wheel widths; pose_spacing: wheels move at most
+    this many cells between simulated poses; chunk: arc length per simulation chunk.
+    """
+
+    tau: float = 0.01
+    eps_scale: float = 4.0
+    max_iter: int = 2000
+    backend: str = "auto"
+    ref_radius: float = 0.5
+    band_width: float = 1.0
+    relax_margin: float = 2.0
+    pose_spacing: float = 0.5
+    chunk: float = 0.4
+
+
+@dataclass
+class WorldResult:
+    """Truth of one drive on the corridor grid (all (X, Y) arrays, float64 unless noted).
+
+    h_before: surface before the robot, m.          h_after: surface after the drive, m.
+    states: (V+1, X, Y) surface after the cell's v-th visit (v = 0: before), m.
+    visit_time: (V, X, Y) time the cell reached states[v+1], s (inf: no such visit).
+    n_visits: (X, Y) int, visits per cell.     t_last_wheel: time a wheel last covered the cell, s (nan: never).
+    soil: {d, chi, beta, moisture} per cell.
+    """
+
+    grid: Grid
+    h_before: np.ndarray
+    h_after: np.ndarray
+    states: np.ndarray
+    visit_time: np.ndarray
+    n_visits: np.ndarray
+    t_last_wheel: np.ndarray
+    soil: dict
+
+    def surface_at(self, t: float) -> np.ndarray:
+        """(X, Y) true surface at time t [s]: each cell in its state after the visits done by t."""
+        done = (self.visit_time <= t).sum(0)
+        return np.take_along_axis(self.states, done[None], 0)[0]
+
+
+def _chunks(arc: np.ndarray, length: float) -> list[np.ndarray]:
+    """Pose index ranges of consecutive chunks of `length` m of arc (1 pose overlap)."""
+    edges = np.arange(0.0, arc[-1] + length, length)
+    out = []
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        idx = np.nonzero((arc >= a) & (arc < b))[0]
+        if len(idx):
+            hi = min(idx[-1] + 1, len(arc) - 1)
+            out.append(np.arange(max(idx[0] - 1, 0), hi + 1))
+    return out
+
+
+def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, soil: dict,
+                   effects: dict | None = None, config: WorldConfig | None = None,
+                   revisit_gap: float | None = None) -> WorldResult:
+    """Drive the robot along `traj` over the surface h0 (X, Y) [m] on `grid`.
+
+    soil: scenario soil section (see `terrain.soil_at`), with optional `track_scale` (T,)
+    factors on d per track; effects: scenario effects section (see `effects.resolve`);
+    revisit_gap: base_link travel [m] after which a wheel near a cell starts a new visit
+    (default: twice the wheelbase plus a wheel width).
+    """
+    config = config or WorldConfig()
+    eff = fx.resolve(effects)
+    h0 = np.asarray(h0, dtype=np.float64)
+    if h0.shape != grid.shape:
+        raise ValueError(f"h0 must have the grid's shape {grid.shape}, got {h0.shape}")
+    dx = grid.dx
+    xs, ys = grid.centers()
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    sf = soil_at(soil, X, Y)
+    track_scale = np.asarray(soil.get("track_scale", [1.0] * robot.n_tracks), dtype=np.float64)
+    if track_scale.shape != (robot.n_tracks,):
+        raise ValueError(f"soil.track_scale must have {robot.n_tracks} entries, got {track_scale.tolist()}")
+    tan_beta = np.tan(sf["beta"])
+    tan_wall = fx.wall_tan_beta(eff, tan_beta, sf["moisture"])
+    track_width = float(np.ptp(robot.wheels[:, 1])) or 1.0
+    gap = revisit_gap if revisit_gap is not None else 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
+
+    h = h0.copy()
+    h_ref = h0.copy()
+    last_arc = np.full(grid.shape, -np.inf)
+    n_visits = np.zeros(grid.shape, dtype=np.int64)
+    states = np.repeat(h0[None], MAX_VISITS + 1, axis=0)
+    visit_time = np.full((MAX_VISITS, *grid.shape), np.inf)
+    t_wheel = np.full(grid.shape, np.nan)
+    radius0 = robot.wheel_width / 2
+    reach = radius0 * 1.5 + (config.band_width + 1) * dx + config.relax_margin * robot.wheel_width + 2 * dx
+    wxy = robot.wheels[:, :2]
+    K = len(robot.wheels)
+    tt = traj.poses[:, 0]
+
+    for idx in _chunks(traj.arc, config.chunk):
+        p = traj.poses[idx]
+        w = _wheel_xy(p[:, [0, 1, 2, 6]], wxy)
+        lo = grid.index(w.reshape(-1, 2).min(0) - reach)
+        hi = grid.index(w.reshape(-1, 2).max(0) + reach) + 1
+        i0, j0 = max(lo[0], 0), max(lo[1], 0)
+        i1, j1 = min(hi[0], grid.shape[0]), min(hi[1], grid.shape[1])
+        if i1 - i0 < 2 or j1 - j0 < 2:
+            continue
+        win = (slice(i0, i1), slice(j0, j1))
+        rscale = fx.radius_scale(eff, float(np.median(sf["d"][win])))
+        geom = chunk_geometry(grid.crop(i0, i1, j0, j1), p[:, [0, 1, 2, 6]], wxy,
+                              reach, config.pose_spacing * dx)
+        gp, dist, pidx = geom["poses"], geom["dist"], geom["pose"]
+        t_pose = gp[:, 0][pidx]                                    # (K, X, Y)
+
+        # visits: cells near a wheel now that the robot had left more than `gap` metres ago
+        near_k = dist <= radius0 * rscale + config.relax_margin * robot.wheel_width
+        near = near_k.any(0)
+        new = near & (float(traj.arc[idx[0]]) - last_arc[win] > gap)
+        if new.any():
+            hw = h[win]
+            v = n_visits[win]
+            if v[new].max() >= MAX_VISITS:
+                raise ValueError(f"a cell is visited more than {MAX_VISITS} times")
+            for k in range(1, MAX_VISITS + 1):         # state after visit k, until overwritten
+                sel = (new & (v == k))[None]
+                states[k:, i0:i1, j0:j1] = np.where(sel, hw[None], states[k:, i0:i1, j0:j1])
+            ref = reference_height(torch.from_numpy(hw)[None], config.ref_radius * radius0, dx)[0].numpy()
+            h_ref[win] = np.where(new, ref, h_ref[win])
+            n_visits[win] = v + new
+        last_arc[win] = np.where(near, float(traj.arc[idx[-1]]), last_arc[win])
+
+        # sinkage per wheel and cell: soil d x track x pose-driven effects x pass effects (+ tread)
+        sp, ac, yr = (np.interp(gp[:, 0], tt, a) for a in (traj.speed, traj.accel, traj.yaw_rate))
+        ro, pi = (np.interp(gp[:, 0], tt, traj.poses[:, c]) for c in (4, 5))
+        fpose = fx.pose_depth_factor(eff, sp, ac, pi, ro, yr, robot.wheels[:, 1], track_width)
+        fcell = np.take_along_axis(fpose, pidx.reshape(K, -1), 1).reshape(pidx.shape)
+        depth = (sf["d"][win][None] * track_scale[robot.track][:, None, None] * fcell
+                 * np.asarray(fx.pass_depth_factor(eff, np.maximum(n_visits[win], 1)))[None])
+        if "tread" in eff:
+            wg = _wheel_xy(gp, wxy)
+            warc = np.concatenate([np.zeros((K, 1)), np.cumsum(
+                np.linalg.norm(np.diff(wg, axis=1), axis=-1), 1)], 1) + float(traj.arc[idx[0]])
+            depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
+                                           .reshape(pidx.shape))
+
+        h[win], covered = _step(h[win], h_ref[win], geom, radius0 * rscale, robot, depth,
+                                float(np.median(sf["chi"][win])), tan_beta[win], tan_wall[win], config)
+        t_cov = np.where(covered, t_pose, -np.inf).max(0)
+        t_wheel[win] = np.where(covered.any(0), t_cov, t_wheel[win])
+        t_near = np.where(near_k, t_pose, -np.inf).max(0)
+        v = n_visits[win]
+        for k in range(1, int(v.max()) + 1):
+            sel = near & (v == k)
+            cur = visit_time[k - 1, i0:i1, j0:j1]
+            visit_time[k - 1, i0:i1, j0:j1] = np.where(sel, np.where(np.isfinite(cur), np.maximum(cur, t_near),
+                                                                     t_near), cur)
+
+    V = int(n_visits.max())
+    for k in range(1, V + 1):                               # the final state after the last visit
+        states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
+    return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf)
+
+
+def _wheel_xy(gp: np.ndarray, wxy: np.ndarray) -> np.ndarray:
+    """(N, 4) poses t, x, y, yaw -> (K, N, 2) wheel centres."""
+    c, s = np.cos(gp[:, 3]), np.sin(gp[:, 3])
+    x = gp[None, :, 1] + c[None] * wxy[:, :1] - s[None] * wxy[:, 1:]
+    y = gp[None, :, 2] + s[None] * wxy[:, :1] + c[None] * wxy[:, 1:]
+    return np.stack([x, y], -1)
+
+
+def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
+                   max_step: float) -> dict:
+    """Dense per-wheel geometry of one chunk on a small grid.
+
+    poses: (N, 4) t, x, y, yaw; wxy: (K, 2) wheel offsets in base_link, m; reach: search
+    radius, m; max_step: poses are resampled so no wheel moves more than this, m.
+    Returns {poses (M, 4), dist (K, X, Y) [m, inf beyond reach], lateral (K, X, Y) [m, left
+    positive], pose (K, X, Y) int index of the nearest pose, bin (K, X, Y) int arc bin of
+    2 cells along the wheel's path}.
+    """
+    p = poses.copy()
+    p[:, 3] = np.unwrap(p[:, 3])
+    if len(p) > 1:
+        w = _wheel_xy(p, wxy)
+        step = np.linalg.norm(np.diff(w, axis=1), axis=-1).max(0)
+        n = np.maximum(1, np.ceil(step / max_step).astype(np.int64))
+        frac = np.concatenate([np.arange(m) / m for m in n])
+        seg = np.repeat(np.arange(len(p) - 1), n)
+        p = np.vstack([p[seg] + frac[:, None] * (p[seg + 1] - p[seg]), p[-1:]])
+    w = _wheel_xy(p, wxy)                                          # (K, M, 2)
+    xs, ys = grid.centers()
+    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    K = len(wxy)
+    shape = (K, *grid.shape)
+    dist = np.full((K, len(cells)), np.inf)
+    lateral = np.zeros((K, len(cells)))
+    pose = np.zeros((K, len(cells)), dtype=np.int64)
+    bins = np.zeros((K, len(cells)), dtype=np.int64)
+    for k in range(K):
+        d = np.gradient(w[k], axis=0) if len(p) > 1 else np.zeros_like(w[k])
+        moving = np.linalg.norm(d, axis=1) > 1e-9
+        head = np.where(moving, np.arctan2(d[:, 1], d[:, 0]), p[:, 3])
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(w[k], axis=0), axis=1))])
+        dd, ii = cKDTree(w[k]).query(cells, distance_upper_bound=reach)
+        hit = np.isfinite(dd)
+        ih = ii[hit]
+        rel = cells[hit] - w[k, ih]
+        dist[k, hit] = dd[hit]
+        lateral[k, hit] = -np.sin(head[ih]) * rel[:, 0] + np.cos(head[ih]) * rel[:, 1]
+        pose[k, hit] = ih
+        bins[k, hit] = np.floor(arc[ih] / (2 * grid.dx)).astype(np.int64)
+    return {"poses": p, "dist": dist.reshape(shape), "lateral": lateral.reshape(shape),
+            "pose": pose.reshape(shape), "bin": bins.reshape(shape), "dx": grid.dx}
+
+
+def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi: float, tan_beta, tan_wall,
+          config: WorldConfig):
+    """One chunk of the base model's stages on window arrays (X, Y) [m]; depth (K, X, Y) [m].
+
+    Sinkage h <- min(h, h_ref - s * depth) over each footprint; the height removed under
+    each wheel goes, times chi, to the band of width config.band_width cells beside its
+    footprint in the same 2-cell arc bin; then relaxation to tan(beta) (tan_wall on dug
+    cells). Returns the new surface (X, Y) and the (K, X, Y) bool footprint cover."""
+    dist, lateral = geom["dist"], geom["lateral"]
+    covered = dist <= radius
+    s = taper(torch.from_numpy(lateral / radius), robot.wheel_flat_fraction).numpy()
+    target = np.where(covered, h_ref[None] - s * depth, np.inf).min(0)
+    h_dug = np.minimum(h, target)
+    removed = h - h_dug
+    covered_any = covered.any(0)
+    owner = covered & (np.arange(len(dist))[:, None, None] == np.where(covered, s + 1, 0).argmax(0)[None])
+    band = (dist > radius) & (dist <= radius + config.band_width * geom["dx"]) & ~covered_any
+    added = np.zeros_like(h)
+    for k in range(len(dist)):
+        b = geom["bin"][k]
+        nb = int(b.max()) + 1
+        vol = np.bincount(b[owner[k]], removed[owner[k]], minlength=nb)
+        cnt = np.bincount(b[band[k]], minlength=nb)
+        share = np.where(cnt > 0, vol / np.maximum(cnt, 1), 0.0)
+        added[band[k]] += share[b[band[k]]]
+    tb = np.where(covered_any, tan_wall, tan_beta)
+    domain = dist.min(0) <= radius + config.relax_margin * robot.wheel_width
+    rr = relax(torch.from_numpy(h_dug + chi * added)[None], torch.from_numpy(tb)[None], geom["dx"],
+               torch.from_numpy(domain), config.tau, config.max_iter, None, config.eps_scale,
+               config.backend)
+    return rr.h[0].numpy(), covered
