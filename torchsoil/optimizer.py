@@ -61,7 +61,7 @@ def fit(objective, theta0: torch.Tensor, lower: torch.Tensor, upper: torch.Tenso
     best = (float("inf"), theta.clone())
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 (it is the iteration count returned)
         cost, g = gradient(objective, theta, upper, grad, fd_step)
         if cost < best[0]:
             best = (cost, theta.clone())

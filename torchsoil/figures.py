@@ -1,0 +1,164 @@
+"""Figures of an estimation run: the paper's Fig. 4 (parameters along the drive) and Fig. 6
+(measured vs simulated height-difference maps with cross-sections), and the Table I summary."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy import ndimage  # noqa: E402
+
+CMAP = "PiYG"  # pink: excavation, green: deposition (as in the paper)
+
+
+def _col(rows, key):
+    return np.array([r[key] for r in rows], dtype=float)
+
+
+def parameter_curves(rows: list[dict], reference: list[dict], names, path: Path) -> Path:
+    """Fig. 4: sinkages (mm), chi, beta (deg) and costs (mm) against arc length s (m)."""
+    s = _col(rows, "s")
+    fig, ax = plt.subplots(4, 1, figsize=(8, 9), sharex=True)
+    for n in names:
+        if n.startswith("d"):
+            ax[0].plot(s, 1e3 * _col(rows, n), ".-", label=n)
+    ax[0].set_ylabel("sinkage [mm]")
+    ax[0].legend(loc="best")
+    ax[1].plot(s, _col(rows, "chi"), ".-", color="C2")
+    ax[1].set_ylabel(r"$\chi$ [-]")
+    ax[2].plot(s, _col(rows, "beta"), ".-", color="C3")
+    ax[2].set_ylabel(r"$\beta$ [deg]")
+    ax[3].plot(s, 1e3 * _col(rows, "residual"), ".-", label="residual")
+    ax[3].plot(s, 1e3 * _col(rows, "prediction"), ".-", label="prediction")
+    if reference:
+        ax[3].plot(s, 1e3 * _col(reference, "floor"), "--", color="gray", label="noise floor")
+        ax[3].plot(s, 1e3 * _col(reference, "signal"), ":", color="k", label="deformation signal")
+    ax[3].set_ylabel("cost [mm]")
+    ax[3].set_xlabel("arc length s [m]")
+    ax[3].legend(loc="best", fontsize=8)
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def cross_section(h: np.ndarray, origin, dx: float, centre, heading: float, half_width: float,
+                  half_length: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """Profile of h (X, Y) across the travel direction at `centre` (x, y) [m], averaged over
+    +-half_length along it: lateral offsets (left positive) [m] and heights [m]."""
+    lat = np.arange(-half_width, half_width + 1e-9, dx)
+    along = np.arange(-half_length, half_length + 1e-9, dx)
+    c, s = math.cos(heading), math.sin(heading)
+    px = centre[0] + along[:, None] * c - lat[None] * s
+    py = centre[1] + along[:, None] * s + lat[None] * c
+    ij = np.stack([(px - origin[0]) / dx, (py - origin[1]) / dx])
+    good = np.isfinite(h)
+    val = ndimage.map_coordinates(np.where(good, h, 0.0), ij, order=1, cval=np.nan)
+    cnt = ndimage.map_coordinates(good.astype(float), ij, order=1, cval=0.0)
+    val = np.where(cnt > 0.99, val, np.nan)
+    with np.errstate(invalid="ignore"):
+        return lat, np.nanmean(val, axis=0)
+
+
+def _heading(poses: np.ndarray, t: float) -> float:
+    i = int(np.clip(np.searchsorted(poses[:, 0], t), 0, len(poses) - 1))
+    return float(poses[i, 6])
+
+
+def difference_maps(pair, h_sim: np.ndarray, rows: list[dict], path: Path, n_insets: int = 4) -> Path:
+    """Fig. 6: measured and simulated H_delta over the drive, with cross-sections at windows A-D."""
+    measured = pair.h_back - pair.h_front
+    simulated = np.where(np.isfinite(h_sim), h_sim - pair.h_front, np.nan)
+    fitted = [r for r in rows if not math.isnan(r["residual"])]
+    picks = [fitted[int(i)] for i in np.linspace(0, len(fitted) - 1, min(n_insets, len(fitted)))] if fitted else []
+    x0, y0 = pair.origin
+    X, Y = measured.shape
+    extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)
+    lim = float(np.nanpercentile(np.abs(measured), 99)) if np.isfinite(measured).any() else 0.05
+    fig = plt.figure(figsize=(12, 8))
+    gs = fig.add_gridspec(3, max(len(picks), 1), height_ratios=[1, 1, 1.1])
+    for row_i, (title, img) in enumerate([("measured $H_\\Delta$", measured), ("simulated $H_\\Delta$", simulated)]):
+        ax = fig.add_subplot(gs[row_i, :])
+        im = ax.imshow(img.T, origin="lower", extent=extent, cmap=CMAP, vmin=-lim, vmax=lim, aspect="equal")
+        ax.plot(pair.poses[:, 1], pair.poses[:, 2], color="k", lw=0.5, alpha=0.5)
+        for letter, r in zip("ABCDEFGH", picks, strict=False):
+            ax.annotate(letter, (r["x"], r["y"]), color="k", fontsize=10, weight="bold", ha="center")
+        ax.set_title(title)
+        ax.set_ylabel("y [m]")
+        fig.colorbar(im, ax=ax, label="m", fraction=0.02)
+    half = float(np.abs(pair.wheels[:, 1]).max() + 2.5 * pair.wheel_width)
+    for k, (letter, r) in enumerate(zip("ABCDEFGH", picks, strict=False)):
+        ax = fig.add_subplot(gs[2, k])
+        head = _heading(pair.poses, r["t"])
+        for img, label, style in [(measured, "measured", "-"), (simulated, "simulated", "--")]:
+            lat, prof = cross_section(img, pair.origin, pair.dx, (r["x"], r["y"]), head, half)
+            ax.plot(lat, 1e3 * prof, style, label=label)
+        ax.set_title(f"{letter}: s = {r['s']:.1f} m", fontsize=9)
+        ax.set_xlabel("lateral [m]")
+        if k == 0:
+            ax.set_ylabel("height change [mm]")
+            ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def window_figure(h_front: np.ndarray, h_back: np.ndarray, h_sim: np.ndarray, weight: np.ndarray, title: str):
+    """Measured vs simulated H_delta of one window's crop (a figure for TensorBoard)."""
+    meas = np.where(weight > 0, h_back - h_front, np.nan)
+    sim = h_sim - h_front
+    lim = float(np.nanpercentile(np.abs(meas), 99)) if np.isfinite(meas).any() else 0.05
+    fig, ax = plt.subplots(1, 2, figsize=(8, 3.5))
+    for a, img, t in [(ax[0], meas, "measured"), (ax[1], sim, "simulated")]:
+        im = a.imshow(img.T, origin="lower", cmap=CMAP, vmin=-lim, vmax=lim)
+        a.set_title(f"{t} $H_\\Delta$")
+    fig.colorbar(im, ax=ax, label="m", fraction=0.03)
+    fig.suptitle(title)
+    return fig
+
+
+def _stats(v: np.ndarray) -> str:
+    v = v[np.isfinite(v)] * 1e3
+    if len(v) == 0:
+        return "n/a | n/a | n/a"
+    return f"{v.mean():.2f} | {v.std():.2f} | {v.min():.1f}/{v.max():.1f}"
+
+
+def summary_table(rows: list[dict], reference: list[dict]) -> str:
+    """Table I of the paper: mean, std, min/max of the costs (x 1e-3 m)."""
+    res, pred = _col(rows, "residual"), _col(rows, "prediction")
+    sig, floor = _col(reference, "signal"), _col(reference, "floor")
+    lines = ["| row | residual mean | std | min/max | prediction mean | std | min/max |",
+             "| --- | --- | --- | --- | --- | --- | --- |",
+             f"| deformation signal | {_stats(sig)} | / | / | / |",
+             f"| noise floor | {_stats(floor)} | / | / | / |",
+             f"| model | {_stats(res)} | {_stats(pred)} |"]
+    return "\n".join(lines)
+
+
+def write_summary(path: Path, rows: list[dict], reference: list[dict], meta: dict) -> Path:
+    fitted = [r for r in rows if not math.isnan(r["residual"])]
+    floor = np.nanmean(_col(reference, "floor")) if reference else math.nan
+    pred = np.nanmean(_col(rows, "prediction")) if rows else math.nan
+    flagged = [r for r in rows if r["flags"]]
+    secs = _col(fitted, "seconds") if fitted else np.array([math.nan])
+    text = [f"# Soil-parameter estimation: {meta.get('input', '')}", "",
+            f"{len(rows)} windows ({len(fitted)} fitted, {len(flagged)} flagged) of "
+            f"{meta.get('window', '?')} m every {meta.get('stride', '?')} m; gradients: {meta.get('grad', '?')}; "
+            f"median {1e3 * np.nanmedian(secs):.0f} ms per window.", "",
+            "Costs: weighted mean L1 height difference, x 1e-3 m (paper Table I).", "",
+            summary_table(rows, reference), "",
+            f"Mean prediction cost / mean noise floor: {pred / floor:.3f}" if floor > 0 else "", ""]
+    if flagged:
+        text += ["Flagged windows:", ""] + [f"- s = {r['s']:.2f} m: {r['flags']}" for r in flagged[:50]]
+    Path(path).write_text("\n".join(text) + "\n")
+    return Path(path)

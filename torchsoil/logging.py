@@ -1,0 +1,89 @@
+"""Run outputs written as they happen: params.csv and reference.csv one row per window
+(flushed, so an interrupted run keeps what it did and `--resume` continues), and TensorBoard
+scalars and images."""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from pathlib import Path
+
+
+class CsvLog:
+    """Append-only CSV with a fixed header; `resume=True` keeps existing rows."""
+
+    def __init__(self, path: Path, columns: list[str], resume: bool):
+        self.path = Path(path)
+        self.columns = columns
+        self.rows: list[dict] = []
+        if resume and self.path.exists():
+            with self.path.open(newline="") as f:
+                reader = csv.DictReader(f)
+                if reader.fieldnames != columns:
+                    raise ValueError(f"{self.path}: columns {reader.fieldnames} do not match this run's "
+                                     f"{columns}; resume with the same robot and options, or start afresh")
+                self.rows = [_parse(r) for r in reader]
+        else:
+            with self.path.open("w", newline="") as f:
+                csv.DictWriter(f, columns).writeheader()
+
+    def append(self, row: dict) -> None:
+        with self.path.open("a", newline="") as f:
+            csv.DictWriter(f, self.columns).writerow({k: _fmt(row[k]) for k in self.columns})
+            f.flush()
+            os.fsync(f.fileno())
+        self.rows.append(row)
+
+
+def _fmt(v):
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else f"{v:.7g}"
+    return v
+
+
+def _parse(row: dict) -> dict:
+    out = {}
+    for k, v in row.items():
+        if k == "flags":
+            out[k] = v or ""
+        elif k == "iterations":
+            out[k] = int(v)
+        else:
+            out[k] = float(v)
+    return out
+
+
+class TensorBoardLog:
+    """Parameter curves and costs per window; measured vs simulated H_delta images."""
+
+    def __init__(self, log_dir: Path, enabled: bool = True):
+        self.writer = None
+        if enabled:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(str(log_dir))
+
+    def window(self, step: int, row: dict, reference: dict, names: tuple[str, ...]) -> None:
+        if self.writer is None:
+            return
+        for n in names:
+            if not math.isnan(row[n]):
+                unit = "deg" if n == "beta" else ("m" if n.startswith("d") else "")
+                self.writer.add_scalar(f"params/{n}" + (f"_{unit}" if unit else ""), row[n], step)
+        for key in ("residual", "prediction"):
+            if not math.isnan(row[key]):
+                self.writer.add_scalar(f"cost/{key}_m", row[key], step)
+        for key, value in reference.items():
+            if not math.isnan(value):
+                self.writer.add_scalar(f"cost/{key}_m", value, step)
+        self.writer.add_scalar("run/seconds", row["seconds"], step)
+        self.writer.add_scalar("run/iterations", row["iterations"], step)
+
+    def figure(self, tag: str, fig, step: int) -> None:
+        if self.writer is not None:
+            self.writer.add_figure(tag, fig, step)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
