@@ -1,0 +1,2 @@
+"""Gymnasium environments on the torchsoil simulator (registered by
+`torchsoil.registration.register_envs`)."""

@@ -1,0 +1,215 @@
+"""The field: an initial heightmap and maps of the soil parameters that vary in space.
+
+Layers follow the simulator's theta: d_1..d_T sinkage per track [m], chi [-], beta [rad],
+stored as one (T + 2, X, Y) stack. A field comes from a config (uniform soil with wet
+patches of deep sinkage and packed lanes of shallow sinkage) or from an estimator run's
+`params.csv` along a recorded path (nearest estimate to each cell).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.ndimage import gaussian_filter
+from scipy.spatial import cKDTree
+
+from torchsoil.grid import Grid
+from torchsoil.sim.params import BETA_BOUNDS, CHI_BOUNDS, D_BOUNDS
+
+
+@dataclass(frozen=True)
+class SoilField:
+    """Initial surface and soil-parameter maps on one grid.
+
+    Attributes:
+        grid: the field grid (cell [i, j] at origin + (i, j) * dx).
+        h0: (X, Y) float32 initial surface, m.
+        soil: (T + 2, X, Y) float32 d_1..d_T [m], chi [-], beta [rad].
+        names: T + 2 layer names ("d1", ..., "chi", "beta").
+    """
+
+    grid: Grid
+    h0: torch.Tensor
+    soil: torch.Tensor
+    names: tuple[str, ...]
+
+    def __post_init__(self):
+        X, Y = self.grid.shape
+        if tuple(self.h0.shape) != (X, Y):
+            raise ValueError(f"h0 must be (X, Y) = ({X}, {Y}), got {tuple(self.h0.shape)}")
+        if self.soil.ndim != 3 or tuple(self.soil.shape[1:]) != (X, Y) or self.soil.shape[0] < 3:
+            raise ValueError(f"soil must be (T + 2, {X}, {Y}) with T >= 1, got {tuple(self.soil.shape)}")
+        if len(self.names) != self.soil.shape[0]:
+            raise ValueError(f"{len(self.names)} layer names for {self.soil.shape[0]} soil layers")
+        if not (torch.isfinite(self.h0).all() and torch.isfinite(self.soil).all()):
+            raise ValueError("field heights and soil parameters must be finite everywhere")
+        T = self.n_tracks
+        _check_range("d", self.soil[:T], D_BOUNDS)
+        _check_range("chi", self.soil[T], CHI_BOUNDS)
+        _check_range("beta", self.soil[T + 1], BETA_BOUNDS)
+
+    @property
+    def n_tracks(self) -> int:
+        return self.soil.shape[0] - 2
+
+    def to(self, device) -> SoilField:
+        return SoilField(self.grid, self.h0.to(device), self.soil.to(device), self.names)
+
+
+def _check_range(name, t, bounds):
+    lo, hi = float(t.min()), float(t.max())
+    if lo < bounds[0] - 1e-6 or hi > bounds[1] + 1e-6:
+        raise ValueError(f"soil layer {name} spans [{lo:.4g}, {hi:.4g}], outside its bounds {bounds}")
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Field settings (configs/env/soil_traverse.yaml, section `field`).
+
+    size: (length along x, width along y), m; dx: cell edge, m; roughness: standard deviation
+    of the initial surface, m, smoothed over `roughness_length` m; seed: terrain noise seed;
+    soil: background {d: [m] or list per track, chi, beta_deg}; patches: list of
+    {center: [x, y], radius [m], d, chi, beta_deg} discs with a soft edge of `edge` m;
+    lanes: list of {y: [ymin, ymax], d, chi, beta_deg} bands along x (packed lanes).
+    """
+
+    size: tuple[float, float] = (20.0, 10.0)
+    dx: float = 0.05
+    roughness: float = 0.003
+    roughness_length: float = 0.3
+    seed: int = 0
+    n_tracks: int = 2
+    soil: dict = field(default_factory=lambda: {"d": 0.02, "chi": 0.6, "beta_deg": 30.0})
+    patches: tuple = ()
+    lanes: tuple = ()
+    edge: float = 0.5
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> FieldConfig:
+        d = dict(d or {})
+        known = set(cls.__dataclass_fields__)
+        unknown = set(d) - known
+        if unknown:
+            raise ValueError(f"unknown field settings {sorted(unknown)}; known: {sorted(known)}")
+        for key in ("size",):
+            if key in d:
+                d[key] = tuple(float(v) for v in d[key])
+        for key in ("patches", "lanes"):
+            if key in d:
+                d[key] = tuple(dict(p) for p in (d[key] or ()))
+        return cls(**d)
+
+
+def _layer_values(spec: dict, n_tracks: int, where: str, base: np.ndarray | None = None) -> np.ndarray:
+    """(T + 2,) d_1..d_T, chi, beta [rad] from a {d, chi, beta_deg} mapping (missing: from base)."""
+    unknown = set(spec) - {"d", "chi", "beta_deg", "center", "radius", "y"}
+    if unknown:
+        raise ValueError(f"{where}: unknown keys {sorted(unknown)}; use d, chi, beta_deg")
+    out = np.array(base, dtype=np.float64) if base is not None else np.full(n_tracks + 2, np.nan)
+    if "d" in spec:
+        d = np.atleast_1d(np.asarray(spec["d"], dtype=np.float64))
+        if d.size not in (1, n_tracks):
+            raise ValueError(f"{where}: d needs 1 or {n_tracks} values, got {d.size}")
+        out[:n_tracks] = d
+    if "chi" in spec:
+        out[n_tracks] = float(spec["chi"])
+    if "beta_deg" in spec:
+        out[n_tracks + 1] = math.radians(float(spec["beta_deg"]))
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{where}: needs d, chi and beta_deg")
+    return out
+
+
+def layer_names(n_tracks: int) -> tuple[str, ...]:
+    return tuple(f"d{k + 1}" for k in range(n_tracks)) + ("chi", "beta")
+
+
+def make_field(config: FieldConfig | dict | None = None) -> SoilField:
+    """Build a field from its config: rough initial surface, background soil, wet patches
+    (blended in over `edge` metres) and packed lanes. Same config, same field."""
+    cfg = config if isinstance(config, FieldConfig) else FieldConfig.from_dict(config)
+    if cfg.dx <= 0 or min(cfg.size) < 4 * cfg.dx:
+        raise ValueError(f"field size {cfg.size} m must span several cells of dx = {cfg.dx} m")
+    grid = Grid.covering(0.0, 0.0, cfg.size[0], cfg.size[1], cfg.dx)
+    T = cfg.n_tracks
+    rng = np.random.default_rng(cfg.seed)
+    noise = rng.standard_normal(grid.shape)
+    if cfg.roughness > 0:
+        noise = gaussian_filter(noise, cfg.roughness_length / cfg.dx, mode="wrap")
+        noise *= cfg.roughness / max(noise.std(), 1e-12)
+    h0 = noise * (cfg.roughness > 0)
+    base = _layer_values(cfg.soil, T, "field.soil")
+    soil = np.broadcast_to(base[:, None, None], (T + 2, *grid.shape)).copy()
+    xs, ys = grid.centers()
+    gx, gy = np.meshgrid(xs, ys, indexing="ij")
+    for n, lane in enumerate(cfg.lanes):
+        y0, y1 = (float(v) for v in lane["y"])
+        vals = _layer_values(lane, T, f"field.lanes[{n}]", base)
+        w = ((gy >= y0) & (gy <= y1)).astype(np.float64)
+        soil = soil * (1 - w) + vals[:, None, None] * w
+    for n, patch in enumerate(cfg.patches):
+        vals = _layer_values(patch, T, f"field.patches[{n}]", base)
+        r = np.hypot(gx - float(patch["center"][0]), gy - float(patch["center"][1]))
+        w = np.clip((float(patch["radius"]) + cfg.edge / 2 - r) / max(cfg.edge, 1e-9), 0.0, 1.0)
+        soil = soil * (1 - w) + vals[:, None, None] * w
+    return SoilField(grid, torch.as_tensor(h0, dtype=torch.float32),
+                     torch.as_tensor(soil, dtype=torch.float32), layer_names(T))
+
+
+def read_params_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
+    """An estimator run's params.csv -> path points (M, 2) x, y [m], parameters (M, T + 2)
+    d_1..d_T [m], chi, beta [rad], and the layer names. Rows with non-finite values are dropped."""
+    path = Path(path)
+    try:
+        with path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"params.csv not found: {path}") from None
+    if not rows:
+        raise ValueError(f"{path}: no estimates")
+    cols = rows[0].keys()
+    ds = sorted((c for c in cols if c.startswith("d") and c[1:].isdigit()), key=lambda c: int(c[1:]))
+    beta_col = next((c for c in cols if c.startswith("beta")), None)
+    missing = [c for c in ("x", "y", "chi") if c not in cols] + ([] if ds else ["d1"]) \
+        + ([] if beta_col else ["beta[deg]"])
+    if missing:
+        raise ValueError(f"{path}: missing columns {missing}; have {list(cols)}")
+    try:
+        xy = np.array([[float(r["x"]), float(r["y"])] for r in rows])
+        vals = np.array([[float(r[c]) for c in ds] + [float(r["chi"]), math.radians(float(r[beta_col]))]
+                         for r in rows])
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{path}: non-numeric value ({e})") from None
+    ok = np.isfinite(xy).all(1) & np.isfinite(vals).all(1)
+    if not ok.any():
+        raise ValueError(f"{path}: no row with finite x, y and parameters")
+    return xy[ok], vals[ok], layer_names(len(ds))
+
+
+def field_from_params_csv(path: str | Path, config: FieldConfig | dict | None = None,
+                          reach: float = 1.5) -> SoilField:
+    """A field whose soil near a recorded path is the estimate nearest to each cell.
+
+    Cells within `reach` metres of an estimate take its d_1..d_T, chi and beta; farther ones
+    keep the config's soil (patches and lanes). The field's tracks follow the csv's d columns.
+    """
+    xy, vals, names = read_params_csv(path)
+    cfg = config if isinstance(config, FieldConfig) else FieldConfig.from_dict(config)
+    if cfg.n_tracks != len(names) - 2:
+        cfg = FieldConfig(**{**cfg.__dict__, "n_tracks": len(names) - 2})
+    base = make_field(cfg)
+    xs, ys = base.grid.centers()
+    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    d, i = cKDTree(xy).query(cells, distance_upper_bound=reach)
+    hit = np.isfinite(d)
+    soil = base.soil.numpy().reshape(len(names), -1).copy()
+    lo = np.array([D_BOUNDS[0]] * (len(names) - 2) + [CHI_BOUNDS[0], BETA_BOUNDS[0]])
+    hi = np.array([D_BOUNDS[1]] * (len(names) - 2) + [CHI_BOUNDS[1], BETA_BOUNDS[1]])
+    soil[:, hit] = np.clip(vals[i[hit]], lo, hi).T
+    return SoilField(base.grid, base.h0, torch.as_tensor(soil.reshape(base.soil.shape),
+                                                         dtype=torch.float32), names)
