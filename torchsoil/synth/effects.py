@@ -16,7 +16,7 @@ under the base model's conditions, with a choosable functional form phi:
 | lateral_load_transfer | per wheel -side * 2 h_cg / track * (a_lat / g + sin(roll)) | sinkage d of that wheel |
 | cohesive_walls | c0 + soil moisture | tan(beta) of dug cells (rut walls, floor) |
 | footprint_width | local d / d_ref | footprint radius |
-| tread (out of catalogue) | arc length along the wheel path | extra floor depth amp * (1 + cos(2 pi s / wavelength)) / 2 |
+| tread (out of catalogue) | wheel arc length s | extra floor depth amp (1 + cos(2 pi s / wavelength)) / 2 |
 """
 
 from __future__ import annotations

@@ -159,6 +159,36 @@ def _slab(lo, ld, half, tmin, tmax):
     return max(tmin, t1), min(tmax, t2)
 
 
+@numba.njit(cache=True)
+def _march(ox_, oy_, oz_, dxw, dyw, dzw, horiz, best, t, ox, oy, dx, hf, hmax, i0, j0, st, vt):
+    """Conservative sphere tracing of one ray on the heightfield up to range `best`; returns
+    the hit range (bisection-refined) or `best` when the ray hits nothing closer."""
+    rate = -dzw + MAX_SLOPE * horiz
+    s = MIN_RANGE
+    prev = s
+    while s < best:
+        z = oz_ + s * dzw
+        h = _height(ox_ + s * dxw, oy_ + s * dyw, t, ox, oy, dx, hf, i0, j0, st, vt)
+        if math.isnan(h):
+            return best
+        gap = z - h
+        if gap <= 0:
+            lo_s, hi_s = prev, s             # bisection between above and below
+            for _ in range(12):
+                m = 0.5 * (lo_s + hi_s)
+                hm = _height(ox_ + m * dxw, oy_ + m * dyw, t, ox, oy, dx, hf, i0, j0, st, vt)
+                if oz_ + m * dzw - hm > 0:
+                    lo_s = m
+                else:
+                    hi_s = m
+            return 0.5 * (lo_s + hi_s)
+        if dzw >= 0 and z > hmax:
+            return best
+        prev = s
+        s += max(gap / rate if rate > 1e-6 else 1e9, MIN_STEP)
+    return best
+
+
 @numba.njit(cache=True, parallel=True)
 def _cast(org, rot, dirs, times, ox, oy, dx, hf, hmax, i0, j0, st, vt, cyl, box, out_r, out_k):
     """Cast beams x columns rays. org (C, 3), rot (C, 3, 3) sensor pose per column (world);
@@ -204,33 +234,11 @@ def _cast(org, rot, dirs, times, ox, oy, dx, hf, hmax, i0, j0, st, vt, cyl, box,
                 if ok and tmin <= tmax and MIN_RANGE <= tmin < best:
                     best = tmin
                     kind = KIND_BOX
-            # terrain: conservative sphere tracing on the heightfield
-            horiz = math.sqrt(a)
-            rate = -dzw + MAX_SLOPE * horiz
-            s = MIN_RANGE
-            prev = s
-            while s < best:
-                x, y, z = ox_ + s * dxw, oy_ + s * dyw, oz_ + s * dzw
-                h = _height(x, y, t, ox, oy, dx, hf, i0, j0, st, vt)
-                if math.isnan(h):
-                    break
-                gap = z - h
-                if gap <= 0:
-                    lo_s, hi_s = prev, s             # bisection between above and below
-                    for _ in range(12):
-                        m = 0.5 * (lo_s + hi_s)
-                        hm = _height(ox_ + m * dxw, oy_ + m * dyw, t, ox, oy, dx, hf, i0, j0, st, vt)
-                        if oz_ + m * dzw - hm > 0:
-                            lo_s = m
-                        else:
-                            hi_s = m
-                    best = 0.5 * (lo_s + hi_s)
-                    kind = KIND_GROUND
-                    break
-                if dzw >= 0 and z > hmax:
-                    break
-                prev = s
-                s += max(gap / rate if rate > 1e-6 else 1e9, MIN_STEP)
+            s = _march(ox_, oy_, oz_, dxw, dyw, dzw, math.sqrt(a), best, t, ox, oy, dx, hf, hmax,
+                       i0, j0, st, vt)
+            if s < best:
+                best = s
+                kind = KIND_GROUND
             out_r[b, c] = best if kind != KIND_NONE else math.inf
             out_k[b, c] = kind
 

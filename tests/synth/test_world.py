@@ -1,0 +1,216 @@
+"""The world soil model: base physics, and each effect changing the truth in its own way."""
+
+import math
+
+import numpy as np
+import pytest
+
+from torchsoil.synth import effects as fx
+from torchsoil.synth.scenario import build_truth
+
+# beta = 89 deg: relaxation leaves the ruts alone, so rut depths follow the sinkage laws
+BASE_SOIL = {"base": {"d": 0.03, "chi": 0.3, "beta_deg": 89.0, "moisture": 0.0}}
+SOIL_30 = {"base": {"d": 0.03, "chi": 0.3, "beta_deg": 30.0, "moisture": 0.0}}
+LOOP = [{"straight": 3.0, "speed": 1.0}, {"arc": 1.6, "angle_deg": 180, "speed": 1.0},
+        {"straight": 3.0, "speed": 1.0}, {"arc": 1.6, "angle_deg": 180, "speed": 1.0},
+        {"straight": 3.5, "speed": 1.0}]
+
+
+def scenario(segments, effects=None, soil=None, relief=None, accel_limit=0.5):
+    """A clean scenario: no micro-topography, small field, no landmarks."""
+    return {"name": "test", "trajectory": {"segments": segments, "accel_limit": accel_limit},
+            "terrain": {"relief": relief or {"amplitude": 0.0}, "micro": {"rms": 0.0},
+                        "margin": 1.0},
+            "soil": soil or BASE_SOIL, "effects": effects or {},
+            "landmarks": {"poles": 0, "trunks": 0, "shed": False, "fence": False}}
+
+
+def world(scn, seed=0):
+    return build_truth(scn, seed).world
+
+
+def rut_depth(w, xs, y, half=0.03):
+    """Rut depth [m]: deepest (before - after) across the rut near world y, averaged over
+    x in xs = (x0, x1)."""
+    gx, gy = w.grid.centers()
+    i = (gx >= xs[0]) & (gx <= xs[1])
+    j = np.abs(gy - y) <= half
+    return float((w.h_before - w.h_after)[np.ix_(i, j)].max(1).mean())
+
+
+STRAIGHT = [{"straight": 6.0, "speed": 1.0}]
+
+
+def test_base_rut_depth_matches_soil_d():
+    """No effects, flat ground: the rut floor sits d below the surface (the taper is 1 at the
+    wheel centre) in the middle of the drive."""
+    w = world(scenario(STRAIGHT))
+    for y in (0.5, -0.5):
+        assert rut_depth(w, (2.0, 5.0), y) == pytest.approx(0.03, abs=0.0015)
+    # nothing far from the wheel paths changes
+    gx, gy = w.grid.centers()
+    far = np.abs(np.abs(gy) - 0.5) > 0.45
+    assert np.abs(w.h_after - w.h_before)[:, far].max() < 1e-9
+
+
+def test_base_conserves_volume_and_deposits_share_chi():
+    """chi = 1: sinkage, deposition and relaxation together conserve soil volume; without
+    relaxation (beta = 89 deg) the deposited volume is about chi x the removed volume (a
+    little is dug again where a chunk's band reaches ahead of the wheel)."""
+    w = world(scenario(STRAIGHT, soil={"base": {"d": 0.03, "chi": 1.0, "beta_deg": 30.0}}))
+    dh = w.h_after - w.h_before
+    assert abs(dh.sum()) < 1e-9 * np.abs(dh).sum() + 1e-9
+    assert (dh < -0.01).sum() > 500
+    for chi in (0.0, 0.5):
+        w = world(scenario(STRAIGHT, soil={"base": {"d": 0.03, "chi": chi, "beta_deg": 89.0}}))
+        dh = w.h_after - w.h_before
+        removed, added = -dh[dh < 0].sum(), dh[dh > 0].sum()
+        assert added == pytest.approx(chi * removed, rel=0.1, abs=1e-9)
+
+
+def test_disabled_effects_leave_the_base_model():
+    base = world(scenario(STRAIGHT))
+    off = {name: {"enabled": False} for name in fx.EFFECTS}
+    w = world(scenario(STRAIGHT, effects=off))
+    np.testing.assert_array_equal(w.h_after, base.h_after)
+
+
+def test_world_matches_the_project_simulator_on_uniform_soil():
+    """Effects off, uniform soil: the chunked world agrees with torchsoil.sim over the whole
+    path to well under a millimetre on average."""
+    import torch
+
+    from torchsoil.sim import ParamSpec, simulate_path
+
+    truth = build_truth(scenario(STRAIGHT, soil=SOIL_30))
+    w = truth.world
+    theta = ParamSpec.base(2).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+    sim = simulate_path(torch.as_tensor(w.h_before)[None], w.grid, truth.traj.poses, truth.robot, theta)
+    diff = np.abs(sim.h[0].detach().numpy() - w.h_after)
+    assert diff.mean() < 3e-4
+    assert np.abs(w.h_after - w.h_before).mean() > 5 * diff.mean()
+
+
+def test_multi_pass_hardening_second_pass_sinks_less():
+    plain = world(scenario(LOOP))
+    hard = world(scenario(LOOP, effects={"multi_pass_hardening": {"k": -0.6}}))
+    assert plain.n_visits.max() == 2
+    twice = (plain.n_visits == 2) & (plain.h_after < plain.h_before - 0.01)
+    np.testing.assert_allclose(hard.states[1][twice], plain.states[1][twice], atol=1e-9)
+    extra_plain = (plain.states[1] - plain.states[2])[twice].mean()
+    extra_hard = (hard.states[1] - hard.states[2])[twice].mean()
+    assert extra_plain > 0.01
+    assert extra_hard < 0.7 * extra_plain
+
+
+def test_speed_dependent_sinkage_deeper_when_faster():
+    segs = [{"straight": 4.0, "speed": 0.5}, {"straight": 4.0, "speed": 1.5}]
+    on = world(scenario(segs, {"speed_dependent_sinkage": {"k": 0.6}}, accel_limit=2.0))
+    off = world(scenario(segs, accel_limit=2.0))
+    # rear wheels at x - 0.69: slow ground x in [1, 2.5], fast ground x in [6, 7]
+    slow, fast = (1.0, 2.5), (6.0, 7.0)
+    assert rut_depth(off, fast, 0.5) == pytest.approx(rut_depth(off, slow, 0.5), abs=1e-3)
+    # law: 1 + 0.6 (v - 1): 0.7 at 0.5 m/s, 1.3 at 1.5 m/s
+    assert rut_depth(on, slow, 0.5) == pytest.approx(0.03 * 0.7, abs=0.002)
+    assert rut_depth(on, fast, 0.5) == pytest.approx(0.03 * 1.3, abs=0.002)
+
+
+def test_slip_sinkage_deeper_while_accelerating_and_climbing():
+    segs = [{"straight": 3.0, "speed": 0.5}, {"straight": 5.0, "speed": 1.5}]
+    on = world(scenario(segs, {"slip_sinkage": {"k": 6.0}}, accel_limit=0.3))
+    off = world(scenario(segs, accel_limit=0.3))
+    accel, cruise = (3.8, 4.6), (1.0, 1.8)
+    assert rut_depth(off, accel, 0.5) == pytest.approx(rut_depth(off, cruise, 0.5), abs=1e-3)
+    ratio = rut_depth(on, accel, 0.5) / rut_depth(on, cruise, 0.5)
+    assert ratio == pytest.approx(1 + 6.0 * 0.3 / 9.81, abs=0.05)
+    climb = world(scenario(STRAIGHT, {"slip_sinkage": {"k": 6.0}},
+                           relief={"amplitude": 0.0, "slope_x": 0.05}))
+    assert rut_depth(climb, (2.0, 5.0), 0.5) == pytest.approx(0.03 * (1 + 6.0 * math.sin(math.atan(0.05))),
+                                                             abs=0.002)
+
+
+def test_lateral_load_transfer_downhill_wheels_sink_deeper():
+    relief = {"amplitude": 0.0, "slope_y": 0.1}          # left side higher: right is downhill
+    on = world(scenario(STRAIGHT, {"lateral_load_transfer": {"k": 1.5, "h_cg": 0.6}}, relief=relief))
+    off = world(scenario(STRAIGHT, relief=relief))
+    assert rut_depth(off, (2, 5), -0.5) == pytest.approx(rut_depth(off, (2, 5), 0.5), abs=1e-3)
+    shift = 2 * 0.6 / 1.0 * math.sin(math.atan(0.1))
+    assert rut_depth(on, (2, 5), -0.5) == pytest.approx(0.03 * (1 + 1.5 * shift), abs=0.002)
+    assert rut_depth(on, (2, 5), 0.5) == pytest.approx(0.03 * (1 - 1.5 * shift), abs=0.002)
+
+
+def _max_wall_slope(w):
+    gx = np.diff(w.h_after, axis=0) / w.grid.dx
+    gy = np.diff(w.h_after, axis=1) / w.grid.dx
+    g = np.hypot(gx[:, :-1], gy[:-1, :])
+    dug = (w.h_after < w.h_before - 0.005)[:-1, :-1]
+    return np.percentile(g[dug], 99)
+
+
+def test_cohesive_walls_stand_steeper_than_the_angle_of_repose():
+    soil = {"base": {"d": 0.05, "chi": 0.3, "beta_deg": 20.0, "moisture": 0.5}}
+    off = world(scenario(STRAIGHT, soil=soil))
+    on = world(scenario(STRAIGHT, {"cohesive_walls": {"k": 1.0, "c0": 0.5}}, soil=soil))
+    tan_b = math.tan(math.radians(20.0))
+    assert _max_wall_slope(off) < tan_b + 0.02
+    assert _max_wall_slope(on) > tan_b + 0.15
+
+
+def _rut_width(w, y):
+    gx, gy = w.grid.centers()
+    i = (gx > 2) & (gx < 5)
+    near = np.abs(gy - y) < 0.3
+    dug = (w.h_after < w.h_before - 0.002)[np.ix_(i, near)]
+    return dug.sum(1).mean() * w.grid.dx
+
+
+def test_footprint_width_widens_the_rut():
+    off = world(scenario(STRAIGHT))
+    on = world(scenario(STRAIGHT, {"footprint_width": {"k": 0.6, "d_ref": 0.05}}))
+    assert _rut_width(on, 0.5) > _rut_width(off, 0.5) * 1.2
+    # deeper soil, wider patch: radius factor 1 + 0.6 * d / 0.05 at d = 0.03 is 1.36
+    assert fx.radius_scale(fx.resolve({"footprint_width": {"k": 0.6}}), 0.03) == pytest.approx(1.36)
+
+
+def test_tread_prints_a_periodic_pattern_on_the_rut_floor():
+    def amplitude(w, wavelength=0.2):
+        """Amplitude [m] of the rut-floor profile's component at 1 / wavelength."""
+        gx, gy = w.grid.centers()
+        i = (gx > 1) & (gx < 5.4)
+        j = np.abs(gy - 0.5) <= 0.03
+        prof = w.h_after[np.ix_(i, j)].min(1)
+        return 2 / len(prof) * abs(np.sum((prof - prof.mean()) * np.exp(-2j * np.pi * gx[i] / wavelength)))
+
+    on = world(scenario(STRAIGHT, {"tread": {"amp": 0.007, "wavelength": 0.2}}))
+    off = world(scenario(STRAIGHT))
+    assert 0.0015 < amplitude(on) < 0.0045          # law: amp / 2 = 3.5 mm
+    assert amplitude(off) < 2e-4
+    assert amplitude(on, 0.37) < 5e-4
+
+
+def test_effect_laws_and_errors():
+    e = fx.resolve({"speed_dependent_sinkage": {"form": "power", "k": 0.5, "p": 2.0}})
+    f = fx.pose_depth_factor(e, np.array([1.0, 2.0, 0.0]), np.zeros(3), np.zeros(3), np.zeros(3),
+                             np.zeros(3), np.array([0.5, -0.5]), 1.0)
+    np.testing.assert_allclose(f, [[1.0, 1.5, 0.5]] * 2)
+    assert fx.phi(np.array([100.0]), "saturating", x_s=0.5)[0] == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="unknown effect 'sinkage_magic'"):
+        fx.resolve({"sinkage_magic": {}})
+    with pytest.raises(ValueError, match="slip_sinkage: unknown parameters"):
+        fx.resolve({"slip_sinkage": {"gain": 1}})
+    with pytest.raises(ValueError, match="form must be one of"):
+        fx.resolve({"slip_sinkage": {"form": "cubic"}})
+
+
+def test_revisit_surface_follows_visits_in_time():
+    truth = build_truth(scenario(LOOP))
+    w = truth.world
+    twice = w.n_visits == 2
+    assert twice.sum() > 1000
+    t1, t2 = w.visit_time[0][twice], w.visit_time[1][twice]
+    assert np.all(t2 > t1 + 3.0)
+    tm = float(np.median(t1)) + 1.0
+    cells = twice & (w.visit_time[0] < tm) & (w.visit_time[1] > tm)
+    np.testing.assert_array_equal(w.surface_at(tm)[cells], w.states[1][cells])
+    np.testing.assert_array_equal(w.surface_at(1e9), w.h_after)
+    np.testing.assert_array_equal(w.surface_at(-1.0), w.h_before)
