@@ -132,6 +132,25 @@ def build(config: str | Path | dict | None = None) -> tuple[TraverseConfig, Soil
     return TraverseConfig.from_dict(cfg.get("env")), soil_field, robot
 
 
+def visit_length(robot: Robot, curvature_max: float, step: float) -> float:
+    """Distance [m] base_link drives while one visit of a cell lasts: from the first wheel
+    touching it to the last wheel of the same track leaving it, straight or on the tightest
+    arc, plus one step. Within it the rear wheels reuse the front wheels' reference height."""
+    w, r = robot.wheels, robot.wheel_width / 2
+    longest = 0.0
+    for t in range(robot.n_tracks):
+        wx, wy = w[w[:, 2] == t, 0], w[w[:, 2] == t, 1]
+        longest = max(longest, wx.max() - wx.min() + 2 * r)
+        for k in (curvature_max, -curvature_max):
+            if k == 0:
+                continue
+            R = 1.0 / k
+            phi = np.arctan2(wx * np.sign(R), np.abs(R - wy))       # angle of each wheel about the ICR
+            rho = np.hypot(wx, R - wy).min()
+            longest = max(longest, abs(R) * (phi.max() - phi.min() + 2 * r / rho))
+    return float(longest + step + 0.1)
+
+
 class TraverseBatch:
     """N episodes on one field: state tensors (N, X, Y) and one batched `step`.
 
@@ -176,8 +195,7 @@ class TraverseBatch:
         self.obs_offsets = torch.stack(torch.meshgrid(ar, ar, indexing="ij"), -1).reshape(-1, 2).to(self.device)
         T = soil_field.n_tracks
         self.tan_beta = torch.tan(self.field.soil[T + 1]).clamp(max=MAX_TAN_BETA)
-        # a cell belongs to the ongoing visit while the robot has driven less than its length
-        self.visit_length = (wx.max() - wx.min()) + robot.wheel_width + step_max + 0.1
+        self.visit_length = visit_length(robot, config.curvature_max, step_max)
         self.lo = torch.tensor([g.origin[0] + r, g.origin[1] + r], device=self.device)
         self.hi = torch.tensor([g.origin[0] + (X - 1) * g.dx - r, g.origin[1] + (Y - 1) * g.dx - r],
                                device=self.device)

@@ -1,0 +1,26 @@
+"""Gymnasium registration by string entry points."""
+
+import gymnasium as gym
+import numpy as np
+from env_configs import small_config
+
+from envs.soil_traverse import SoilTraverseEnv
+from envs.vector import SoilTraverseVectorEnv
+from torchsoil.registration import ENV_ID, register_envs
+
+
+def test_register_make_and_make_vec():
+    register_envs()
+    register_envs()                                   # idempotent
+    spec = gym.spec(ENV_ID)
+    assert spec.entry_point == "envs.soil_traverse:SoilTraverseEnv"
+    assert spec.vector_entry_point == "envs.vector:SoilTraverseVectorEnv"
+    env = gym.make(ENV_ID, config=small_config())
+    assert isinstance(env.unwrapped, SoilTraverseEnv)
+    obs, _ = env.reset(seed=0)
+    assert env.observation_space.contains(obs)
+    venv = gym.make_vec(ENV_ID, num_envs=2, config=small_config())
+    assert isinstance(venv, SoilTraverseVectorEnv) and venv.num_envs == 2
+    venv.reset(seed=0)
+    obs, r, term, trunc, info = venv.step(np.zeros((2, 2), np.float32))
+    assert r.shape == (2,)
