@@ -22,6 +22,7 @@ MAX_SLOPE = 0.9       # terrain slope bound used for the ray-marching step, m/m
 MIN_STEP = 0.01       # m
 MIN_RANGE = 0.3       # m, the sensor sees nothing closer
 MAX_RANGE = 60.0      # m
+XYZ_STEPS = 1024.0    # point coordinates are multiples of 1 / XYZ_STEPS m
 
 
 @dataclass(frozen=True)
@@ -277,10 +278,11 @@ def scan(scene: Scene, spec: LidarSpec, traj_poses: np.ndarray, t_start: float,
     valid = np.isfinite(out_r) & ~drop & (noisy > MIN_RANGE)
     out_k[~valid] = KIND_NONE
     rq = np.where(valid, np.round(noisy * 1000) / 1000, np.nan)   # mm range resolution
-    xyz = (rq[..., None] * dirs).astype(np.float32)
+    # coordinates on a 2^-10 m (~1 mm) lattice, like a sensor's mm range resolution
+    xyz = (np.round(rq[..., None] * dirs * XYZ_STEPS) / XYZ_STEPS).astype(np.float32)
     base = np.array([0, 30.0, 80.0, 120.0], dtype=np.float32)[out_k]
     inten = base * (0.6 + 0.4 * np.abs(dirs[..., 2])) + rng.uniform(0, 5, out_r.shape)
-    inten = np.where(valid, inten, 0.0).astype(np.float32)
+    inten = np.where(valid, np.round(inten), 0.0).astype(np.float32)
     t_ns = np.broadcast_to(np.round(dt * 1e9).astype(np.uint32), out_r.shape).copy()
     ring = np.broadcast_to(np.arange(spec.beams, dtype=np.uint16)[:, None], out_r.shape).copy()
     return {"xyz": xyz, "intensity": inten, "t_ns": t_ns, "ring": ring, "kind": out_k,

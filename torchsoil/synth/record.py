@@ -23,7 +23,7 @@ import yaml
 from torchsoil.synth import effects as fx
 from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
-from torchsoil.synth.scenario import Truth, build_truth, terrain_pair_from_truth
+from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth
 
 T0_NS = 1_750_000_000 * 1_000_000_000   # bag clock of trajectory time 0, ns
 
@@ -57,6 +57,26 @@ def sweep_points(sw: dict) -> np.ndarray:
     return pts
 
 
+def sweep_starts(truth: Truth, duration: float | None = None) -> np.ndarray:
+    """Start times [s] of the full sweeps within the drive (or its first `duration` s)."""
+    end = truth.traj.duration if duration is None else min(duration, truth.traj.duration)
+    period = 1.0 / float(truth.scenario["lidar"]["rate_hz"])
+    return np.arange(0.0, end - period + 1e-9, period)
+
+
+def iter_sweeps(truth: Truth, seed: int, duration: float | None = None):
+    """Yield (t_start [s], LidarSpec, points POINT_DTYPE (N,)) for every sweep of both
+    lidars in recording order; deterministic for (truth, seed)."""
+    specs = lidars_for(truth)
+    scene = scene_for(truth)
+    lid = truth.scenario["lidar"]
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
+    for ts in sweep_starts(truth, duration):
+        for s in specs:
+            yield float(ts), s, sweep_points(scan(scene, s, truth.traj.poses, float(ts), rng,
+                                                  float(lid["range_noise"]), float(lid["dropout"])))
+
+
 def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
                    storage: str = "mcap", compress: bool = True, duration: float | None = None,
                    columns: int | None = None, progress: bool = False) -> dict:
@@ -66,37 +86,32 @@ def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
     columns: override the scenario's lidar columns. Returns a dict of figures (timings [s],
     bag size [MB], number of sweeps and points)."""
     out = Path(out)
+    if out.exists():
+        raise FileExistsError(f"bag output {out} already exists; remove it or choose another path")
     t0 = time.perf_counter()
-    truth = build_truth(scenario, seed, dx)
+    scn = load_scenario(scenario)
     if columns is not None:
-        truth.scenario["lidar"]["columns"] = int(columns)
+        scn["lidar"]["columns"] = int(columns)
+    truth = build_truth(scn, seed, dx)
     t1 = time.perf_counter()
     specs = lidars_for(truth)
-    scene = scene_for(truth)
-    lid = truth.scenario["lidar"]
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
-    end = truth.traj.duration if duration is None else min(duration, truth.traj.duration)
+    starts = sweep_starts(truth, duration)
     period = 1.0 / specs[0].rate_hz
-    starts = np.arange(0.0, end - period + 1e-9, period)
     n_points = 0
     out.parent.mkdir(parents=True, exist_ok=True)
     bar = None
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=len(starts), unit="sweep", desc=f"recording {out.name}")
+        bar = tqdm(total=2 * len(starts), unit="sweep", desc=f"recording {out.name}")
     with BagWriter(out, storage=storage, compress=compress) as bag:
         tfs = [("base_link", s.name, np.asarray(s.xyz), matrix_quaternion(s.transform()[:3, :3]))
                for s in specs]
         bag.write_tf_static(tfs, T0_NS)
-        for ts in starts:
+        for ts, s, pts in iter_sweeps(truth, seed, duration):
             stamp_ns = T0_NS + int(round(ts * 1e9))
-            for s in specs:
-                pts = sweep_points(scan(scene, s, truth.traj.poses, float(ts), rng,
-                                        float(lid["range_noise"]), float(lid["dropout"])))
-                n_points += len(pts)
-                bag.write_cloud(f"/{s.name}/points", s.name, pts, stamp_ns,
-                                stamp_ns + int(round(period * 1e9)))
+            n_points += len(pts)
+            bag.write_cloud(f"/{s.name}/points", s.name, pts, stamp_ns, stamp_ns + int(round(period * 1e9)))
             if bar is not None:
                 bar.update(1)
     if bar is not None:
@@ -106,7 +121,7 @@ def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
     t3 = time.perf_counter()
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     return {"truth_s": t1 - t0, "lidar_s": t2 - t1, "sidecars_s": t3 - t2, "total_s": t3 - t0,
-            "drive_s": float(end), "sweeps": float(2 * len(starts)), "points": float(n_points),
+            "drive_s": float(len(starts) * period), "sweeps": float(2 * len(starts)), "points": float(n_points),
             "bag_mb": size / 1e6}
 
 
