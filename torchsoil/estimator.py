@@ -19,7 +19,7 @@ import torch
 from torchsoil.cost import weighted_l1
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.sim import ParamSpec, SimConfig, simulate
-from torchsoil.windows import WindowData, WindowSpec, path_index, plan_windows, prepare_window
+from torchsoil.windows import WindowData, WindowSpec, path_index, plan_windows, prepare_window, smooth_heightmap
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -83,6 +83,7 @@ class Estimator:
         full = [init["d"]] * T + [init["chi"], math.radians(init["beta_deg"])]
         self.theta0 = torch.tensor([full[self.expand.index(i)] for i in range(n_free)], **kw)
         self._cache: dict[int, WindowData | None] = {}
+        self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(self.est["front_smoothing"]))
 
     # ------------------------------------------------------------------ helpers
     def full_theta(self, free: torch.Tensor) -> torch.Tensor:
@@ -92,8 +93,7 @@ class Estimator:
     def data(self, k: int) -> WindowData | None:
         if k not in self._cache:
             spec = self.windows[k]
-            self._cache[k] = prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device,
-                                            self.dtype)
+            self._cache[k] = self._prepare(spec)
         return self._cache[k]
 
     def objective(self, wd: WindowData):
@@ -142,8 +142,8 @@ class Estimator:
             if ahead is not None and "few_valid" not in ahead.flags:
                 prediction = self.predict(theta, ahead)[1]
             with torch.no_grad():
-                reference["signal"] = float(weighted_l1(wd.h_front[0], wd.h_back, wd.weight))
-                reference["floor"] = float(weighted_l1(wd.h_front[0], wd.h_back, wd.floor.to(self.dtype)))
+                reference["signal"] = float(weighted_l1(wd.h_measured, wd.h_back, wd.weight))
+                reference["floor"] = float(weighted_l1(wd.h_measured, wd.h_back, wd.floor.to(self.dtype)))
             flags = list(wd.flags) + ([] if res.converged else ["not_converged"])
             row = self._row(spec, wd, theta, residual, prediction, res.iterations, time.perf_counter() - t0,
                             tuple(flags))
@@ -155,8 +155,11 @@ class Estimator:
         spec = self.windows[k]
         if spec.s1 + self.est["window"] > self.index.arc[-1]:
             return None
-        ahead = WindowSpec(-1, spec.s1, spec.s1 + self.est["window"])
-        return prepare_window(self.pair, self.index, ahead, self.est, self.sim, self.device, self.dtype)
+        return self._prepare(WindowSpec(-1, spec.s1, spec.s1 + self.est["window"]))
+
+    def _prepare(self, spec: WindowSpec) -> WindowData | None:
+        return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
+                              h_start=self.h_start)
 
     def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags) -> dict:
         row = {"s": spec.centre,

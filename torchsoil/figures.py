@@ -72,10 +72,12 @@ def _heading(poses: np.ndarray, t: float) -> float:
     return float(poses[i, 6])
 
 
-def difference_maps(pair, h_sim: np.ndarray, rows: list[dict], path: Path, n_insets: int = 4) -> Path:
-    """Fig. 6: measured and simulated H_delta over the drive, with cross-sections at windows A-D."""
+def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dict], path: Path,
+                    n_insets: int = 4) -> Path:
+    """Fig. 6: measured (H_b - H_f) and simulated (h_sim - h_start, the surface the simulation
+    started from) height change over the drive, with cross-sections at windows A-D."""
     measured = pair.h_back - pair.h_front
-    simulated = np.where(np.isfinite(h_sim), h_sim - pair.h_front, np.nan)
+    simulated = np.where(np.isfinite(h_sim), h_sim - h_start, np.nan)
     fitted = [r for r in rows if not math.isnan(r["residual"])]
     picks = [fitted[int(i)] for i in np.linspace(0, len(fitted) - 1, min(n_insets, len(fitted)))] if fitted else []
     x0, y0 = pair.origin
@@ -112,10 +114,11 @@ def difference_maps(pair, h_sim: np.ndarray, rows: list[dict], path: Path, n_ins
     return path
 
 
-def window_figure(h_front: np.ndarray, h_back: np.ndarray, h_sim: np.ndarray, weight: np.ndarray, title: str):
-    """Measured vs simulated H_delta of one window's crop (a figure for TensorBoard)."""
+def window_figure(h_front: np.ndarray, h_start: np.ndarray, h_back: np.ndarray, h_sim: np.ndarray,
+                  weight: np.ndarray, title: str):
+    """Measured (H_b - H_f) vs simulated (h_sim - h_start) H_delta of one window's crop."""
     meas = np.where(weight > 0, h_back - h_front, np.nan)
-    sim = h_sim - h_front
+    sim = h_sim - h_start
     lim = float(np.nanpercentile(np.abs(meas), 99)) if np.isfinite(meas).any() else 0.05
     fig, ax = plt.subplots(1, 2, figsize=(8, 3.5))
     for a, img, t in [(ax[0], meas, "measured"), (ax[1], sim, "simulated")]:

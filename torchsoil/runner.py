@@ -92,8 +92,8 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
                 if every > 0 and k % every == 0:
                     wd = o.data
                     tb.figure("h_delta/window", figures.window_figure(
-                        wd.h_front[0].cpu().numpy(), wd.h_back.cpu().numpy(), o.h_sim.cpu().numpy(),
-                        wd.weight.cpu().numpy(), f"window {k}, s = {o.row['s']:.1f} m"), k)
+                        wd.h_measured.cpu().numpy(), wd.h_front[0].cpu().numpy(), wd.h_back.cpu().numpy(),
+                        o.h_sim.cpu().numpy(), wd.weight.cpu().numpy(), f"window {k}, s = {o.row['s']:.1f} m"), k)
             if (k + 1) % SAVE_EVERY == 0:
                 _save_simulated(sim_path, pair, stitch.h_sim)
             bar.set_postfix(res=f"{1e3 * o.row['residual']:.2f}mm", flags=o.row["flags"] or "-")
@@ -103,7 +103,7 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
         tb.close()
         _save_simulated(sim_path, pair, stitch.h_sim)
     figures.parameter_curves(params.rows, reference.rows, est.names, out / "fig4_parameters.png")
-    figures.difference_maps(pair, stitch.h_sim, params.rows, out / "fig6_difference_maps.png")
+    figures.difference_maps(pair, est.h_start, stitch.h_sim, params.rows, out / "fig6_difference_maps.png")
     figures.write_summary(out / "summary.md", params.rows, reference.rows,
                           {"input": str(input_path), **{k: config["estimator"][k] for k in ("window", "stride",
                                                                                               "grad")}})

@@ -80,9 +80,10 @@ class WindowData(NamedTuple):
     """One window cropped from the terrain pair, ready to simulate (tensors on one device).
 
     crop: (i0, i1, j0, j1) cells of the full grid. grid: the crop's Grid. geom: wheel geometry
-    of the poses that pass over the crop. h_front: (1, X, Y) measured surface, gaps filled
-    from the nearest measured cell, m. h_ref: (1, X, Y) reference height. h_back: (X, Y)
-    measured surface after the wheels (0 where unmeasured), m. weight: (X, Y) cost weight
+    of the poses that pass over the crop. h_front: (1, X, Y) surface the simulation starts from
+    (measured H_f, smoothed, gaps filled from the nearest measured cell), m. h_ref: (1, X, Y) reference height. h_back: (X, Y)
+    measured surface after the wheels (0 where unmeasured), m. h_measured: (X, Y) measured
+    H_f as recorded (0 where unmeasured), for the reference costs. weight: (X, Y) cost weight
     (window ground, measured before and after, near a wheel path). floor: (X, Y) bool cells
     beside the rut for the noise floor. ground: (X, Y) bool window ground. t, x, y: time [s]
     and position [m] at the window centre. flags: reasons to distrust the window.
@@ -95,6 +96,7 @@ class WindowData(NamedTuple):
     h_front: torch.Tensor
     h_ref: torch.Tensor
     h_back: torch.Tensor
+    h_measured: torch.Tensor
     weight: torch.Tensor
     floor: torch.Tensor
     ground: torch.Tensor
@@ -102,6 +104,18 @@ class WindowData(NamedTuple):
     x: float
     y: float
     flags: tuple[str, ...]
+
+
+def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of an (X, Y) heightmap [m] with sigma in cells, ignoring NaN cells
+    (normalised convolution); NaN stays NaN. sigma = 0 returns h unchanged."""
+    if sigma <= 0:
+        return h
+    valid = np.isfinite(h)
+    num = ndimage.gaussian_filter(np.where(valid, h, 0.0).astype(np.float64), sigma, mode="nearest")
+    den = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="nearest")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(valid, num / den, np.nan)
 
 
 def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
@@ -119,8 +133,11 @@ def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
 
 
 def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: SimConfig,
-                   device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = ()) -> WindowData | None:
-    """Crop, fill and index one window. Returns None when the window holds no ground at all."""
+                   device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = (),
+                   h_start: np.ndarray | None = None) -> WindowData | None:
+    """Crop, fill and index one window. Returns None when the window holds no ground at all.
+
+    h_start: (X, Y) surface the simulation starts from (default: pair.h_front)."""
     robot = pair.robot
     w = robot.wheel_width
     ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est["corridor"] / 2)
@@ -143,7 +160,8 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: Sim
     geom = wheel_geometry(grid, poses, robot, pose_spacing=sim.pose_spacing, band_width=sim.band_width,
                           relax_margin=sim.relax_margin, device=device, dtype=dtype)
 
-    hf = np.asarray(pair.h_front[sl], dtype=np.float64)
+    hf = np.asarray((pair.h_front if h_start is None else h_start)[sl], dtype=np.float64)
+    raw = np.asarray(pair.h_front[sl], dtype=np.float64)
     hb = np.asarray(pair.h_back[sl], dtype=np.float64)
     measured_f = np.isfinite(hf)
     flags = list(extra_flags)
@@ -154,8 +172,8 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: Sim
         hf = hf[tuple(idx)]
     ground = ground_full[sl]
     zone = ground & (index.wheel_dist[sl] <= est["weight_width"] * w)
-    weight = zone & measured_f & np.isfinite(hb)
-    floor = (ground & measured_f & np.isfinite(hb) & (index.wheel_dist[sl] >= est["floor_inner"] * w)
+    weight = zone & np.isfinite(raw) & np.isfinite(hb)
+    floor = (ground & np.isfinite(raw) & np.isfinite(hb) & (index.wheel_dist[sl] >= est["floor_inner"] * w)
              & (index.wheel_dist[sl] <= est["floor_outer"] * w))
     if weight.sum() < est["min_valid_fraction"] * max(zone.sum(), 1):
         flags.append("few_valid")
@@ -169,6 +187,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: Sim
         spec=spec, crop=crop, grid=grid, geom=geom, h_front=h_front,
         h_ref=reference_height(h_front, sim.ref_radius * w / 2, pair.dx),
         h_back=torch.as_tensor(np.where(np.isfinite(hb), hb, 0.0), **kw),
+        h_measured=torch.as_tensor(np.where(np.isfinite(raw), raw, 0.0), **kw),
         weight=torch.as_tensor(weight, **kw), floor=torch.as_tensor(floor, device=device),
         ground=torch.as_tensor(ground, device=device),
         t=float(np.interp(c, index.arc, pair.poses[:, 0])),
