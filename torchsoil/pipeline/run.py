@@ -131,6 +131,15 @@ def poses_to_rows(stamps: np.ndarray, poses: np.ndarray) -> np.ndarray:
     return np.column_stack([stamps, poses[:, :3, 3], rpy])
 
 
+def rows_to_poses(rows: np.ndarray) -> np.ndarray:
+    """(S, 7) FORMATS rows -> (S, 4, 4) pose matrices."""
+    P = np.zeros((len(rows), 4, 4))
+    P[:, :3, :3] = Rotation.from_euler("xyz", rows[:, 4:]).as_matrix()
+    P[:, :3, 3] = rows[:, 1:4]
+    P[:, 3, 3] = 1.0
+    return P
+
+
 def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]:
     """Human-readable runs of flagged sweeps: 'sweeps 40-75 (t = 4.00-7.50 s): degenerate'."""
     out = []
@@ -202,7 +211,8 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
         fit, rmse, ok = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
         for k, sw in enumerate(sweeps):
             tick(1)
-            if len(sw.points) == 0:
+            if len(sw.points) < 50:
+                flags[int(np.argmin(np.abs(stamps - sw.stamp)))] |= mapping.EMPTY
                 continue
             pts, T, fit[k], rmse[k], ok[k], _ = register_sweep(
                 sw.points, sw.t, sw.stamp, ref_stamps, ref_poses, target, cfg.reregister, period)
@@ -221,6 +231,12 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     t0 = time.perf_counter()
     hf = acc["front"].heightmap(cfg.raster.fill_radius)
     hb = acc["back"].heightmap(cfg.raster.fill_radius)
+    for name, hm in (("front", hf), ("back", hb)):
+        if not hm.valid.any():
+            kept = int(stats[name][2].sum())
+            raise ValueError(f"{bag_path}: the {name} heightmap is empty ({kept} of "
+                             f"{len(stats[name][2])} {name} sweeps re-registered, none with "
+                             "ground in the corridor); nothing to write")
     extras = {
         "valid_front": hf.valid, "valid_back": hb.valid,
         "measured_front": hf.measured, "measured_back": hb.measured,

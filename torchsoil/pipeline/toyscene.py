@@ -22,7 +22,8 @@ class ToyScene:
     x, y, radius, height [m]; walls: (W, 4) x0, y0, x1, y1 vertical segments [m], 3 m tall;
     noise: range noise 1 sigma, m; columns: azimuth samples per sweep; period: sweep, s;
     pitch_amp: body pitch oscillation amplitude, rad; rut_depth: the back lidar sees the
-    ground lowered by this much within 0.1 m of y = +/-0.5 (in the world, for x < robot x)."""
+    ground lowered by this much within 0.1 m of y = +/-0.5 (in the world, for x < robot x);
+    stop: (t0, t1) the robot stands still between these times, s."""
 
     speed: float = 1.0
     yaw_rate: float = 0.0
@@ -35,6 +36,7 @@ class ToyScene:
     period: float = 0.1
     pitch_amp: float = 0.0
     rut_depth: float = 0.0
+    stop: tuple[float, float] | None = None
     seed: int = 0
 
     extrinsics: dict = field(default_factory=lambda: {
@@ -49,6 +51,8 @@ class ToyScene:
     def pose(self, t) -> np.ndarray:
         """(..., 4, 4) base_link in world at times t [s]."""
         t = np.asarray(t, dtype=np.float64)
+        if self.stop is not None:  # time spent standing still does not advance the robot
+            t = t - np.clip(t - self.stop[0], 0.0, self.stop[1] - self.stop[0])
         yaw = self.yaw_rate * t
         if self.yaw_rate:
             r = self.speed / self.yaw_rate
@@ -87,8 +91,7 @@ class ToyScene:
         ok = np.isfinite(r) & (r > 0.5) & (r < 60)
         if self.noise:
             r = r + rng.normal(0, self.noise, r.shape)
-        p = d_s * r[..., None]
-        p[~ok] = np.nan
+        p = d_s * np.where(ok, r, np.nan)[..., None]
         tns = (tt * 1e9).astype(np.uint32)
         return p.reshape(-1, 3).astype(np.float32), tns.reshape(-1)
 
@@ -139,3 +142,9 @@ class ToyScene:
                 xyz, tns = self.sweep(sensor, stamp - start, rng)
                 out.append((f"/{sensor}/points", encode(xyz, tns, stamp, sensor, height=32)))
         return out
+
+    def write(self, path, duration: float, start: float = 100.0):
+        """Write a ROS 2 bag of `duration` s (sweeps stamped from `start` s) with /tf_static."""
+        from torchsoil.io.write import write_bag
+
+        return write_bag(path, self.messages(duration, start), self.extrinsics)

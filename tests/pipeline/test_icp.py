@@ -1,0 +1,60 @@
+"""ICP: recovers a known transform on a structured scene, and names weak directions."""
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from torchsoil.pipeline import icp
+
+
+def scene(rng, landmarks=True):
+    ground = np.column_stack([rng.uniform(-10, 10, (4000, 2)), rng.normal(0, 1e-4, 4000)])
+    parts = [ground]
+    if landmarks:
+        wall = np.column_stack([np.full(800, 6.0), rng.uniform(-5, 5, 800), rng.uniform(0, 3, 800)])
+        a = rng.uniform(0, 2 * np.pi, 600)
+        pole = np.column_stack([-3 + 0.2 * np.cos(a), 4 + 0.2 * np.sin(a), rng.uniform(0, 3, 600)])
+        side = np.column_stack([rng.uniform(-5, 5, 800), np.full(800, -7.0), rng.uniform(0, 3, 800)])
+        parts += [wall, pole, side]
+    return np.concatenate(parts)
+
+
+def transform(rotvec, t):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_recovers_known_transform():
+    rng = np.random.default_rng(0)
+    pts = scene(rng)
+    target = icp.make_target(icp.voxel_downsample(pts, 0.1), 0.6)
+    truth = transform([0.0, 0.01, 0.03], [0.15, -0.1, 0.02])
+    source = icp.apply(np.linalg.inv(truth), pts[::3])
+    res = icp.register(source, target, np.eye(4), max_dist=0.5)
+    np.testing.assert_allclose(res.transform[:3, 3], truth[:3, 3], atol=5e-3)
+    dR = Rotation.from_matrix(res.transform[:3, :3].T @ truth[:3, :3]).magnitude()
+    assert dR < np.deg2rad(0.05)
+    assert res.fitness > 0.95
+    assert icp.weak_directions(res.hessian, 2e-3).shape[1] == 0
+
+
+def test_flat_ground_is_degenerate_and_prediction_kept():
+    rng = np.random.default_rng(1)
+    pts = scene(rng, landmarks=False)
+    target = icp.make_target(pts, 0.6)
+    pred = transform([0, 0, 0.02], [0.3, 0.1, 0.0])
+    res = icp.register(pts[::4], target, pred, max_dist=0.5)
+    weak = icp.weak_directions(res.hessian, 2e-3)
+    assert weak.shape[1] == 3  # x, y and yaw are free on a plane
+    free = np.abs(weak).sum(1)
+    assert free[[2, 3, 4]].min() > 0.5 and free[[0, 1, 5]].max() < 1e-3
+    T = icp.project_update(pred, res.transform, weak)
+    np.testing.assert_allclose(T[:2, 3], pred[:2, 3], atol=1e-6)
+
+
+def test_voxel_downsample_is_centroid_per_voxel():
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.05, 0.07], [1.05, 0.0, 0.0]])
+    out = icp.voxel_downsample(pts, 0.1)
+    assert len(out) == 2
+    np.testing.assert_allclose(sorted(out[:, 0]), [0.02, 1.05])
