@@ -271,3 +271,45 @@ def _bars(enabled: bool):
         return b.update
 
     return make
+
+
+def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path]:
+    """Write `terrain.npz` (FORMATS.md section 3 + extras), `trajectory.csv` (t, x, y, z,
+    roll, pitch, yaw of T_ref) and PNGs of H_f, H_b and H_delta (diverging colour map:
+    blue excavation, red deposition). Each file is written to a temporary name first."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tp = result.terrain
+    paths = {"terrain": tp.save(out / "terrain.npz")}
+    traj = out / "trajectory.csv"
+    np.savetxt(traj.with_suffix(".tmp"), tp.poses, delimiter=",", fmt="%.9f",
+               header="t,x,y,z,roll,pitch,yaw", comments="")
+    traj.with_suffix(".tmp").replace(traj)
+    paths["trajectory"] = traj
+    x0, y0 = tp.origin
+    X, Y = tp.h_front.shape
+    extent = (y0 - tp.dx / 2, y0 + (Y - 0.5) * tp.dx, x0 - tp.dx / 2, x0 + (X - 0.5) * tp.dx)
+    hd = tp.h_delta
+    lim = float(np.nanpercentile(np.abs(hd), 99)) if np.isfinite(hd).any() else 0.01
+    for name, h, kw in (("h_front", tp.h_front, {"cmap": "viridis"}),
+                        ("h_back", tp.h_back, {"cmap": "viridis"}),
+                        ("h_delta", hd, {"cmap": "RdBu_r", "vmin": -lim, "vmax": lim})):
+        fig, ax = plt.subplots(figsize=(4, 8))
+        im = ax.imshow(h, origin="lower", extent=extent, aspect="equal", **kw)
+        ax.plot(tp.poses[:, 2], tp.poses[:, 1], "k-", lw=0.5)
+        ax.set_xlabel("y [m]")
+        ax.set_ylabel("x [m]")
+        ax.set_title({"h_front": "H_f (before)", "h_back": "H_b (after)",
+                      "h_delta": "H_delta = H_b - H_f"}[name])
+        fig.colorbar(im, ax=ax, label="m")
+        png = out / f"{name}.png"
+        fig.savefig(png.with_suffix(".tmp.png"), dpi=120, bbox_inches="tight")
+        plt.close(fig)
+        png.with_suffix(".tmp.png").replace(png)
+        paths[name] = png
+    return paths

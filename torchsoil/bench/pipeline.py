@@ -1,0 +1,49 @@
+"""Lidar pipeline benchmark: processing time per stage and against the recording length.
+
+Runs `process_bag` on the synthetic `road` recording (torchsoil.synth; 20 s, or 5 s when
+quick), falling back to the analytic test scene if the recorder is unavailable.
+`pipeline_realtime_factor` = processing time / recording duration (< 1: faster than real
+time).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+
+def _recording(out: Path, duration: float) -> tuple[Path, object]:
+    from torchsoil.robot import paper_platform
+
+    try:
+        from torchsoil.robot import Robot
+        from torchsoil.synth.record import make_recording
+
+        make_recording("road", out, 0, 0.02, "mcap", True, duration, None, progress=False)
+        return out, Robot.from_yaml(out.parent / f"{out.name}.robot.yaml")
+    except ImportError:
+        from torchsoil.pipeline.toyscene import ToyScene
+
+        ToyScene(noise=0.01, columns=1024).write(out, duration)
+        return out, paper_platform()
+
+
+def run(quick: bool = False) -> dict[str, float]:
+    from torchsoil.pipeline.run import process_bag
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bag, robot = _recording(Path(tmp) / "road", 5.0 if quick else 20.0)
+        t0 = time.perf_counter()
+        res = process_bag(bag, robot)
+        total = time.perf_counter() - t0
+    out = {"pipeline_realtime_factor": total / res.duration,
+           "pipeline_total_s": total, "pipeline_recording_s": res.duration}
+    out.update({f"pipeline_{k}_s": v for k, v in res.timings.items()})
+    return out
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(run(quick=True), indent=1))
