@@ -1,0 +1,134 @@
+"""Scenarios, trajectories and the terrain pair straight from the truth."""
+
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from torchsoil.synth import effects as fx
+from torchsoil.synth.scenario import ROOT, available, build_truth, load_scenario, make_terrain_pair
+from torchsoil.synth.terrain import Relief, micro_topography, soil_at
+from torchsoil.synth.trajectory import build_trajectory, planar_path
+
+SMALL = {"name": "small", "trajectory": {"segments": [{"straight": 3.0, "speed": 1.0}]},
+         "terrain": {"margin": 1.0}, "landmarks": {"poles": 2, "trunks": 1, "shed": True, "fence": True}}
+REQUIRED = {"watered", "gravel", "road", "revisit", "flat", "tread", *fx.CATALOGUE}
+
+
+def test_named_scenarios_exist_and_load():
+    assert REQUIRED <= set(available())
+    for name in available():
+        scn = load_scenario(name)
+        assert scn["name"] == name
+        fx.resolve(scn["effects"])                 # every effect section is valid
+    for name in fx.CATALOGUE + fx.OUT_OF_CATALOGUE:
+        assert list(fx.resolve(load_scenario(name)["effects"])) == [name]
+    assert load_scenario("road")["soil"]["base"]["d"] == 0.0
+    assert load_scenario("flat")["landmarks"] == {"poles": 0, "trunks": 0, "shed": False, "fence": False}
+
+
+def test_scenario_errors_name_the_problem():
+    with pytest.raises(FileNotFoundError, match="available: .*watered"):
+        load_scenario("no_such_field")
+    with pytest.raises(ValueError, match="unknown sections"):
+        load_scenario({"trajectory": {}, "wheather": 1})
+    with pytest.raises(ValueError, match=r"segments\[1\]: needs `straight` or `arc`"):
+        planar_path([{"straight": 1.0}, {"spiral": 2.0}])
+    with pytest.raises(ValueError, match=r"segments\[0\]: speed must be > 0"):
+        planar_path([{"straight": 1.0, "speed": 0.0}])
+    with pytest.raises(ValueError, match="soil.patches\\[0\\].delta: unknown key 'wetness'"):
+        soil_at({"patches": [{"kind": "disc", "center": [0, 0], "sigma": 1, "delta": {"wetness": 1}}]}, 0.0, 0.0)
+
+
+def test_terrain_pair_follows_formats_section_3():
+    pair = make_terrain_pair(SMALL, seed=1)
+    X, Y = pair["h_front"].shape
+    assert pair["h_front"].dtype == pair["h_back"].dtype == np.float32
+    assert pair["h_back"].shape == (X, Y)
+    assert pair["dx"].shape == () and float(pair["dx"]) == 0.02
+    assert pair["origin"].shape == (2,) and pair["origin"].dtype == np.float64
+    assert pair["poses"].ndim == 2 and pair["poses"].shape[1] == 7
+    assert np.all(np.diff(pair["poses"][:, 0]) > 0)
+    np.testing.assert_allclose(pair["wheels"], [[0.69, 0.5, 0], [0.69, -0.5, 1], [-0.69, 0.5, 0], [-0.69, -0.5, 1]])
+    assert float(pair["wheel_width"]) == 0.14
+    # the whole drive's wheel paths lie inside the grid with margin
+    x0, y0 = pair["origin"]
+    assert x0 < -0.69 - 0.5 and x0 + (X - 1) * 0.02 > 3.0 + 0.69 + 0.5
+    assert y0 < -1.0 and y0 + (Y - 1) * 0.02 > 1.0
+
+
+def test_terrain_pair_noise_and_truth():
+    truth = build_truth(SMALL, seed=2)
+    pair = make_terrain_pair(SMALL, seed=2)
+    w = truth.world
+    nf, nb = pair["h_front"] - w.h_before, pair["h_back"] - w.h_after
+    for n in (nf, nb):
+        assert abs(n.mean()) < 2e-4
+        assert n.std() == pytest.approx(0.003, rel=0.05)
+    assert abs(np.corrcoef(nf.ravel(), nb.ravel())[0, 1]) < 0.02      # independent noise
+    # the deformation stands out of the noise where the wheels went
+    assert (pair["h_front"] - pair["h_back"]).max() > 0.02
+
+
+def test_generation_is_deterministic_for_a_seed():
+    a, b, c = (make_terrain_pair(SMALL, seed=s) for s in (4, 4, 5))
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    assert not np.array_equal(a["h_front"], c["h_front"])
+
+
+def test_micro_topography_statistics():
+    from torchsoil.grid import Grid
+
+    g = Grid(0.02, (0.0, 0.0), (256, 256))
+    h = micro_topography(g, np.random.default_rng(0), rms=0.008, corr_length=0.08)
+    assert h.std() == pytest.approx(0.008, rel=1e-6)
+    # correlation at one correlation length is well below 1 and clearly positive at one cell
+    def corr(lag):
+        return np.corrcoef(h[:-lag].ravel(), h[lag:].ravel())[0, 1]
+    assert corr(1) > 0.8
+    assert 0.05 < corr(4) < 0.7
+    assert abs(corr(20)) < 0.1
+
+
+def test_trajectory_speed_profile_and_attitude(robot):
+    relief = Relief(0.05, 0.1, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    spec = {"segments": [{"straight": 3.0, "speed": 0.5}, {"straight": 5.0, "speed": 1.5},
+                         {"arc": 2.0, "angle_deg": 90, "speed": 1.0}], "accel_limit": 0.5}
+    tr = build_trajectory(spec, relief, robot)
+    assert tr.speed.max() == pytest.approx(1.5, abs=1e-6) and tr.speed[0] == pytest.approx(0.5)
+    assert np.abs(tr.accel).max() < 0.5 + 0.02
+    assert tr.arc[-1] == pytest.approx(8.0 + math.pi, abs=0.05)
+    assert tr.poses[-1, 6] == pytest.approx(math.pi / 2, abs=0.01)   # last sample < 10 ms from the end
+    np.testing.assert_allclose(np.diff(tr.poses[:, 0]), 0.01)
+    # on the straight heading +x: climbing 5 % (nose up, pitch < 0), left side 10 % higher
+    i = np.searchsorted(tr.arc, 1.0)
+    assert tr.poses[i, 5] == pytest.approx(-math.atan(0.05), abs=1e-3)
+    assert tr.poses[i, 4] == pytest.approx(math.atan(0.1), abs=2e-3)
+    assert tr.poses[i, 3] == pytest.approx(0.05 * tr.poses[i, 1] + 0.1 * tr.poses[i, 2], abs=1e-9)
+
+
+def test_soil_fields_patch_weights():
+    soil = {"base": {"d": 0.02, "beta_deg": 30.0},
+            "patches": [{"kind": "band_x", "center": 5.0, "sigma": 1.0, "delta": {"d": 0.03, "beta_deg": 10.0}}]}
+    s = soil_at(soil, np.array([5.0, 6.0, 50.0]), 0.0)
+    np.testing.assert_allclose(s["d"], [0.05, 0.02 + 0.03 * math.exp(-0.5), 0.02])
+    np.testing.assert_allclose(np.degrees(s["beta"]), [40.0, 30 + 10 * math.exp(-0.5), 30.0])
+
+
+def test_make_recording_script_pair_only(tmp_path):
+    out = tmp_path / "p.npz"
+    scn = tmp_path / "small.yaml"
+    import yaml
+
+    scn.write_text(yaml.safe_dump(SMALL))
+    r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--scenario", str(scn),
+                        "--out", str(out), "--seed", "1", "--pair-only"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    with np.load(out) as d:
+        np.testing.assert_array_equal(d["h_back"], make_terrain_pair(SMALL, seed=1)["h_back"])
+    r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--scenario", "nowhere",
+                        "--out", str(tmp_path / "x")], capture_output=True, text=True)
+    assert r.returncode == 2 and "available" in r.stderr
