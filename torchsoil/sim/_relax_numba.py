@@ -12,8 +12,7 @@ from numba import njit, prange
 from torchsoil.sim.relaxation import _EPS2, RelaxResult, face_masks
 
 
-@njit(parallel=True, cache=True)
-def _forward(h, tb, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hist, counts, store):
+def _forward_py(h, tb, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hist, counts, store):
     B, X, Y = h.shape
     for b in prange(B):
         if done[b]:
@@ -21,23 +20,25 @@ def _forward(h, tb, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hist,
         qx = np.zeros((X, Y))
         qy = np.zeros((X, Y))
         for it in range(n_iter):
-            maxex = -1e300
+            active = False
             for i in range(X):
                 for j in range(Y):
                     gx = (h[b, i + 1, j] - h[b, i, j]) * inv_dx if fx[i, j] else 0.0
                     gy = (h[b, i, j + 1] - h[b, i, j]) * inv_dx if fy[i, j] else 0.0
-                    n = math.sqrt(gx * gx + gy * gy + _EPS2)
-                    ex = n - tb[b, i, j]
-                    if ex > maxex:
-                        maxex = ex
-                    if ex > 0.0:
+                    n2 = gx * gx + gy * gy + _EPS2
+                    t = tb[b, i, j]
+                    if n2 > t * t:  # slope above the angle of repose: soil flows (sqrt only here)
+                        n = math.sqrt(n2)
+                        ex = n - t
+                        if ex >= tau:
+                            active = True
                         f = ex / n
                         qx[i, j] = f * gx
                         qy[i, j] = f * gy
                     else:
                         qx[i, j] = 0.0
                         qy[i, j] = 0.0
-            if not fixed and maxex < tau:
+            if not fixed and not active:
                 done[b] = 1
                 break
             if store:
@@ -54,8 +55,7 @@ def _forward(h, tb, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hist,
             counts[b] += 1
 
 
-@njit(parallel=True, cache=True)
-def _backward(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
+def _backward_py(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
     B, X, Y = lam.shape
     for b in prange(B):
         gbx = np.zeros((X, Y))
@@ -65,9 +65,10 @@ def _backward(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
                 for j in range(Y):
                     gx = (hist[b, it, i + 1, j] - hist[b, it, i, j]) * inv_dx if fx[i, j] else 0.0
                     gy = (hist[b, it, i, j + 1] - hist[b, it, i, j]) * inv_dx if fy[i, j] else 0.0
-                    n = math.sqrt(gx * gx + gy * gy + _EPS2)
-                    ex = n - tb[b, i, j]
-                    if ex > 0.0:
+                    n2 = gx * gx + gy * gy + _EPS2
+                    if n2 > tb[b, i, j] * tb[b, i, j]:
+                        n = math.sqrt(n2)
+                        ex = n - tb[b, i, j]
                         qbx = coef * (lam[b, i, j] - (lam[b, i + 1, j] if i + 1 < X else 0.0))
                         qby = coef * (lam[b, i, j] - (lam[b, i, j + 1] if j + 1 < Y else 0.0))
                         f = ex / n
@@ -87,6 +88,21 @@ def _backward(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
                     if j > 0:
                         d += gby[i, j - 1]
                     lam[b, i, j] += inv_dx * d
+
+
+# One batch element: serial (a thread pool only costs there); several: one thread each.
+_forward_serial = njit(cache=True)(_forward_py)
+_forward_parallel = njit(parallel=True, cache=True)(_forward_py)
+_backward_serial = njit(cache=True)(_backward_py)
+_backward_parallel = njit(parallel=True, cache=True)(_backward_py)
+
+
+def _forward(h, *args):
+    return (_forward_parallel if h.shape[0] > 1 else _forward_serial)(h, *args)
+
+
+def _backward(hist, *args):
+    return (_backward_parallel if hist.shape[0] > 1 else _backward_serial)(hist, *args)
 
 
 class _Relax(torch.autograd.Function):
