@@ -38,7 +38,7 @@ class TraverseConfig:
     "capped" (exactly `fixed_iter` updates per step) or "converged" (tau, max_iter).
     obs_size: cells per side of the local patches; obs_dx: their spacing, m. soil_noise:
     relative standard deviation of the observed soil parameters (0: true values).
-    patch_margin: m added around the robot for the local simulation patch. weights:
+    relax_margin: cells of relaxation room around each wheel's footprint and bands. weights:
     reward weights (see `envs.dynamics.reward`, plus goal bonus and off-field penalty).
     """
 
@@ -62,7 +62,7 @@ class TraverseConfig:
     obs_size: int = 24
     obs_dx: float = 0.1
     soil_noise: float = 0.0
-    patch_margin: float = 0.25
+    relax_margin: int = 2
     weights: dict = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
 
     def __post_init__(self):
@@ -75,8 +75,9 @@ class TraverseConfig:
         if unknown:
             raise ValueError(f"unknown reward weights {sorted(unknown)}; known: {sorted(DEFAULT_WEIGHTS)}")
         object.__setattr__(self, "weights", {**DEFAULT_WEIGHTS, **self.weights})
-        if self.max_steps < 1 or self.obs_size < 1 or self.fixed_iter < 0:
-            raise ValueError("max_steps and obs_size must be >= 1, fixed_iter >= 0")
+        if self.max_steps < 1 or self.obs_size < 1 or self.fixed_iter < 0 or self.relax_margin < 0:
+            raise ValueError(f"need max_steps, obs_size >= 1 and fixed_iter, relax_margin >= 0; got "
+                             f"{self.max_steps}, {self.obs_size}, {self.fixed_iter}, {self.relax_margin}")
 
     @classmethod
     def from_dict(cls, d: dict | None) -> TraverseConfig:
@@ -155,11 +156,11 @@ class TraverseBatch:
     """N episodes on one field: state tensors (N, X, Y) and one batched `step`.
 
     Attributes:
-        h: (N, X, Y) current surface, m.  ref: (N, X, Y) reference height of a cell's last
-        visit, m; ref_odom: (N, X, Y) odometer when that visit began, m (-inf: never);
-        a visit lasts while the robot drives less than `visit_length` m (its length plus a
-        step), so its rear wheels dig no deeper than its front wheels.  odom: (N,) distance
-        driven, m.  passes: (N, X, Y) int32 robot passes per cell.
+        state: (N*X*Y, 4) per episode and cell: surface h [m], reference height of the
+        cell's last visit [m], odometer when that visit began [m] (-inf: never), robot passes.
+        A visit lasts while the robot drives less than `visit_length` m (its length on its
+        tightest arc plus a step), so its rear wheels dig no deeper than its front wheels.
+        h, passes: (N, X, Y) views.  odom: (N,) distance driven, m.
         pose: (N, 3) x, y [m], yaw [rad].  control: (N, 2) last speed [m/s], curvature [1/m].
         steps: (N,) int64.  goal: (N, 2) m.  path: (max_steps + 1, N, 2) base_link positions.
         totals: dict of (N,) episode sums of the damage measures.
@@ -177,42 +178,54 @@ class TraverseBatch:
         self.track = torch.as_tensor(robot.track, device=self.device)
         self.wheels = torch.as_tensor(robot.wheels[:, :2], dtype=torch.float32, device=self.device)
         self.radius = robot.wheel_width / 2
-        wx, wy = robot.wheels[:, 0], robot.wheels[:, 1]
         r = self.radius
-        self.box = (wx.min() - r, wx.max() + r, wy.min() - r, wy.max() + r)   # body hull, m
-        reach = math.hypot(max(abs(self.box[0]), abs(self.box[1])), max(abs(self.box[2]), abs(self.box[3])))
         step_max = max(abs(config.speed[0]), abs(config.speed[1])) * config.dt
-        half = reach + step_max / 2 + config.band_width * g.dx + config.patch_margin
-        self.patch = min(int(math.ceil(2 * half / g.dx)) + 1, X, Y)
-        wheel_step = step_max * (1 + config.curvature_max * float(np.hypot(wx, wy).max()))
-        self.window = min(int(math.ceil((wheel_step + 2 * (r + config.band_width * g.dx)) / g.dx)) + 2,
-                          self.patch)
-        if self.patch < 2 * half / g.dx:
-            raise ValueError(f"field {g.shape} cells is too small for the robot's local patch "
-                             f"of {int(2 * half / g.dx) + 1} cells")
         S = config.obs_size
         ar = (torch.arange(S, dtype=torch.float32) - (S - 1) / 2) * config.obs_dx
         self.obs_offsets = torch.stack(torch.meshgrid(ar, ar, indexing="ij"), -1).reshape(-1, 2).to(self.device)
         T = soil_field.n_tracks
-        self.tan_beta = torch.tan(self.field.soil[T + 1]).clamp(max=MAX_TAN_BETA)
+        tan_beta = torch.tan(self.field.soil[T + 1]).clamp(max=MAX_TAN_BETA)
+        # per field cell, one row: tan(beta), h0, d_1..d_T, chi (one gather per step)
+        self.cell_table = torch.cat([tan_beta[None], self.field.h0[None], self.field.soil[:T + 1]]
+                                    ).reshape(T + 3, -1).T.contiguous()
         self.visit_length = visit_length(robot, config.curvature_max, step_max)
+        # one window size for every step, from the fastest wheel on the tightest arc, so an
+        # episode's result does not depend on the rest of the batch
+        reach = float(np.hypot(robot.wheels[:, 0], robot.wheels[:, 1]).max())
+        wheel_step = step_max * (1 + config.curvature_max * reach)
+        self.window = dyn.window_size(torch.zeros(1, 2), torch.tensor([[wheel_step, 0.0]]), self.radius,
+                                      config.band_width * g.dx, config.relax_margin, g.dx)
+        if self.window > min(X, Y):
+            raise ValueError(f"the field ({X} x {Y} cells) is smaller than a wheel window of "
+                             f"{self.window} cells")
         self.lo = torch.tensor([g.origin[0] + r, g.origin[1] + r], device=self.device)
         self.hi = torch.tensor([g.origin[0] + (X - 1) * g.dx - r, g.origin[1] + (Y - 1) * g.dx - r],
                                device=self.device)
         self.soil_lo = np.array([D_BOUNDS[0]] * T + [CHI_BOUNDS[0], BETA_BOUNDS[0]], np.float32)
         self.soil_hi = np.array([D_BOUNDS[1]] * T + [CHI_BOUNDS[1], BETA_BOUNDS[1]], np.float32)
         kw = dict(device=self.device)
-        self.h = self.field.h0.expand(self.n, X, Y).clone()
-        self.ref = torch.zeros((self.n, X, Y), **kw)
-        self.ref_odom = torch.full((self.n, X, Y), -math.inf, **kw)
+        # per episode and cell, one row: h, ref, ref_odom, passes (one gather, one write per step)
+        self.state = torch.zeros((self.n * X * Y, 4), **kw)
         self.odom = torch.zeros(self.n, **kw)
-        self.passes = torch.zeros((self.n, X, Y), dtype=torch.int32, **kw)
         self.pose = torch.zeros((self.n, 3), **kw)
         self.control = torch.zeros((self.n, 2), **kw)
         self.steps = torch.zeros(self.n, dtype=torch.int64, **kw)
         self.goal = torch.zeros((self.n, 2), **kw)
         self.path = torch.zeros((config.max_steps + 1, self.n, 2), **kw)
         self.totals = {k: torch.zeros(self.n, **kw) for k in ("displaced", "compacted", "rut_depth")}
+
+    def _layer(self, k: int) -> torch.Tensor:
+        return self.state[:, k].view(self.n, *self.grid.shape)
+
+    @property
+    def h(self) -> torch.Tensor:
+        """(N, X, Y) current surface, m (a view)."""
+        return self._layer(0)
+
+    @property
+    def passes(self) -> torch.Tensor:
+        """(N, X, Y) robot passes per cell (a float view)."""
+        return self._layer(3)
 
     # ----------------------------------------------------------------- reset
     def reset(self, ids: np.ndarray | list[int], rngs: list[np.random.Generator]) -> None:
@@ -226,10 +239,10 @@ class TraverseBatch:
             ang = rng.uniform(0, 2 * math.pi)
             rad = c.goal_jitter * math.sqrt(rng.uniform())
             goals.append([c.goal[0] + rad * math.cos(ang), c.goal[1] + rad * math.sin(ang)])
-        self.h[ids_t] = self.field.h0
-        self.ref[ids_t] = 0.0
-        self.ref_odom[ids_t] = -math.inf
-        self.passes[ids_t] = 0
+        rows = self.state.view(self.n, -1, 4)
+        rows[ids_t] = torch.stack([self.field.h0.reshape(-1), torch.zeros_like(self.field.h0.reshape(-1)),
+                                   torch.full_like(self.field.h0.reshape(-1), -math.inf),
+                                   torch.zeros_like(self.field.h0.reshape(-1))], 1)
         self.pose[ids_t] = torch.tensor(starts, dtype=torch.float32, device=self.device)
         self.goal[ids_t] = torch.tensor(goals, dtype=torch.float32, device=self.device)
         self.control[ids_t] = 0.0
@@ -249,8 +262,8 @@ class TraverseBatch:
         Returns:
             reward (N,), terminated (N,) bool, truncated (N,) bool, info of (N,) tensors.
         """
-        c, g, P = self.cfg, self.grid, self.patch
-        N, X, Y = self.h.shape
+        c, g = self.cfg, self.grid
+        N, (X, Y) = self.n, self.grid.shape
         a = action.to(self.device, torch.float32).reshape(N, 2)
         if not torch.isfinite(a).all():
             bad = torch.nonzero(~torch.isfinite(a).all(1))[0].item()
@@ -261,33 +274,29 @@ class TraverseBatch:
         start, end = dyn.to_world(pose0, self.wheels), dyn.to_world(pose1, self.wheels)
         self.odom = self.odom + (v * c.dt).abs()
 
-        origin = dyn.patch_origin((pose0[:, :2] + pose1[:, :2]) / 2, g, P)
-        idx = dyn.patch_index(origin, P, g)                                   # (N, P*P)
-        h_flat = self.h.view(N, -1)
-        h_p = h_flat.gather(1, idx).view(N, P, P)
-        tb_p = self.tan_beta.view(-1)[idx].view(N, P, P)
-        win = dyn.wheel_windows(start, end, pose0[:, 2], origin, P, self.window, g)
-        fidx = idx.view(-1)[win.cell]                                         # (E,) field cell
-        gidx = win.robot * (X * Y) + fidx                                     # (E,) state cell
-        ref_e, odom_e = self.ref.view(-1)[gidx], self.ref_odom.view(-1)[gidx]
-        visit = (self.odom[win.robot] - odom_e) <= self.visit_length
-        soil = self.field.soil.view(self.field.soil.shape[0], -1)
-        T = self.field.n_tracks
-        out = dyn.deform(h_p, tb_p, win, ref_e, visit, soil[self.track[win.wheel], fidx], soil[T, fidx],
-                         len(self.track), self.radius, self.robot.wheel_flat_fraction, g.dx,
-                         c.band_width * g.dx, c.ref_radius,
+        W = self.window
+        win = dyn.wheel_windows(start, end, pose0[:, 2], W, g)
+        gidx = win.robot * (X * Y) + win.field                                # (E,) state cell
+        shape = (N * len(self.track), W, W)
+        st = self.state.index_select(0, gidx)                                 # (E, 4)
+        h_e, ref_e, odom_e, pas_e = st.unbind(1)
+        odom_now = self.odom[win.robot]
+        visit = (odom_now - odom_e) <= self.visit_length
+        cells = self.cell_table.index_select(0, win.field)                   # (E, T + 3)
+        depth = cells.gather(1, 2 + self.track[win.wheel][:, None])[:, 0]
+        out = dyn.deform(h_e.view(shape), cells[:, 0].reshape(shape), win, ref_e, visit,
+                         depth, cells[:, -1], self.radius,
+                         self.robot.wheel_flat_fraction, g.dx, c.band_width * g.dx, c.ref_radius,
                          c.fixed_iter if c.relaxation == "capped" else None, c.tau, c.max_iter,
                          c.eps_scale, c.backend)
-        h_flat.scatter_(1, idx, out.h.reshape(N, -1))
         cov = out.covered
-        self.ref.view(-1)[gidx[cov]] = out.ref[cov]
-        self.ref_odom.view(-1)[gidx[cov]] = torch.where(visit, odom_e, self.odom[win.robot])[cov]
         entered = cov & ~visit
-        pas_e = self.passes.view(-1)[gidx]
-        self.passes.view(-1)[gidx[entered]] = pas_e[entered] + 1
-        repeat = (entered & out.owner & (pas_e > 0)).view(N, -1).sum(1).to(torch.float32)
-        h_new = out.h.reshape(-1)[win.cell]
-        rut = torch.where(out.owner, self.field.h0.view(-1)[fidx] - h_new, torch.zeros_like(h_new))
+        h_new = out.h.reshape(-1)
+        self.state.index_copy_(0, gidx, torch.stack([
+            h_new, torch.where(cov, out.ref, ref_e), torch.where(entered, odom_now, odom_e),
+            pas_e + entered.to(pas_e.dtype)], 1))
+        repeat = (entered & (pas_e > 0)).view(N, -1).sum(1).to(torch.float32)
+        rut = torch.where(cov, cells[:, 1] - h_new, torch.zeros_like(h_new))
         rut = rut.view(N, -1).amax(1).clamp_min(0)
 
         d_before = torch.linalg.vector_norm(self.goal - pose0[:, :2], dim=1)
@@ -324,10 +333,12 @@ class TraverseBatch:
         c, S, N = self.cfg, self.cfg.obs_size, self.n
         pose = self.pose
         flat, inside = dyn.body_grid_index(pose, self.obs_offsets, self.grid)   # (N, M)
-        h = self.h.view(N, -1).gather(1, flat)
+        XY = self.grid.shape[0] * self.grid.shape[1]
+        base = torch.arange(N, device=self.device)[:, None] * XY
+        h = self.state.index_select(0, (flat + base).reshape(-1))[:, 0].view(N, -1)
         h0 = self.field.h0.view(-1)[flat]
         centre = dyn.body_grid_index(pose, self.obs_offsets[:1] * 0, self.grid)[0]
-        rel = h - self.h.view(N, -1).gather(1, centre)
+        rel = h - self.state.index_select(0, (centre + base).reshape(-1))[:, 0].view(N, 1)
         zero = torch.zeros_like(h)
         height = torch.stack([torch.where(inside, rel, zero), torch.where(inside, h - h0, zero)], 1)
         height = height.reshape(N, 2, S, S).clamp(-2.0, 2.0)

@@ -47,64 +47,57 @@ def to_world(pose: torch.Tensor, body_xy: torch.Tensor) -> torch.Tensor:
     return torch.stack([pose[:, 0:1] + c * bx - s * by, pose[:, 1:2] + s * bx + c * by], dim=-1)
 
 
-def patch_origin(center_xy: torch.Tensor, grid: Grid, size: int) -> torch.Tensor:
-    """(N, 2) int64 index of cell [0, 0] of the size x size patch centred at `center_xy` (N, 2),
-    shifted so the patch lies inside the field."""
-    o = torch.tensor(grid.origin, dtype=center_xy.dtype, device=center_xy.device)
-    c = torch.round((center_xy - o) / grid.dx).long() - size // 2
-    hi = torch.tensor([grid.shape[0] - size, grid.shape[1] - size], device=c.device)
-    return torch.minimum(c.clamp_min(0), hi)
-
-
-def patch_index(origin: torch.Tensor, size: int, grid: Grid) -> torch.Tensor:
-    """(N, size*size) flat indices into a row-major (X, Y) field of the patches at `origin` (N, 2)."""
-    ar = torch.arange(size, device=origin.device)
-    i = origin[:, 0, None, None] + ar[None, :, None]
-    j = origin[:, 1, None, None] + ar[None, None, :]
-    return (i * grid.shape[1] + j).flatten(1)
-
-
 class WheelWindows(NamedTuple):
-    """W x W cell windows around each wheel's segment of one step, flattened to E = N*K*W*W
-    entries (robot-major, then wheel, then cell).
+    """W x W field windows around each wheel's segment of one step, as E = N*K*W*W entries
+    (robot-major, then wheel, then row and column of the window).
 
-    cell: (E,) int64 flat index into the (N, P, P) patch stack; dist: (E,) distance to the
+    field: (E,) int64 row-major index of the entry's field cell; dist: (E,) distance to the
     segment, m; lateral: (E,) signed offset from its line, left positive, m; along: (E,)
     position along the segment's line from its start (not clamped to the segment), m;
-    length: (E,) segment length, m; wheel: (E,) int64 wheel k; robot: (E,) int64 robot n.
+    length: (E,) segment length, m; wheel: (E,) int64 wheel k; robot: (E,) int64 robot n;
+    shape: (N, K, W, W).
     """
 
-    cell: torch.Tensor
+    field: torch.Tensor
     dist: torch.Tensor
     lateral: torch.Tensor
     along: torch.Tensor
     length: torch.Tensor
     wheel: torch.Tensor
     robot: torch.Tensor
+    shape: tuple[int, int, int, int]
 
 
-def wheel_windows(start: torch.Tensor, end: torch.Tensor, heading: torch.Tensor,
-                  patch_origin_ij: torch.Tensor, size: int, window: int, grid: Grid) -> WheelWindows:
+def window_size(start: torch.Tensor, end: torch.Tensor, radius: float, band_width: float,
+                margin: int, dx: float) -> int:
+    """Cells per side of square windows that hold every wheel's swept footprint, its deposition
+    bands and `margin` cells of relaxation room, for the longest segment of the batch."""
+    longest = float(torch.linalg.vector_norm(end - start, dim=-1).max())
+    return int(math.ceil((longest + 2 * (radius + band_width)) / dx)) + 1 + 2 * margin
+
+
+def wheel_windows(start: torch.Tensor, end: torch.Tensor, heading: torch.Tensor, window: int,
+                  grid: Grid) -> WheelWindows:
     """Geometry of the cells near each wheel's straight segment for one step.
 
     Args:
         start, end: (N, K, 2) wheel centres before and after the step, m.
         heading: (N,) yaw used as the direction of a wheel that does not move, rad.
-        patch_origin_ij: (N, 2) int64 field index of cell [0, 0] of each robot's patch.
-        size: patch edge P, cells; window: W, cells (W <= P).
+        window: W, cells per side, centred on the segment and shifted onto the field.
+        grid: the field grid (at least W cells each way).
     """
     N, K = start.shape[:2]
-    dt = start.dtype
-    dev = start.device
+    dt, dev = start.dtype, start.device
+    X, Y = grid.shape
     mid = (start + end) / 2
     o = torch.tensor(grid.origin, dtype=dt, device=dev)
-    w0 = torch.round((mid - o) / grid.dx).long() - window // 2 - patch_origin_ij[:, None]
-    w0 = w0.clamp(0, size - window)                                     # (N, K, 2) in the patch
+    w0 = torch.round((mid - o) / grid.dx).long() - window // 2
+    w0 = torch.minimum(w0.clamp_min(0), torch.tensor([X - window, Y - window], device=dev))
     ar = torch.arange(window, device=dev)
     ii = w0[..., 0, None] + ar                                           # (N, K, W)
     jj = w0[..., 1, None] + ar
-    xs = grid.origin[0] + (patch_origin_ij[:, None, 0, None] + ii).to(dt) * grid.dx
-    ys = grid.origin[1] + (patch_origin_ij[:, None, 1, None] + jj).to(dt) * grid.dx
+    xs = grid.origin[0] + ii.to(dt) * grid.dx
+    ys = grid.origin[1] + jj.to(dt) * grid.dx
     u = end - start
     length = torch.linalg.vector_norm(u, dim=-1)                         # (N, K)
     still = length < 1e-9
@@ -117,56 +110,53 @@ def wheel_windows(start: torch.Tensor, end: torch.Tensor, heading: torch.Tensor,
     lateral = ry * ux4 - rx * uy4
     foot = along.clamp(min=0.0).minimum(len4)
     dist = torch.sqrt((rx - foot * ux4) ** 2 + (ry - foot * uy4) ** 2)
-    robot = torch.arange(N, device=dev)[:, None, None, None]
-    cell = (robot * size + ii[..., :, None]) * size + jj[..., None, :]
     shape = (N, K, window, window)
+    field = ii[..., :, None] * Y + jj[..., None, :]
     wheel = torch.arange(K, device=dev)[None, :, None, None].expand(shape)
-    return WheelWindows(cell.flatten(), dist.flatten(), lateral.flatten(), along.flatten(),
-                        len4.expand(shape).flatten(), wheel.flatten(), robot.expand(shape).flatten())
+    robot = torch.arange(N, device=dev)[:, None, None, None].expand(shape)
+    return WheelWindows(field.flatten(), dist.flatten(), lateral.flatten(), along.flatten(),
+                        len4.expand(shape).flatten(), wheel.flatten(), robot.flatten(), shape)
 
 
 class StepSoil(NamedTuple):
-    """Outcome of one step on N patches.
+    """Outcome of one step on the N*K wheel windows.
 
-    h: (N, P, P) surface after the step, m; ref: (E,) reference height used at each entry's
-    cell, m; covered: (E,) bool, the entry's cell is under some wheel this step; owner: (E,)
-    bool, the entry's wheel dug its cell (one entry per covered cell); removed, deposited:
-    (N,) volumes, m^3; iterations: (N,) relaxation updates.
+    h: (N*K, W, W) surface after the step, m; ref: (E,) reference height used at each entry,
+    m; covered: (E,) bool, under the wheel this step; removed, deposited: (N,) volumes, m^3;
+    iterations: (N,) most relaxation updates over a robot's windows.
     """
 
     h: torch.Tensor
     ref: torch.Tensor
     covered: torch.Tensor
-    owner: torch.Tensor
     removed: torch.Tensor
     deposited: torch.Tensor
     iterations: torch.Tensor
 
 
 def deform(h: torch.Tensor, tan_beta: torch.Tensor, win: WheelWindows, ref: torch.Tensor,
-           visit: torch.Tensor, depth: torch.Tensor, chi: torch.Tensor, n_wheels: int,
-           radius: float, flat_fraction: float, dx: float, band_width: float,
-           ref_radius: float = 0.5, fixed_iter: int | None = 4, tau: float = 0.01,
-           max_iter: int = 2000, eps_scale: float = 4.0, backend: str = "auto") -> StepSoil:
-    """Wheels dig, deposit beside their ruts and the surface relaxes, on N local patches.
+           visit: torch.Tensor, depth: torch.Tensor, chi: torch.Tensor, radius: float,
+           flat_fraction: float, dx: float, band_width: float, ref_radius: float = 0.5,
+           fixed_iter: int | None = 4, tau: float = 0.01, max_iter: int = 2000,
+           eps_scale: float = 4.0, backend: str = "auto") -> StepSoil:
+    """Wheels dig, deposit beside their ruts and the surface relaxes, in each wheel's window.
 
-    The N patches are one (1, N*P, P) surface for the simulator's sparse stages (`sink`,
-    `deposit`), then relax as (N, P, P). Deposition bins are 2 cells of a wheel's segment
-    extended by the footprint radius at both ends, one set per robot and wheel, so the soil
-    dug ahead of the segment's end lands beside it too.
-    A cell in an ongoing visit keeps the reference height of that visit, so the rear wheel in
-    the front wheel's rut and overlapping steps dig no deeper (the simulator's min over
-    poses); a later visit digs again from the surface it finds.
+    The N*K windows are one (1, N*K*W, W) surface for the simulator's sparse stages (`sink`,
+    `deposit`), then relax as (N*K, W, W) with no flux across the window edges. Deposition
+    bins are 2 cells of a wheel's segment extended by the footprint radius at both ends, so
+    the soil dug ahead of the segment's end lands beside it too. A cell in an ongoing visit
+    keeps the reference height of that visit, so the rear wheel in the front wheel's rut and
+    overlapping steps dig no deeper (the simulator's min over poses); a later visit digs again
+    from the surface it finds.
 
     Args:
-        h: (N, P, P) surface, m.
-        tan_beta: (N, P, P) tangent of the angle of repose per cell.
-        win: E wheel-window entries of this step (`wheel_windows`).
-        ref: (E,) reference height of the entry's cell in its ongoing visit, m.
-        visit: (E,) bool, the entry's cell is in an ongoing visit (`ref` applies).
-        depth: (E,) sinkage d of the entry's wheel track at its cell, m.
-        chi: (E,) displacement-compaction ratio at the entry's cell.
-        n_wheels: K.
+        h: (N*K, W, W) surface in the windows, m.
+        tan_beta: (N*K, W, W) tangent of the angle of repose per cell.
+        win: the windows' E = N*K*W*W entries (`wheel_windows`).
+        ref: (E,) reference height of the cell in its ongoing visit, m.
+        visit: (E,) bool, the cell is in an ongoing visit (`ref` applies).
+        depth: (E,) sinkage d of the window's wheel track at the cell, m.
+        chi: (E,) displacement-compaction ratio at the cell.
         radius: footprint radius (half the wheel width), m.
         flat_fraction: tyre taper f.
         dx: cell edge, m.
@@ -175,37 +165,30 @@ def deform(h: torch.Tensor, tan_beta: torch.Tensor, win: WheelWindows, ref: torc
         fixed_iter: relaxation iterations (capped); None relaxes to convergence (tau, max_iter).
         backend: relaxation backend ("auto", "numba", "torch").
     """
-    N, P = h.shape[0], h.shape[1]
-    flat = (1, N * P, P)
-    cells = N * P * P
+    N, K, W = win.shape[:3]
+    M, E = N * K, h.numel()
+    flat = (1, M * W, W)
+    cell = torch.arange(E, device=h.device)
     covered = win.dist <= radius                                         # (E,)
     s = taper(win.lateral / radius, flat_fraction)
-    h_ref = reference_height(h, ref_radius * radius, dx).reshape(-1).clone()
-    ref_used = torch.where(visit, ref, h_ref[win.cell])
-    h_ref[win.cell] = ref_used
-    h_dug, removed = sink(h.reshape(flat), h_ref.reshape(flat), win.cell, covered[None], s[None],
+    h_ref = torch.where(visit, ref, reference_height(h, ref_radius * radius, dx).reshape(-1))
+    h_dug, removed = sink(h.reshape(flat), h_ref.reshape(flat), cell, covered[None], s[None],
                           depth[None])
-    # Owner of a cell: the covering wheel with the largest taper (as in the simulator).
-    key = torch.where(covered, s + 1, torch.zeros_like(s))
-    best = key.new_zeros(cells).scatter_reduce(0, win.cell, key, "amax")[win.cell]
-    owner = covered & (key == best)
-    covered_any = best > 0                                               # (E,)
     lat = win.lateral.abs()
     pos = win.along + radius                                             # from the rear cap
     band = ((lat > radius) & (lat <= radius + band_width) & (pos >= 0)
-            & (pos <= win.length + 2 * radius) & ~covered_any & ~visit)
+            & (pos <= win.length + 2 * radius) & ~covered & ~visit)
     n_bins = int((win.length.max().item() + 2 * radius) // (2 * dx)) + 1
-    bins = ((win.robot * n_wheels + win.wheel) * n_bins
-            + (pos / (2 * dx)).floor().long().clamp(0, n_bins - 1))
-    source = torch.zeros(cells, dtype=h.dtype, device=h.device)
-    source[win.cell] = removed.reshape(-1)[win.cell] * chi               # chi at the dug cell
-    added, _lost = deposit(source.reshape(flat), win.cell, owner[None], band[None], bins,
-                           N * n_wheels * n_bins, torch.ones(1, dtype=h.dtype, device=h.device))
+    window_id = win.robot * K + win.wheel
+    bins = window_id * n_bins + (pos / (2 * dx)).floor().long().clamp(0, n_bins - 1)
+    one = torch.ones(1, dtype=h.dtype, device=h.device)
+    added, _lost = deposit((removed.reshape(-1) * chi).reshape(flat), cell, covered[None],
+                           band[None], bins, M * n_bins, one)
     h_pre = (h_dug + added).reshape(h.shape)
     rr = relax(h_pre, tan_beta, dx, None, tau, max_iter, fixed_iter, eps_scale, backend)
     area = dx * dx
-    return StepSoil(rr.h, ref_used, covered_any, owner, removed.reshape(N, -1).sum(1) * area,
-                    added.reshape(N, -1).sum(1) * area, rr.iterations)
+    return StepSoil(rr.h, h_ref, covered, removed.reshape(N, -1).sum(1) * area,
+                    added.reshape(N, -1).sum(1) * area, rr.iterations.reshape(N, K).amax(1))
 
 
 def body_grid_index(pose: torch.Tensor, offsets: torch.Tensor, grid: Grid

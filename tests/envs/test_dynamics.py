@@ -33,57 +33,59 @@ def test_step_pose_full_circle_returns():
     assert math.isclose(p[0, 2].item() - 1.0, 2 * math.pi, rel_tol=1e-9)
 
 
-def _windows(start, end, yaw=0.0, size=40, window=20):
+def _windows(start, end, yaw=0.0, window=20):
     grid = Grid(0.05, (0.0, 0.0), (100, 100))
-    origin = torch.tensor([[0, 0]])
     s = torch.tensor([[start]], dtype=torch.float32)
     e = torch.tensor([[end]], dtype=torch.float32)
-    return dyn.wheel_windows(s, e, torch.tensor([yaw]), origin, size, window, grid), grid, size
+    return dyn.wheel_windows(s, e, torch.tensor([yaw]), window, grid), grid
 
 
-def _at(win, size, i, j):
-    k = (win.cell == i * size + j).nonzero()
+def _at(win, i, j):
+    k = (win.field == i * 100 + j).nonzero()
     assert len(k) == 1, "cell not in the window"
     return int(k[0])
 
 
 def test_wheel_windows_geometry():
-    win, grid, size = _windows((0.5, 1.0), (0.7, 1.0))          # segment along +x
-    on_line = _at(win, size, 12, 20)                              # (0.6, 1.0)
+    win, grid = _windows((0.5, 1.0), (0.7, 1.0))                 # segment along +x
+    on_line = _at(win, 12, 20)                                    # (0.6, 1.0)
     assert win.dist[on_line] == pytest.approx(0.0, abs=1e-6)
     assert win.lateral[on_line] == pytest.approx(0.0, abs=1e-6)
     assert win.along[on_line] == pytest.approx(0.1, abs=1e-6)
-    left = _at(win, size, 12, 22)                                 # (0.6, 1.1): left of +x
+    left = _at(win, 12, 22)                                       # (0.6, 1.1): left of +x
     assert win.lateral[left] == pytest.approx(0.1, abs=1e-6)
     assert win.dist[left] == pytest.approx(0.1, abs=1e-6)
-    ahead = _at(win, size, 18, 21)                                # (0.9, 1.05): beyond the end
+    ahead = _at(win, 18, 21)                                      # (0.9, 1.05): beyond the end
     assert win.dist[ahead] == pytest.approx(math.hypot(0.2, 0.05), abs=1e-6)
     assert win.along[ahead] == pytest.approx(0.4, abs=1e-6)       # not clamped
     assert torch.allclose(win.length, torch.tensor(0.2), atol=1e-6)
+    assert win.shape == (1, 1, 20, 20) and len(win.field.unique()) == 400
 
 
-def test_wheel_windows_standing_wheel_uses_heading():
-    win, grid, size = _windows((1.0, 1.0), (1.0, 1.0), yaw=math.pi / 2)
-    c = _at(win, size, 18, 20)                                    # (0.9, 1.0): left of +y heading
+def test_wheel_windows_standing_wheel_uses_heading_and_stay_on_the_field():
+    win, grid = _windows((1.0, 1.0), (1.0, 1.0), yaw=math.pi / 2)
+    c = _at(win, 18, 20)                                          # (0.9, 1.0): left of +y heading
     assert win.lateral[c] == pytest.approx(0.1, abs=1e-6)
     assert win.dist[c] == pytest.approx(0.1, abs=1e-6)
+    edge, _ = _windows((0.0, 4.95), (0.1, 4.95))                  # at the field's corner
+    assert edge.field.min() >= 0 and edge.field.max() < 100 * 100
+    assert _at(edge, 0, 99) >= 0
 
 
 def _one_step(N=1, d=0.03, chi=0.6, beta_deg=30.0, fixed_iter=4, backend="torch", visit=False,
               h=None, ref=None):
     grid = Grid(0.05, (0.0, 0.0), (60, 60))
-    P, W = 60, 24
     wheels = torch.tensor([[0.0, 0.5], [0.0, -0.5]])
     pose0 = torch.tensor([[1.4, 1.5, 0.2]] * N)
     pose1 = dyn.step_pose(pose0, torch.full((N,), 1.0), torch.full((N,), 0.3), 0.2)
     start, end = dyn.to_world(pose0, wheels), dyn.to_world(pose1, wheels)
-    origin = torch.zeros(N, 2, dtype=torch.int64)
-    win = dyn.wheel_windows(start, end, pose0[:, 2], origin, P, W, grid)
-    h = torch.zeros(N, P, P) if h is None else h
-    E = win.cell.shape[0]
+    W = dyn.window_size(start, end, 0.07, 0.05, 2, 0.05)
+    win = dyn.wheel_windows(start, end, pose0[:, 2], W, grid)
+    h = torch.zeros(N * 2, W, W) if h is None else h
+    E = win.field.shape[0]
     ref_e = torch.zeros(E) if ref is None else ref
-    out = dyn.deform(h, torch.full((N, P, P), math.tan(math.radians(beta_deg))), win, ref_e,
-                     torch.full((E,), visit), torch.full((E,), d), torch.full((E,), chi), 2,
+    out = dyn.deform(h, torch.full((N * 2, W, W), math.tan(math.radians(beta_deg))), win, ref_e,
+                     torch.full((E,), visit), torch.full((E,), d), torch.full((E,), chi),
                      0.07, 0.0, 0.05, 0.05, fixed_iter=fixed_iter, backend=backend)
     return out, win, h
 
@@ -100,16 +102,14 @@ def test_deform_volume_balance(backend):
 
 
 def _expected_cut(win, d, radius=0.07):
-    """Per covered cell, the deepest cut s * d over the wheels covering it."""
-    s = taper(win.lateral / radius) * (win.dist <= radius)
-    cut = torch.zeros(int(win.cell.max()) + 1).scatter_reduce(0, win.cell, s * d, "amax")
-    return cut
+    """Per window cell, the cut s * d of the window's wheel (0 outside its footprint)."""
+    return taper(win.lateral / radius) * (win.dist <= radius) * d
 
 
 def test_deform_rut_depth_equals_sinkage_on_flat_ground():
     out, win, h = _one_step(d=0.03, fixed_iter=0)
     cut = _expected_cut(win, 0.03)
-    got = -out.h.reshape(-1)[: len(cut)]
+    got = -out.h.reshape(-1)
     assert torch.allclose(got[cut > 0], cut[cut > 0], atol=1e-6)
     assert cut.max().item() == pytest.approx(0.03, abs=2e-3)     # the taper peaks on the wheel line
 
@@ -119,10 +119,9 @@ def test_deform_ongoing_visit_digs_no_deeper_new_visit_does():
     h1 = first.h
     again, _, _ = _one_step(fixed_iter=0, h=h1.clone(), ref=first.ref, visit=True)
     assert again.removed.item() == pytest.approx(0.0, abs=1e-9)
-    second, _, _ = _one_step(fixed_iter=0, h=h1.clone(), visit=False,
-                             ref=h1.reshape(-1)[win.cell])
+    second, _, _ = _one_step(fixed_iter=0, h=h1.clone(), visit=False, ref=h1.reshape(-1))
     cut = _expected_cut(win, 0.03)
-    got = -second.h.reshape(-1)[: len(cut)]
+    got = -second.h.reshape(-1)
     assert torch.allclose(got[cut > 0], 2 * cut[cut > 0], atol=1e-6)   # a second pass digs again
 
 
@@ -130,7 +129,7 @@ def test_deform_batch_elements_are_independent():
     single, _, _ = _one_step(N=1, backend="numba")
     batch, _, _ = _one_step(N=3, backend="numba")
     for n in range(3):
-        assert torch.allclose(batch.h[n], single.h[0], atol=1e-7)
+        assert torch.allclose(batch.h[2 * n:2 * n + 2], single.h, atol=1e-7)
     assert torch.allclose(batch.removed, single.removed.expand(3))
 
 

@@ -1,0 +1,43 @@
+"""Soil-traverse environment throughput: env steps per second of the batched vector env on
+the default 20 m x 10 m field (dx = 0.05 m) for N = 1, 16, 64, 256, capped relaxation
+(4 updates per step) with the numba and torch kernels, and converged relaxation at N = 256."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+
+def steps_per_second(num_envs: int, steps: int, blocks: int, env_overrides: dict | None = None) -> float:
+    """Median over `blocks` of num_envs * steps / wall time, driving on random arcs."""
+    from envs.vector import SoilTraverseVectorEnv
+
+    env = SoilTraverseVectorEnv(num_envs, {"env": env_overrides or {}})
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    actions = np.column_stack([np.full((steps, num_envs), 1.0),
+                               rng.uniform(-0.3, 0.3, (steps, num_envs))]).reshape(steps, 2, num_envs)
+    actions = actions.transpose(0, 2, 1).astype(np.float32)
+    for a in actions[:3]:
+        env.step(a)
+    rates = []
+    for _ in range(blocks):
+        t0 = time.perf_counter()
+        for a in actions:
+            env.step(a)
+        rates.append(num_envs * steps / (time.perf_counter() - t0))
+    return float(np.median(rates))
+
+
+def run(quick: bool = False) -> dict[str, float]:
+    steps, blocks = (8, 1) if quick else (25, 3)
+    out: dict[str, float] = {}
+    for n in (1, 16, 64, 256):
+        out[f"env_steps_per_s_n{n}"] = steps_per_second(n, steps, blocks, {"backend": "numba"})
+    out["env_steps_per_s_n256_torch_relax"] = steps_per_second(256, steps, blocks, {"backend": "torch"})
+    out["env_steps_per_s_n256_converged"] = steps_per_second(
+        256, steps, blocks, {"backend": "numba", "relaxation": "converged"})
+    out["env_steps_per_s_n64_converged"] = steps_per_second(
+        64, steps, blocks, {"backend": "numba", "relaxation": "converged"})
+    return out
