@@ -48,10 +48,14 @@ class Estimator:
         pair: the terrain pair.
         config: the full configuration (sections `sim` and `estimator`).
         device: torch device (default: config estimator.device).
+        modifiers: optional callable (WindowData, B) -> sim.Modifiers: a model extension with
+            fixed parameters (e.g. a sinkage factor per pose from the window's speed), applied
+            in every simulation of that window, fit and prediction alike.
     """
 
-    def __init__(self, pair, config: dict, device=None, dtype=torch.float64):
+    def __init__(self, pair, config: dict, device=None, dtype=torch.float64, modifiers=None):
         self.pair = pair
+        self.modifiers = modifiers
         self.est = config["estimator"]
         self.sim = SimConfig.from_dict(config["sim"])
         self.device = torch.device(device) if device is not None else pick_device(self.est["device"])
@@ -96,10 +100,15 @@ class Estimator:
             self._cache[k] = self._prepare(spec)
         return self._cache[k]
 
+    def simulate(self, free: torch.Tensor, wd: WindowData):
+        """Simulate window wd for optimizer variables free (B, P_free)."""
+        mods = self.modifiers(wd, free.shape[0]) if self.modifiers is not None else None
+        return simulate(wd.h_front, wd.geom, self.full_theta(free), self.sim, self.spec, modifiers=mods,
+                        h_ref=wd.h_ref)
+
     def objective(self, wd: WindowData):
         def cost(free: torch.Tensor) -> torch.Tensor:
-            r = simulate(wd.h_front, wd.geom, self.full_theta(free), self.sim, self.spec, h_ref=wd.h_ref)
-            return weighted_l1(r.h, wd.h_back, wd.weight)
+            return weighted_l1(self.simulate(free, wd).h, wd.h_back, wd.weight)
 
         return cost
 
@@ -112,7 +121,7 @@ class Estimator:
     def predict(self, free: torch.Tensor, wd: WindowData) -> tuple[torch.Tensor, float]:
         """Simulated H_b (X, Y) and cost of parameters `free` on window data wd."""
         with torch.no_grad():
-            r = simulate(wd.h_front, wd.geom, self.full_theta(free[None]), self.sim, self.spec, h_ref=wd.h_ref)
+            r = self.simulate(free[None], wd)
             return r.h[0], float(weighted_l1(r.h, wd.h_back, wd.weight)[0])
 
     # --------------------------------------------------------------------- run
