@@ -358,7 +358,7 @@ class TraverseBatch:
                 "goal": goal.clamp(-1e4, 1e4).cpu().numpy()}
 
     # ---------------------------------------------------------------- render
-    def render(self, i: int = 0, depth_range: float = 0.06) -> np.ndarray:
+    def render(self, i: int = 0, depth_range: float = 0.04) -> np.ndarray:
         """(Y, X, 3) uint8 top view of H_delta = h - h0 of episode i (x right, y up), with
         the path (black) and the wheels at the current pose (red)."""
         from matplotlib import colormaps
