@@ -12,12 +12,13 @@ import json
 import sys
 from pathlib import Path
 
-from torchsoil.synth.scenario import available
+SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenario", required=True, help=f"name ({', '.join(available())}) or YAML path")
+    names = ", ".join(sorted(p.stem for p in SCENARIOS.glob("*.yaml")))
+    ap.add_argument("--scenario", required=True, help=f"name ({names}) or YAML path")
     ap.add_argument("--out", required=True, type=Path, help="bag directory to create (or .npz with --pair-only)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--dx", type=float, default=0.02, help="terrain cell edge, m")

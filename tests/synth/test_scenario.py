@@ -1,5 +1,6 @@
 """Scenarios, trajectories and the terrain pair straight from the truth."""
 
+import importlib.util
 import math
 import subprocess
 import sys
@@ -118,17 +119,28 @@ def test_soil_fields_patch_weights():
     np.testing.assert_allclose(np.degrees(s["beta"]), [40.0, 30 + 10 * math.exp(-0.5), 30.0])
 
 
-def test_make_recording_script_pair_only(tmp_path):
-    out = tmp_path / "p.npz"
-    scn = tmp_path / "small.yaml"
+def _script_main():
+    spec = importlib.util.spec_from_file_location("make_recording", ROOT / "scripts/make_recording.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.main
+
+
+def test_make_recording_script_pair_only(tmp_path, capsys):
     import yaml
 
+    main = _script_main()
+    scn = tmp_path / "small.yaml"
     scn.write_text(yaml.safe_dump(SMALL))
-    r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--scenario", str(scn),
-                        "--out", str(out), "--seed", "1", "--pair-only"], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    out = tmp_path / "p.npz"
+    assert main(["--scenario", str(scn), "--out", str(out), "--seed", "1", "--pair-only"]) == 0
     with np.load(out) as d:
         np.testing.assert_array_equal(d["h_back"], make_terrain_pair(SMALL, seed=1)["h_back"])
-    r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--scenario", "nowhere",
-                        "--out", str(tmp_path / "x")], capture_output=True, text=True)
-    assert r.returncode == 2 and "available" in r.stderr
+    assert main(["--scenario", "nowhere", "--out", str(tmp_path / "x")]) == 2
+    assert "available" in capsys.readouterr().err
+
+
+def test_make_recording_script_runs_as_a_command(tmp_path):
+    r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--help"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and "--pair-only" in r.stdout

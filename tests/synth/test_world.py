@@ -1,5 +1,7 @@
 """The world soil model: base physics, and each effect changing the truth in its own way."""
 
+import functools
+import json
 import math
 
 import numpy as np
@@ -11,9 +13,9 @@ from torchsoil.synth.scenario import build_truth
 # beta = 89 deg: relaxation leaves the ruts alone, so rut depths follow the sinkage laws
 BASE_SOIL = {"base": {"d": 0.03, "chi": 0.3, "beta_deg": 89.0, "moisture": 0.0}}
 SOIL_30 = {"base": {"d": 0.03, "chi": 0.3, "beta_deg": 30.0, "moisture": 0.0}}
-LOOP = [{"straight": 3.0, "speed": 1.0}, {"arc": 1.6, "angle_deg": 180, "speed": 1.0},
-        {"straight": 3.0, "speed": 1.0}, {"arc": 1.6, "angle_deg": 180, "speed": 1.0},
-        {"straight": 3.5, "speed": 1.0}]
+LOOP = [{"straight": 2.5, "speed": 1.0}, {"arc": 1.4, "angle_deg": 180, "speed": 1.0},
+        {"straight": 2.5, "speed": 1.0}, {"arc": 1.4, "angle_deg": 180, "speed": 1.0},
+        {"straight": 3.0, "speed": 1.0}]
 
 
 def scenario(segments, effects=None, soil=None, relief=None, accel_limit=0.5):
@@ -25,8 +27,14 @@ def scenario(segments, effects=None, soil=None, relief=None, accel_limit=0.5):
             "landmarks": {"poles": 0, "trunks": 0, "shed": False, "fence": False}}
 
 
+@functools.lru_cache(maxsize=16)
+def _world(key: str, seed: int):
+    return build_truth(json.loads(key), seed).world
+
+
 def world(scn, seed=0):
-    return build_truth(scn, seed).world
+    """The world of a scenario dict (cached: generation is deterministic)."""
+    return _world(json.dumps(scn, sort_keys=True), seed)
 
 
 def rut_depth(w, xs, y, half=0.03):
@@ -203,8 +211,7 @@ def test_effect_laws_and_errors():
 
 
 def test_revisit_surface_follows_visits_in_time():
-    truth = build_truth(scenario(LOOP))
-    w = truth.world
+    w = world(scenario(LOOP))
     twice = w.n_visits == 2
     assert twice.sum() > 1000
     t1, t2 = w.visit_time[0][twice], w.visit_time[1][twice]

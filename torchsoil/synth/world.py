@@ -222,28 +222,34 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
         p = np.vstack([p[seg] + frac[:, None] * (p[seg + 1] - p[seg]), p[-1:]])
     w = _wheel_xy(p, wxy)                                          # (K, M, 2)
     xs, ys = grid.centers()
-    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
     K = len(wxy)
     shape = (K, *grid.shape)
-    dist = np.full((K, len(cells)), np.inf)
-    lateral = np.zeros((K, len(cells)))
-    pose = np.zeros((K, len(cells)), dtype=np.int64)
-    bins = np.zeros((K, len(cells)), dtype=np.int64)
+    dist = np.full(shape, np.inf)
+    lateral = np.zeros(shape)
+    pose = np.zeros(shape, dtype=np.int64)
+    bins = np.zeros(shape, dtype=np.int64)
     for k in range(K):
+        lo = np.maximum(np.floor((w[k].min(0) - reach - grid.origin) / grid.dx).astype(int), 0)
+        hi = np.minimum(np.ceil((w[k].max(0) + reach - grid.origin) / grid.dx).astype(int) + 1, grid.shape)
+        if np.any(hi <= lo):
+            continue
+        cx, cy = np.meshgrid(xs[lo[0]:hi[0]], ys[lo[1]:hi[1]], indexing="ij")
+        cells = np.column_stack([cx.ravel(), cy.ravel()])
         d = np.gradient(w[k], axis=0) if len(p) > 1 else np.zeros_like(w[k])
         moving = np.linalg.norm(d, axis=1) > 1e-9
         head = np.where(moving, np.arctan2(d[:, 1], d[:, 0]), p[:, 3])
         arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(w[k], axis=0), axis=1))])
         dd, ii = cKDTree(w[k]).query(cells, distance_upper_bound=reach)
         hit = np.isfinite(dd)
-        ih = ii[hit]
-        rel = cells[hit] - w[k, ih]
-        dist[k, hit] = dd[hit]
-        lateral[k, hit] = -np.sin(head[ih]) * rel[:, 0] + np.cos(head[ih]) * rel[:, 1]
-        pose[k, hit] = ih
-        bins[k, hit] = np.floor(arc[ih] / (2 * grid.dx)).astype(np.int64)
-    return {"poses": p, "dist": dist.reshape(shape), "lateral": lateral.reshape(shape),
-            "pose": pose.reshape(shape), "bin": bins.reshape(shape), "dx": grid.dx}
+        ii = np.where(hit, ii, 0)
+        rel = cells - w[k, ii]
+        sub = (k, slice(lo[0], hi[0]), slice(lo[1], hi[1]))
+        sh = cx.shape
+        dist[sub] = dd.reshape(sh)
+        lateral[sub] = np.where(hit, -np.sin(head[ii]) * rel[:, 0] + np.cos(head[ii]) * rel[:, 1], 0.0).reshape(sh)
+        pose[sub] = ii.reshape(sh)
+        bins[sub] = np.floor(arc[ii] / (2 * grid.dx)).astype(np.int64).reshape(sh)
+    return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "bin": bins, "dx": grid.dx}
 
 
 def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi: float, tan_beta, tan_wall,
@@ -256,7 +262,8 @@ def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi: float, 
     cells). Returns the new surface (X, Y) and the (K, X, Y) bool footprint cover."""
     dist, lateral = geom["dist"], geom["lateral"]
     covered = dist <= radius
-    s = taper(torch.from_numpy(lateral / radius), robot.wheel_flat_fraction).numpy()
+    s = np.zeros_like(dist)
+    s[covered] = taper(torch.from_numpy(lateral[covered] / radius), robot.wheel_flat_fraction).numpy()
     target = np.where(covered, h_ref[None] - s * depth, np.inf).min(0)
     h_dug = np.minimum(h, target)
     removed = h - h_dug
