@@ -15,7 +15,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-DEMO = ROOT / "data" / "demo"
+DEMO = ROOT / "data" / "demo" / "demo"          # the bundled recording (rosbag2, mcap)
+DEMO_ROBOT = ROOT / "data" / "demo" / "demo.robot.yaml"
 
 
 def main(argv=None) -> int:
@@ -46,8 +47,12 @@ def main(argv=None) -> int:
     if args.capped:
         overrides.append(f"sim.fixed_iter={args.capped}")
     config = load_config(args.config, overrides)
-    source = Path(args.input) if args.input else _demo_input()
-    robot_path = args.robot or (DEMO / "robot.yaml" if not args.input and (DEMO / "robot.yaml").exists() else None)
+    source = Path(args.input) if args.input else DEMO
+    if not source.exists():
+        print(f"error: {source} does not exist" + ("" if args.input else
+              " (the bundled demo recording; see data/demo/README.md to regenerate it)"), file=sys.stderr)
+        return 2
+    robot_path = args.robot or (DEMO_ROBOT if not args.input else None)
     robot = Robot.from_yaml(robot_path) if robot_path else None
     out = Path(args.out) if args.out else ROOT / "out" / (source.stem if args.input else "demo")
     try:
@@ -58,16 +63,6 @@ def main(argv=None) -> int:
     print(f"wrote {out}: params.csv, summary.md, fig4_parameters.png, fig6_difference_maps.png, tensorboard/")
     print((out / "summary.md").read_text())
     return 0
-
-
-def _demo_input() -> Path:
-    for name in ("recording", "bag"):
-        if (DEMO / name).exists():
-            return DEMO / name
-    bags = sorted(p for p in DEMO.glob("*") if p.is_dir() or p.suffix in (".bag", ".mcap", ".npz"))
-    if not bags:
-        raise SystemExit(f"no demo recording in {DEMO}; run scripts/make_recording.py (see data/demo/README.md)")
-    return bags[0]
 
 
 if __name__ == "__main__":

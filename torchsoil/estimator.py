@@ -168,7 +168,18 @@ class Estimator:
 
     def _prepare(self, spec: WindowSpec) -> WindowData | None:
         return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
-                              h_start=self.h_start)
+                              h_start=self.h_start, extra_flags=self._registration_flags(spec))
+
+    def _registration_flags(self, spec: WindowSpec) -> tuple[str, ...]:
+        """("registration",) when a sweep the lidar pipeline flagged was taken while the robot
+        was over this window (extras scan_stamps, scan_flags of a pipeline terrain pair)."""
+        extras = getattr(self.pair, "extras", {})
+        if "scan_flags" not in extras or "scan_stamps" not in extras:
+            return ()
+        reach = np.abs(self.pair.wheels[:, 0]).max() + self.pair.wheel_width
+        t0, t1 = np.interp([spec.s0 - reach, spec.s1 + reach], self.index.arc, self.pair.poses[:, 0])
+        stamps, flags = extras["scan_stamps"], extras["scan_flags"]
+        return ("registration",) if np.any((flags != 0) & (stamps >= t0) & (stamps <= t1)) else ()
 
     def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags) -> dict:
         row = {"s": spec.centre,

@@ -79,7 +79,10 @@ def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dic
     measured = pair.h_back - pair.h_front
     simulated = np.where(np.isfinite(h_sim), h_sim - h_start, np.nan)
     fitted = [r for r in rows if not math.isnan(r["residual"])]
-    picks = [fitted[int(i)] for i in np.linspace(0, len(fitted) - 1, min(n_insets, len(fitted)))] if fitted else []
+    clean = [r for r in fitted if not r["flags"]] or fitted
+    if len(clean) > n_insets + 2:
+        clean = clean[1:-1]  # the first and last windows often see only part of the ground
+    picks = [clean[int(i)] for i in np.linspace(0, len(clean) - 1, min(n_insets, len(clean)))] if clean else []
     x0, y0 = pair.origin
     X, Y = measured.shape
     extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)

@@ -36,9 +36,13 @@ def load_input(path: str | Path, out_dir: Path, robot: Robot | None, config: dic
         else:
             if robot is None:
                 raise ValueError(f"{path}: a bag needs a robot description (--robot configs/robot/X.yaml)")
-            from torchsoil.pipeline.run import process_bag
+            from torchsoil.pipeline.run import PipelineConfig, process_bag, write_outputs
 
-            pair = process_bag(path, robot, config.get("pipeline"), out_dir=out_dir)
+            result = process_bag(path, robot, PipelineConfig(), progress=True)
+            for problem in result.problems:
+                print(f"warning: {problem}")
+            write_outputs(result, out_dir / "pipeline")
+            pair = result.terrain
             pair.save(cached)
     if robot is not None:
         pair.wheels, pair.wheel_width = robot.wheels, robot.wheel_width
