@@ -69,7 +69,7 @@ class BagWriter:
         plugins = {"sqlite3": StoragePlugin.SQLITE3, "mcap": StoragePlugin.MCAP}
         if storage not in plugins:
             raise ValueError(f"storage must be sqlite3 or mcap, got {storage!r}")
-        self.writer = Writer(self.path, version=9, storage_plugin=plugins[storage])
+        self.writer = Writer(self.path, version=8, storage_plugin=plugins[storage])  # Iron and later
         if compress and storage == "mcap":
             self.writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
         self.connections: dict[str, object] = {}

@@ -8,7 +8,7 @@ Files written for `make_recording(..., out=PATH)`:
     PATH.truth.npz        the truth: noise-free surfaces, per-visit states and times, soil
                           fields, true poses, time of last wheel passage (tools under test
                           must not read it)
-    PATH.truth.json       scenario, effects and parameters, seed, extrinsics, timings
+    PATH.truth.json       scenario, effects and parameters, seed, extrinsics, clock
 """
 
 from __future__ import annotations
@@ -156,7 +156,6 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "extrinsics": {s.name: {"parent": "base_link", "xyz": list(s.xyz), "rpy": list(s.rpy),
                                 "beams": s.beams, "vfov_deg": s.vfov_deg, "columns": s.columns,
                                 "rate_hz": s.rate_hz} for s in specs},
-        "timings": truth.timings,
     }
     sidecar(out, "truth.json").write_text(json.dumps(meta, indent=1, default=_jsonable))
 
