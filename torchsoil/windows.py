@@ -82,8 +82,9 @@ class WindowData(NamedTuple):
     crop: (i0, i1, j0, j1) cells of the full grid. grid: the crop's Grid. geom: wheel geometry
     of the poses that pass over the crop. h_front: (1, X, Y) surface the simulation starts from
     (measured H_f, smoothed, gaps filled from the nearest measured cell), m. h_ref: (1, X, Y)
-    reference height. h_back: (X, Y) measured surface after the wheels (0 where unmeasured), m. h_measured: (X, Y) measured
-    H_f as recorded (0 where unmeasured), for the reference costs. weight: (X, Y) cost weight
+    reference height. h_back: (X, Y) measured surface after the wheels (0 where unmeasured),
+    m. h_measured: (X, Y) measured H_f as recorded (0 where unmeasured), for the reference
+    costs. weight: (X, Y) cost weight
     (window ground, measured before and after, near a wheel path). floor: (X, Y) bool cells
     beside the rut for the noise floor. ground: (X, Y) bool window ground. t, x, y: time [s]
     and position [m] at the window centre. flags: reasons to distrust the window.
