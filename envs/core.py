@@ -43,7 +43,7 @@ class TraverseConfig:
     """
 
     dt: float = 0.2
-    speed: tuple[float, float] = (-0.5, 1.5)
+    speed: tuple[float, float] = (-0.5, 1.0)
     curvature_max: float = 0.8
     start: tuple[float, float, float] = (2.0, 5.0, 0.0)
     start_jitter: tuple[float, float, float] = (0.2, 0.2, 5.0)
