@@ -191,3 +191,35 @@ def test_sqlite3_storage_and_refusing_to_overwrite(tmp_path):
     assert any(p.suffix == ".db3" for p in out.iterdir())
     with pytest.raises(FileExistsError, match="already exists"):
         make_recording(SCN, out, seed=0, duration=0.25)
+
+
+def test_bad_lidar_and_bag_settings_are_refused(tmp_path):
+    from torchsoil.synth.bagwriter import BagWriter
+    from torchsoil.synth.lidar import LidarSpec
+
+    with pytest.raises(ValueError, match="lidar lidar_top: columns"):
+        LidarSpec("lidar_top", (0, 0, 1), (0, 0, 0), columns=4)
+    with pytest.raises(ValueError, match="rate_hz"):
+        LidarSpec("lidar_top", (0, 0, 1), (0, 0, 0), rate_hz=0.0)
+    with pytest.raises(ValueError, match="storage must be sqlite3 or mcap"):
+        BagWriter(tmp_path / "b", storage="parquet")
+
+
+def test_lidar_geometry_of_the_platform():
+    """32 rings over 45 deg; the front lidar sees the ground ahead, the back lidar behind,
+    neither sees ground under the chassis, and they overlap little."""
+    truth = build_truth(SCN, 3)
+    front, back = lidars_for(truth)
+    el = np.degrees(front.elevations())
+    assert len(el) == 32 and el[0] == pytest.approx(22.5) and el[-1] == pytest.approx(-22.5)
+    scene = scene_for(truth)
+    rng = np.random.default_rng(0)
+    for spec, sign in ((front, 1), (back, -1)):
+        sw = scan(scene, spec, truth.traj.poses, 1.0, rng, 0.0, 0.0)
+        g = sw["kind"] == KIND_GROUND
+        pb = sw["xyz"][g].astype(np.float64) @ spec.transform()[:3, :3].T + np.asarray(spec.xyz)
+        under = (np.abs(pb[:, 0]) < 0.76) & (np.abs(pb[:, 1]) < 0.6)
+        assert not under.any()
+        assert np.mean(sign * pb[:, 0] > 0) > 0.9           # on its own side
+        near = np.hypot(pb[:, 0], pb[:, 1]) < 4.0
+        assert np.mean(sign * pb[near, 0] > 0.69) > 0.9       # near ground: mostly beyond its axle
