@@ -84,7 +84,7 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
             break
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
     every = int(config["estimator"]["image_every"])
-    bar = tqdm(total=len(est.windows), initial=n_done, unit="window", disable=not progress,
+    bar = tqdm(total=len(est.windows), initial=n_done, unit="window", disable=None if progress else True,
                desc="estimating")
     try:
         for k, o in enumerate(est.run(start=n_done, theta=theta), start=n_done):
