@@ -9,7 +9,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-VARIANTS = {"proposed": [], "merged_sinkage": ["estimator.merged_sinkage=true"], "capped_relaxation": ["sim.fixed_iter=5"]}
+VARIANTS = {"proposed": [], "merged_sinkage": ["estimator.merged_sinkage=true"],
+            "capped_relaxation": ["sim.fixed_iter=5"]}
 
 
 def main(argv=None) -> int:
