@@ -223,3 +223,22 @@ def test_lidar_geometry_of_the_platform():
         assert np.mean(sign * pb[:, 0] > 0) > 0.9           # on its own side
         near = np.hypot(pb[:, 0], pb[:, 1]) < 4.0
         assert np.mean(sign * pb[near, 0] > 0.69) > 0.9       # near ground: mostly beyond its axle
+
+
+def test_truth_file_round_trip(rec):
+    from torchsoil.grid import Grid
+    from torchsoil.synth.truthfile import load_truth
+
+    out, _, _ = rec
+    tf = load_truth(out)
+    w = build_truth(SCN, 3).world
+    np.testing.assert_array_equal(tf["h_after"], w.h_after.astype(np.float32))
+    np.testing.assert_array_equal(tf["n_visits"], w.n_visits)
+    assert tf.grid == w.grid and tf.t0 == T0_NS / 1e9 and tf.meta["scenario"] == "small"
+    # resampling onto a shifted grid of the same cell size picks the same cells
+    g = w.grid.crop(5, 50, 7, 60)
+    np.testing.assert_array_equal(tf.on_grid("h_after", g), w.h_after[5:50, 7:60].astype(np.float32))
+    far = Grid(0.02, (1000.0, 1000.0), (3, 3))
+    assert np.isnan(tf.on_grid("h_after", far)).all()
+    with pytest.raises(FileNotFoundError, match="no truth file"):
+        load_truth(out.parent / "elsewhere")
