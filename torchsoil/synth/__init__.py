@@ -1,7 +1,7 @@
 """Synthetic field recordings with known truth: terrain, world soil model with switchable
 effects, trajectory, dual simulated lidars and rosbag2 output.
 
-    from torchsoil.synth import make_terrain_pair, make_recording
+    from torchsoil.synth import make_terrain_pair, make_recording, load_truth
 """
 
 from torchsoil.synth.scenario import available, build_truth, load_scenario, make_terrain_pair
@@ -14,4 +14,11 @@ def make_recording(*args, **kwargs):
     return _mk(*args, **kwargs)
 
 
-__all__ = ["available", "build_truth", "load_scenario", "make_recording", "make_terrain_pair"]
+def load_truth(*args, **kwargs):
+    """See `torchsoil.synth.truthfile.load_truth`."""
+    from torchsoil.synth.truthfile import load_truth as _load
+
+    return _load(*args, **kwargs)
+
+
+__all__ = ["available", "build_truth", "load_scenario", "load_truth", "make_recording", "make_terrain_pair"]
