@@ -3,6 +3,7 @@
 import gymnasium as gym
 import numpy as np
 from env_configs import small_config
+from gymnasium.utils.env_checker import check_env
 
 from envs.soil_traverse import SoilTraverseEnv
 from envs.vector import SoilTraverseVectorEnv
@@ -15,8 +16,9 @@ def test_register_make_and_make_vec():
     spec = gym.spec(ENV_ID)
     assert spec.entry_point == "envs.soil_traverse:SoilTraverseEnv"
     assert spec.vector_entry_point == "envs.vector:SoilTraverseVectorEnv"
-    env = gym.make(ENV_ID, config=small_config())
+    env = gym.make(ENV_ID, config=small_config(), render_mode="rgb_array")
     assert isinstance(env.unwrapped, SoilTraverseEnv)
+    check_env(env.unwrapped)
     obs, _ = env.reset(seed=0)
     assert env.observation_space.contains(obs)
     venv = gym.make_vec(ENV_ID, num_envs=2, config=small_config())
