@@ -79,13 +79,19 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 def pca_normals(points: np.ndarray, tree: cKDTree, query: np.ndarray, k: int = 12,
-                radius: float = 0.6) -> np.ndarray:
+                radius: float = 0.6, min_spread: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
     """Unit normals (Q, 3), oriented +z, of the surface through `points` at the `query`
-    points (Q, 3): smallest principal axis of the k nearest neighbours within `radius` m
-    (NaN-free: points with fewer than 3 neighbours get +z)."""
+    points (Q, 3): smallest principal axis of the k nearest neighbours within `radius` m.
+
+    Returns (normals, good): `good` (Q,) is False where the neighbourhood is not a surface
+    patch (fewer than 5 neighbours, or points along a line such as a single lidar ring on
+    the ground, whose second principal spread is below `min_spread` of the first). Those
+    normals are zero, so they add nothing to a point-to-plane fit until recomputed.
+    """
     if len(query) == 0:
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), np.zeros(0, bool)
     d, idx = tree.query(query, k=min(k, len(points)), distance_upper_bound=radius)
+    d, idx = d.reshape(len(query), -1), idx.reshape(len(query), -1)
     ok = np.isfinite(d)
     idx = np.where(ok, idx, 0)
     nb = points[idx]  # (Q, k, 3)
@@ -94,10 +100,19 @@ def pca_normals(points: np.ndarray, tree: cKDTree, query: np.ndarray, k: int = 1
     mean = (nb * w).sum(1) / cnt
     c = (nb - mean[:, None]) * w
     cov = np.einsum("qki,qkj->qij", c, c) / cnt[..., None]
-    _, vecs = np.linalg.eigh(cov)
+    vals, vecs = np.linalg.eigh(cov)
     n = vecs[:, :, 0]
-    n[ok.sum(1) < 3] = (0.0, 0.0, 1.0)
-    return np.where(n[:, 2:3] < 0, -n, n)
+    good = (ok.sum(1) >= 5) & (vals[:, 1] > min_spread * np.maximum(vals[:, 2], 1e-12))
+    n = np.where(n[:, 2:3] < 0, -n, n)
+    n[~good] = 0.0
+    return n, good
+
+
+def thin(points: np.ndarray, max_points: int) -> np.ndarray:
+    """At most `max_points` of (N, 3) points, evenly spaced in their order (deterministic)."""
+    if len(points) <= max_points:
+        return points
+    return points[np.linspace(0, len(points) - 1, max_points).astype(np.int64)]
 
 
 def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -52,7 +52,9 @@ class MappingConfig:
     which a direction counts as unconstrained. min_fitness: share of matched points below
     which a registration fails. stationary_speed: m/s below which the robot stands still.
     velocity_window: baseline of the constant-velocity estimate, s. max_range: points
-    farther from the robot are not used, m."""
+    farther from the robot are not used, m. startup_baseline: time between the two sweeps
+    that measure the initial velocity, s. source_voxel: voxel of the registered sweep, m.
+    max_points: at most this many of its voxels are registered (evenly thinned)."""
 
     voxel: float = 0.2
     map_radius: float = 30.0
@@ -65,6 +67,9 @@ class MappingConfig:
     stationary_speed: float = 0.02
     max_range: float = 40.0
     velocity_window: float = 0.3
+    startup_baseline: float = 0.5
+    source_voxel: float = 0.2
+    max_points: int = 3000
 
 
 class Sweep(NamedTuple):
@@ -104,6 +109,9 @@ class LocalMap:
         self.voxel, self.radius, self.normal_radius = voxel, radius, normal_radius
         self.points = np.zeros((0, 3))
         self.normals = np.zeros((0, 3))
+        self.good = np.zeros(0, bool)
+        self.age = np.zeros(0, np.int64)
+        self.retries = 10
         self.target: icp.Target | None = None
         self.history: list[np.ndarray] = []
 
@@ -121,11 +129,18 @@ class LocalMap:
         pts = pts[keep]
         tree = cKDTree(pts)
         new = keep >= n_old
-        normals = np.empty_like(pts)
+        normals = np.zeros_like(pts)
+        good = np.zeros(len(pts), bool)
+        age = np.zeros(len(pts), np.int64)
         normals[~new] = self.normals[keep[~new]]
-        # a point's normal is fixed when it enters the map, from its neighbours then
-        normals[new] = icp.pca_normals(pts, tree, pts[new], radius=self.normal_radius)
-        self.points, self.normals = pts, normals
+        good[~new] = self.good[keep[~new]]
+        age[~new] = self.age[keep[~new]] + 1
+        # a normal is computed when its point enters the map and again, for a few sweeps,
+        # while its neighbourhood is not yet a surface patch (e.g. one ground ring)
+        redo = ~good & (age < self.retries)
+        normals[redo], good[redo] = icp.pca_normals(pts, tree, pts[redo],
+                                                    radius=self.normal_radius)
+        self.points, self.normals, self.good, self.age = pts, normals, good, age
         self.target = icp.Target(pts, normals, tree)
 
 
@@ -173,8 +188,12 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
     if len(usable) < 2:
         raise ValueError(f"mapping needs at least two sweeps with points; {len(usable)} of {S} "
                          "have 50 or more")
-    velocity = _startup_velocity(sweeps[usable[0]], sweeps[usable[1]],
-                                 stamps[usable[1]] - stamps[usable[0]], period, cfg)
+    # initial velocity over a longer baseline: over one sweep the ground rings, which move
+    # with the robot, bias the estimate towards standing still
+    later = [k for k in usable[1:] if stamps[k] - stamps[usable[0]] <= cfg.startup_baseline + 1e-9]
+    k1 = later[-1] if later else usable[1]
+    velocity = _startup_velocity(sweeps[usable[0]], sweeps[k1], stamps[k1] - stamps[usable[0]],
+                                 period, cfg)
     poses = np.repeat(np.eye(4)[None], S, axis=0)
     fitness, rmse = np.zeros(S), np.full(S, np.inf)
     flags = np.zeros(S, dtype=np.int64)
@@ -200,8 +219,8 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
             continue
         pts = _prepare(sweeps[k], velocity, period, cfg)
         gate = cfg.startup_dist if k == usable[1] else cfg.max_dist
-        res = icp.register(icp.voxel_downsample(pts, cfg.voxel), local.target, T_pred, gate,
-                           cfg.max_iter)
+        src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points)
+        res = icp.register(src, local.target, T_pred, gate, cfg.max_iter)
         fitness[k], rmse[k] = res.fitness, res.rmse
         if res.fitness < cfg.min_fitness or not np.isfinite(res.rmse):
             flags[k] |= POOR_FIT
@@ -221,7 +240,7 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
             local.add(icp.apply(T, pts), T[:3, 3])
         prev = k
     p_ref = local.global_map()
-    normals = icp.estimate_normals(p_ref, cfg.normal_radius)
+    normals, _ = icp.pca_normals(p_ref, cKDTree(p_ref), p_ref, radius=cfg.normal_radius)
     return MappingResult(stamps, poses, p_ref, normals, fitness, rmse, flags)
 
 
@@ -243,7 +262,10 @@ def _startup_velocity(s0: Sweep, s1: Sweep, dt: float, period: float, cfg: Mappi
     for _ in range(2):
         p0 = _prepare(s0, velocity, period, cfg)
         p1 = _prepare(s1, velocity, period, cfg)
-        target = icp.make_target(icp.voxel_downsample(p0, cfg.voxel / 2), cfg.normal_radius)
+        ref = icp.voxel_downsample(p0, cfg.voxel / 2)
+        tree = cKDTree(ref)
+        target = icp.Target(ref, icp.pca_normals(ref, tree, ref, radius=cfg.normal_radius)[0],
+                            tree)
         T0 = _motion_over(velocity, dt)
         res = icp.register(icp.voxel_downsample(p1, cfg.voxel), target, T0, cfg.startup_dist,
                            cfg.max_iter)

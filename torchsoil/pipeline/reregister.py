@@ -27,7 +27,8 @@ class ReregisterConfig:
     iterations. min_fitness: share of matched source points below which a sweep is dropped.
     max_rmse: robust point-to-plane RMS above which it is dropped, m. max_shift: largest
     accepted translation from the seed, m; max_turn: largest rotation, degrees.
-    degenerate_eigen: see MappingConfig. max_range: points used for ICP, m."""
+    degenerate_eigen: see MappingConfig. max_range: points used for ICP, m. max_points: at
+    most this many source voxels (evenly thinned)."""
 
     enabled: bool = True
     voxel: float = 0.1
@@ -39,6 +40,7 @@ class ReregisterConfig:
     max_turn: float = 2.0
     degenerate_eigen: float = 2e-3
     max_range: float = 30.0
+    max_points: int = 2500
 
 
 class Registered(NamedTuple):
@@ -87,7 +89,7 @@ def register_sweep(points: np.ndarray, t: np.ndarray, stamp: float, ref_stamps: 
     if not cfg.enabled:
         return pts, seed, np.nan, np.nan, True, False
     near = pts[np.linalg.norm(pts, axis=1) < cfg.max_range]
-    src = icp.voxel_downsample(near, cfg.voxel)
+    src = icp.thin(icp.voxel_downsample(near, cfg.voxel), cfg.max_points)
     if len(src) < 50:
         return pts, seed, 0.0, np.inf, False, False
     res = icp.register(src, target, seed, cfg.max_dist, cfg.max_iter)
