@@ -185,9 +185,9 @@ class TraverseBatch:
         self.obs_offsets = torch.stack(torch.meshgrid(ar, ar, indexing="ij"), -1).reshape(-1, 2).to(self.device)
         T = soil_field.n_tracks
         tan_beta = torch.tan(self.field.soil[T + 1]).clamp(max=MAX_TAN_BETA)
-        # per field cell, one row: tan(beta), h0, d_1..d_T, chi (one gather per step)
-        self.cell_table = torch.cat([tan_beta[None], self.field.h0[None], self.field.soil[:T + 1]]
-                                    ).reshape(T + 3, -1).T.contiguous()
+        # per field cell, one row: tan(beta), h0, d_1..d_T, chi, beta (one gather per use)
+        self.cell_table = torch.cat([tan_beta[None], self.field.h0[None], self.field.soil]
+                                    ).reshape(T + 4, -1).T.contiguous()
         self.visit_length = visit_length(robot, config.curvature_max, step_max)
         # one window size for every step, from the fastest wheel on the tightest arc, so an
         # episode's result does not depend on the rest of the batch
@@ -282,10 +282,10 @@ class TraverseBatch:
         h_e, ref_e, odom_e, pas_e = st.unbind(1)
         odom_now = self.odom[win.robot]
         visit = (odom_now - odom_e) <= self.visit_length
-        cells = self.cell_table.index_select(0, win.field)                   # (E, T + 3)
+        cells = self.cell_table.index_select(0, win.field)                   # (E, T + 4)
         depth = cells.gather(1, 2 + self.track[win.wheel][:, None])[:, 0]
         out = dyn.deform(h_e.view(shape), cells[:, 0].reshape(shape), win, ref_e, visit,
-                         depth, cells[:, -1], self.radius,
+                         depth, cells[:, -2], self.radius,
                          self.robot.wheel_flat_fraction, g.dx, c.band_width * g.dx, c.ref_radius,
                          c.fixed_iter if c.relaxation == "capped" else None, c.tau, c.max_iter,
                          c.eps_scale, c.backend)
@@ -336,14 +336,15 @@ class TraverseBatch:
         XY = self.grid.shape[0] * self.grid.shape[1]
         base = torch.arange(N, device=self.device)[:, None] * XY
         h = self.state.index_select(0, (flat + base).reshape(-1))[:, 0].view(N, -1)
-        h0 = self.field.h0.view(-1)[flat]
+        cells = self.cell_table.index_select(0, flat.reshape(-1)).view(N, -1, self.cell_table.shape[1])
+        h0 = cells[..., 1]
         centre = dyn.body_grid_index(pose, self.obs_offsets[:1] * 0, self.grid)[0]
         rel = h - self.state.index_select(0, (centre + base).reshape(-1))[:, 0].view(N, 1)
         zero = torch.zeros_like(h)
         height = torch.stack([torch.where(inside, rel, zero), torch.where(inside, h - h0, zero)], 1)
         height = height.reshape(N, 2, S, S).clamp(-2.0, 2.0)
-        soil = self.field.soil.view(self.field.soil.shape[0], -1)[:, flat].transpose(0, 1)  # (N, C, M)
-        soil = torch.where(inside[:, None], soil, torch.zeros_like(soil)).reshape(N, -1, S, S)
+        soil = torch.where(inside[..., None], cells[..., 2:], torch.zeros_like(cells[..., 2:]))
+        soil = soil.transpose(1, 2).reshape(N, -1, S, S)                       # (N, T + 2, S, S)
         soil = soil.cpu().numpy()
         if c.soil_noise > 0:
             if rngs is None or len(rngs) != N:
