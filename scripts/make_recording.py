@@ -26,6 +26,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-compress", action="store_true", help="mcap without zstd chunk compression")
     ap.add_argument("--duration", type=float, default=None, help="record only the first seconds")
     ap.add_argument("--columns", type=int, choices=[512, 1024, 2048], default=None)
+    ap.add_argument("--organized", action="store_true", help="organized clouds (32 x columns, NaN = no return)")
     ap.add_argument("--pair-only", action="store_true", help="write only the terrain pair .npz")
     a = ap.parse_args(argv)
     try:
@@ -42,7 +43,7 @@ def main(argv=None) -> int:
         from torchsoil.synth.record import make_recording
 
         stats = make_recording(a.scenario, a.out, a.seed, a.dx, a.storage, not a.no_compress,
-                               a.duration, a.columns, progress=True)
+                               a.duration, a.columns, a.organized or None, progress=True)
     except (FileNotFoundError, FileExistsError, ValueError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

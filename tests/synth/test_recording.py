@@ -242,3 +242,21 @@ def test_truth_file_round_trip(rec):
     assert np.isnan(tf.on_grid("h_after", far)).all()
     with pytest.raises(FileNotFoundError, match="no truth file"):
         load_truth(out.parent / "elsewhere")
+
+
+def test_organized_clouds_keep_the_beam_image(tmp_path):
+    out = tmp_path / "org"
+    make_recording(SCN, out, seed=5, duration=0.2, organized=True)
+    msgs = read_bag(out)
+    truth = build_truth(SCN, 5)
+    truth.scenario["lidar"]["organized"] = True
+    expected = list(iter_sweeps(truth, 5, 0.2))
+    got = msgs["/lidar_front/points"] + msgs["/lidar_back/points"]
+    assert len(got) == len(expected) == 4
+    for _, _, msg in got:
+        assert (msg.height, msg.width) == (32, 512) and msg.is_dense is False
+        p = cloud_points(msg).reshape(32, 512)
+        assert np.array_equal(p["ring"], np.broadcast_to(np.arange(32)[:, None], (32, 512)))
+        assert 0.3 < np.isnan(p["x"]).mean() < 0.8             # sky and dropouts
+    front = [e for e in expected if e[1].name == "lidar_front"]
+    assert cloud_points(msgs["/lidar_front/points"][0][2]).tobytes() == front[0][2].tobytes()   # NaN-safe

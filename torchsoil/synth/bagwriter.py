@@ -28,18 +28,22 @@ def stamp(t_ns: int):
 
 
 def pointcloud2(points: np.ndarray, frame_id: str, t_ns: int):
-    """An unorganized PointCloud2 from a structured array of POINT_DTYPE (N,)."""
+    """A PointCloud2 from a structured array of POINT_DTYPE: (N,) unorganized, or (H, W)
+    organized (rows = rings; no-return points NaN, and then is_dense is false)."""
     if points.dtype != POINT_DTYPE:
         raise ValueError(f"points must have dtype {POINT_DTYPE}, got {points.dtype}")
+    if points.ndim not in (1, 2):
+        raise ValueError(f"points must be (N,) or (H, W), got shape {points.shape}")
+    height, width = points.shape if points.ndim == 2 else (1, len(points))
     PF = _T["sensor_msgs/msg/PointField"]
     fields = [PF(name=n, offset=POINT_DTYPE.fields[n][1], datatype=_DATATYPE[POINT_DTYPE.fields[n][0].str],
                  count=1) for n in POINT_DTYPE.names]
     data = np.frombuffer(np.ascontiguousarray(points).tobytes(), dtype=np.uint8)
     header = _T["std_msgs/msg/Header"](stamp=stamp(t_ns), frame_id=frame_id)
     return _T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=1, width=len(points), fields=fields, is_bigendian=False,
-        point_step=POINT_DTYPE.itemsize, row_step=POINT_DTYPE.itemsize * len(points), data=data,
-        is_dense=True)
+        header=header, height=height, width=width, fields=fields, is_bigendian=False,
+        point_step=POINT_DTYPE.itemsize, row_step=POINT_DTYPE.itemsize * width, data=data,
+        is_dense=bool(np.isfinite(points["x"]).all()))
 
 
 def tf_message(transforms: list[tuple[str, str, np.ndarray, np.ndarray]], t_ns: int):
@@ -88,7 +92,7 @@ class BagWriter:
         return self.connections[topic]
 
     def write_cloud(self, topic: str, frame_id: str, points: np.ndarray, stamp_ns: int, log_ns: int) -> None:
-        """points: (N,) POINT_DTYPE; stamp_ns: header stamp (sweep start); log_ns: bag time."""
+        """points: (N,) or (H, W) POINT_DTYPE; stamp_ns: header stamp (sweep start); log_ns: bag time."""
         msg = pointcloud2(points, frame_id, stamp_ns)
         conn = self._conn(topic, "sensor_msgs/msg/PointCloud2")
         self.writer.write(conn, int(log_ns), TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))

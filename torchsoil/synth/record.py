@@ -46,8 +46,14 @@ def scene_for(truth: Truth) -> Scene:
                  truth.landmarks.cylinders, truth.landmarks.boxes)
 
 
-def sweep_points(sw: dict) -> np.ndarray:
-    """Valid returns of one sweep as a POINT_DTYPE array (row-major over ring, column)."""
+def sweep_points(sw: dict, organized: bool = False) -> np.ndarray:
+    """One sweep as POINT_DTYPE: the valid returns (N,) in row-major (ring, column) order, or,
+    organized, the full (beams, columns) image with NaN coordinates where nothing returned."""
+    if organized:
+        pts = np.empty(sw["xyz"].shape[:2], dtype=POINT_DTYPE)
+        pts["x"], pts["y"], pts["z"] = (sw["xyz"][..., i] for i in range(3))
+        pts["intensity"], pts["t"], pts["ring"] = sw["intensity"], sw["t_ns"], sw["ring"]
+        return pts
     ok = np.isfinite(sw["xyz"][..., 0])
     pts = np.empty(int(ok.sum()), dtype=POINT_DTYPE)
     pts["x"], pts["y"], pts["z"] = (sw["xyz"][..., i][ok] for i in range(3))
@@ -73,17 +79,20 @@ def iter_sweeps(truth: Truth, seed: int, duration: float | None = None):
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
     for ts in sweep_starts(truth, duration):
         for s in specs:
-            yield float(ts), s, sweep_points(scan(scene, s, truth.traj.poses, float(ts), rng,
-                                                  float(lid["range_noise"]), float(lid["dropout"])))
+            sw = scan(scene, s, truth.traj.poses, float(ts), rng, float(lid["range_noise"]),
+                      float(lid["dropout"]))
+            yield float(ts), s, sweep_points(sw, bool(lid.get("organized", False)))
 
 
 def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
                    storage: str = "mcap", compress: bool = True, duration: float | None = None,
-                   columns: int | None = None, progress: bool = False) -> dict:
+                   columns: int | None = None, organized: bool | None = None,
+                   progress: bool = False) -> dict:
     """Write the bag directory `out` and its sidecar files (module docstring).
 
     duration: record only the first `duration` s of the drive (default: all of it);
-    columns: override the scenario's lidar columns. Returns a dict of figures (timings [s],
+    columns, organized: override the scenario's lidar settings (organized: full (beams,
+    columns) clouds with NaN for no return instead of the returns only). Returns a dict of figures (timings [s],
     bag size [MB], number of sweeps and points)."""
     out = Path(out)
     if out.exists():
@@ -92,6 +101,8 @@ def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
     scn = load_scenario(scenario)
     if columns is not None:
         scn["lidar"]["columns"] = int(columns)
+    if organized is not None:
+        scn["lidar"]["organized"] = bool(organized)
     truth = build_truth(scn, seed, dx)
     t1 = time.perf_counter()
     specs = lidars_for(truth)
@@ -110,7 +121,7 @@ def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
         bag.write_tf_static(tfs, T0_NS)
         for ts, s, pts in iter_sweeps(truth, seed, duration):
             stamp_ns = T0_NS + int(round(ts * 1e9))
-            n_points += len(pts)
+            n_points += int(np.isfinite(pts["x"]).sum())
             bag.write_cloud(f"/{s.name}/points", s.name, pts, stamp_ns, stamp_ns + int(round(period * 1e9)))
             if bar is not None:
                 bar.update(1)

@@ -10,7 +10,8 @@ Scenario keys (all optional except trajectory; see configs/scenarios/*.yaml):
     soil:       {base: {d: m, chi, beta_deg, moisture}, patches: [...], track_scale: [..]}
     effects:    {id: {form: linear|power|saturating, k: .., ...}}   (torchsoil.synth.effects)
     landmarks:  {poles: n, trunks: n, shed: bool, fence: bool}
-    lidar:      {columns: 512|1024, rate_hz: 10, range_noise: m, dropout: fraction}
+    lidar:      {columns: 512|1024, rate_hz: 10, range_noise: m, dropout: fraction,
+                 organized: bool (full beams x columns clouds, NaN where nothing returned)}
     world:      {chunk: m}
     robot:      path to a robot YAML (default configs/robot/paper_platform.yaml)
 """
@@ -43,7 +44,7 @@ DEFAULTS: dict = {
     "soil": {"base": {"d": 0.03, "chi": 0.2, "beta_deg": 30.0, "moisture": 0.0}, "patches": []},
     "effects": {},
     "landmarks": {"poles": 10, "trunks": 6, "shed": True, "fence": True},
-    "lidar": {"columns": 1024, "rate_hz": 10.0, "range_noise": 0.01, "dropout": 0.02},
+    "lidar": {"columns": 1024, "rate_hz": 10.0, "range_noise": 0.01, "dropout": 0.02, "organized": False},
     "world": {"chunk": 0.4},
     "robot": None,
 }
