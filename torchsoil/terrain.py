@@ -140,6 +140,7 @@ class TerrainPair:
         os.close(fd)
         try:
             np.savez_compressed(tmp, **self.to_dict())
+            os.chmod(tmp, 0o644)
             os.replace(tmp, path)
         finally:
             if os.path.exists(tmp):
