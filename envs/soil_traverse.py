@@ -6,11 +6,14 @@ crosses a field heightmap (default 20 m x 10 m at dx = 0.05 m) whose soil parame
 in space: wet patches of deep sinkage and packed lanes, from `configs/env/soil_traverse.yaml`
 or from an estimator run's `params.csv` along a recorded path. Every step the wheels dig,
 deposit beside their ruts and the surface relaxes, with the simulator's own stages
-(`torchsoil.sim`: taper, reference height, sink, deposit, relax) on a local patch around the
-robot. Relaxation is capped (a fixed number of updates per step) or run to convergence.
+(`torchsoil.sim`: taper, reference height, sink, deposit, relax) on a square window around
+each wheel's segment of the step (no flux across the window edge). Relaxation is capped (a
+fixed number of updates per step) or run to convergence. A cell keeps the reference height
+of the robot's ongoing visit, so rear wheels in the front wheels' ruts dig no deeper; a
+later visit (a loop, a return trip) digs again.
 
 ## Action Space
-`Box(2,)` float32: speed [m/s] in `env.speed` (default [-0.5, 1.5]) and curvature [1/m] in
+`Box(2,)` float32: speed [m/s] in `env.speed` (default [-0.5, 1.0]) and curvature [1/m] in
 [-curvature_max, curvature_max] (default 0.8, left positive). Symmetric dual steering: the
 robot follows an arc of that curvature, front and rear wheels on the same track.
 
