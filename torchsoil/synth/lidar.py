@@ -118,6 +118,9 @@ class Scene:
     cylinders: np.ndarray
     boxes: np.ndarray
 
+    def __post_init__(self):
+        self.hmax = float(np.nanmax(self.h_field)) + 0.05     # m, rays above it going up hit no ground
+
 
 @numba.njit(cache=True, inline="always")
 def _cell(i, j, t, hf, i0, j0, st, vt):
@@ -271,7 +274,7 @@ def scan(scene: Scene, spec: LidarSpec, traj_poses: np.ndarray, t_start: float,
     out_k = np.empty((spec.beams, C), dtype=np.uint8)
     f = scene.field
     _cast(org, rot, dirs, times.astype(np.float64), f.origin[0], f.origin[1], f.dx,
-          scene.h_field, float(np.nanmax(scene.h_field)) + 0.05, scene.win[0], scene.win[1],
+          scene.h_field, scene.hmax, scene.win[0], scene.win[1],
           scene.states, scene.visit_time, scene.cylinders, scene.boxes, out_r, out_k)
     noisy = out_r + range_noise * rng.standard_normal(out_r.shape)
     drop = rng.random(out_r.shape) < dropout
