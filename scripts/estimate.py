@@ -46,16 +46,15 @@ def main(argv=None) -> int:
         overrides.append("estimator.merged_sinkage=true")
     if args.capped:
         overrides.append(f"sim.fixed_iter={args.capped}")
-    config = load_config(args.config, overrides)
     source = Path(args.input) if args.input else DEMO
-    if not source.exists():
-        print(f"error: {source} does not exist" + ("" if args.input else
-              " (the bundled demo recording; see data/demo/README.md to regenerate it)"), file=sys.stderr)
-        return 2
-    robot_path = args.robot or (DEMO_ROBOT if not args.input else None)
-    robot = Robot.from_yaml(robot_path) if robot_path else None
     out = Path(args.out) if args.out else ROOT / "out" / (source.stem if args.input else "demo")
     try:
+        config = load_config(args.config, overrides)
+        if not source.exists():
+            raise FileNotFoundError(f"{source} does not exist" + ("" if args.input else
+                                    " (the bundled demo recording; see data/demo/README.md to regenerate it)"))
+        robot_path = args.robot or (DEMO_ROBOT if not args.input else None)
+        robot = Robot.from_yaml(robot_path) if robot_path else None
         estimate(source, out, config, robot=robot, resume=args.resume, tensorboard=not args.no_tensorboard)
     except (ValueError, FileNotFoundError, KeyError) as e:
         print(f"error: {e}", file=sys.stderr)
