@@ -65,6 +65,10 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
 
     pair = load_input(input_path, out, robot, config)
     est = Estimator(pair, config)
+    if est.device.type == "cpu":
+        # a window's tensors are small: intra-op threads only add synchronisation (and stall on
+        # a busy robot computer); the relaxation kernel parallelises over the batch itself
+        torch.set_num_threads(1)
     names = list(est.names)
     params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "residual", "prediction",
                                          "iterations", "seconds", "flags"], resume)
@@ -131,4 +135,3 @@ def simulated_error(run_dir: Path, truth_surface: np.ndarray, pair: TerrainPair,
     return float(np.mean(np.abs(h_sim[zone] - truth_surface[zone]))) if zone.any() else math.nan
 
 
-__all__ = ["estimate", "load_input", "simulated_error", "torch"]

@@ -5,6 +5,7 @@ finite-difference gradients, converged and capped relaxation, and the update rul
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from torchsoil.config import load_config
 from torchsoil.estimator import Estimator
@@ -23,6 +24,8 @@ def run(quick: bool = False) -> dict[str, float]:
     from torchsoil.synth.scenario import make_terrain_pair
 
     pair = TerrainPair.from_mapping(make_terrain_pair("watered", seed=0))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as scripts/estimate.py runs
     n = 12 if quick else None
     out: dict[str, float] = {}
     for suffix, overrides in VARIANTS.items():
@@ -39,4 +42,5 @@ def run(quick: bool = False) -> dict[str, float]:
         out[f"estimate_iterations_median{suffix}"] = float(np.median([r["iterations"] for r in rows]))
         out[f"estimate_residual_mm{suffix}"] = 1e3 * float(np.nanmean([r["residual"] for r in rows]))
         out[f"estimate_prediction_mm{suffix}"] = 1e3 * float(np.nanmean([r["prediction"] for r in rows]))
+    torch.set_num_threads(threads)
     return out
