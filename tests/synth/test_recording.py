@@ -55,6 +55,7 @@ def test_bag_layout_and_sidecars(rec):
         assert sidecar(out, suffix).is_file()
     meta = json.loads(sidecar(out, "truth.json").read_text())
     assert meta["seed"] == 3 and meta["bag_time_of_t0_ns"] == T0_NS
+    assert meta["expected_verdict"] == "adequate" and meta["effects"] == {}
     assert stats["points"] > 1e5
 
 

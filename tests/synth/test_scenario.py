@@ -144,3 +144,9 @@ def test_make_recording_script_runs_as_a_command(tmp_path):
     r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--help"],
                        capture_output=True, text=True)
     assert r.returncode == 0 and "--pair-only" in r.stdout
+
+
+def test_every_effect_has_a_signature():
+    assert set(fx.SIGNATURES) == set(fx.EFFECTS)
+    for sig in fx.SIGNATURES.values():
+        assert sig["cross_track"] in {"rut_floor", "rut_wall", "berm", "outside", "mixed"}

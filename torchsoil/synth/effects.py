@@ -30,6 +30,17 @@ CATALOGUE = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage",
 OUT_OF_CATALOGUE = ("tread",)
 EFFECTS = CATALOGUE + OUT_OF_CATALOGUE
 FORMS = ("linear", "power", "saturating")
+# what a diagnosis should find for each effect (FORMATS.md section 4 `where`): the signal the
+# mismatch follows and where across the track it shows
+SIGNATURES: dict[str, dict] = {
+    "multi_pass_hardening": {"covariate": "pass_count", "cross_track": "rut_floor"},
+    "speed_dependent_sinkage": {"covariate": "speed", "cross_track": "rut_floor"},
+    "slip_sinkage": {"covariate": "traction_demand", "cross_track": "rut_floor"},
+    "lateral_load_transfer": {"covariate": "lateral_load", "cross_track": "rut_floor"},
+    "cohesive_walls": {"covariate": None, "cross_track": "rut_wall"},
+    "footprint_width": {"covariate": None, "cross_track": "rut_wall"},
+    "tread": {"covariate": "along_track_period", "cross_track": "rut_floor"},
+}
 G = 9.81  # m/s^2
 
 DEFAULTS: dict[str, dict] = {

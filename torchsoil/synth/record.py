@@ -161,6 +161,9 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "effects": eff,
         "catalogue_effects": [e for e in eff if e in fx.CATALOGUE],
         "out_of_catalogue_effects": [e for e in eff if e in fx.OUT_OF_CATALOGUE],
+        "effect_signatures": {e: fx.SIGNATURES[e] for e in eff},
+        "expected_verdict": ("adequate" if not eff else "unexplained" if all(e in fx.OUT_OF_CATALOGUE for e in eff)
+                             else "missing_physics"),
         "scenario_spec": truth.scenario,
         "bag_time_of_t0_ns": T0_NS,
         "time_note": "truth and pair pose times t are seconds after bag_time_of_t0_ns",
