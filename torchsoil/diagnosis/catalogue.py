@@ -1,0 +1,134 @@
+"""Catalogue of model extensions: each a named physical term with one coefficient, turned
+into `torchsoil.sim.Modifiers` for one window.
+
+Every law is deliberately simple and monotone (linear in its covariate, one coefficient k,
+k = 0 is the paper's model); the world may follow another form (power law, saturation): the
+diagnosis must still name the term.
+
+| id | law | coefficient |
+| --- | --- | --- |
+| multi_pass_hardening | sinkage x (1 + k * earlier passes) | k [-] per pass (< 0: hardening) |
+| speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)) | k [-] |
+| slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
+| lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
+| cohesive_walls | dug cells settle at tan(beta) * (1 + k) | k [-] (> 0: steeper walls) |
+| footprint_width | footprint radius x (1 + k) | k [-] |
+
+The per-window base parameters (d_1..d_T, chi, beta) are still fitted; the sinkage factors
+are normalised by nothing but their covariate, so d keeps its meaning at the covariate's
+reference (first pass, mean speed, no traction demand, no lateral load).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torchsoil.diagnosis.covariates import DriveSignals
+from torchsoil.robot import Robot
+from torchsoil.sim import Modifiers
+
+MAX_TAN = math.tan(math.radians(89.0))
+
+
+@dataclass(frozen=True)
+class Extension:
+    """One catalogue term.
+
+    id: FORMATS.md section 4 id. parameter: name of its coefficient. bounds: allowed range of
+    the coefficient. trials: coefficients tried when fitting (the best is refined). covariate:
+    the signal the term follows (None: a shape term). zone: cross-track zone where it shows.
+    kind: which hook it uses: depth | radius | wall.
+    """
+
+    id: str
+    parameter: str
+    bounds: tuple[float, float]
+    trials: tuple[float, ...]
+    covariate: str | None
+    zone: str
+    kind: str
+    description: str
+
+
+CATALOGUE: dict[str, Extension] = {e.id: e for e in (
+    Extension("multi_pass_hardening", "k_pass", (-0.9, 2.0), (-0.6, -0.3, 0.3), "passes", "rut_floor", "depth",
+              "each later pass over the same ground sinks less than the first"),
+    Extension("speed_dependent_sinkage", "k_speed", (-0.9, 3.0), (-0.4, 0.4, 0.8), "speed", "rut_floor", "depth",
+              "sinkage depends on travel speed"),
+    Extension("slip_sinkage", "k_slip", (-20.0, 20.0), (-4.0, 4.0, 8.0), "traction", "rut_floor", "depth",
+              "sinkage grows with traction demand (acceleration, climbing)"),
+    Extension("lateral_load_transfer", "k_lateral", (-5.0, 8.0), (-1.5, 1.5, 3.0), "lateral_load", "rut_floor",
+              "depth", "load, and so sinkage, shifts to the downhill or outer wheels with roll and turning"),
+    Extension("cohesive_walls", "k_wall", (-0.5, 4.0), (0.3, 0.8, 1.5), None, "rut_wall", "wall",
+              "rut walls stand steeper than the angle at which deposited soil settles"),
+    Extension("footprint_width", "k_width", (-0.4, 0.45), (-0.2, 0.15, 0.3), None, "rut_wall", "radius",
+              "the contact patch is wider or narrower than the nominal wheel width"),
+)}
+
+
+def get(ext_id: str) -> Extension:
+    try:
+        return CATALOGUE[ext_id]
+    except KeyError:
+        raise KeyError(f"unknown extension {ext_id!r}; catalogue: {sorted(CATALOGUE)}") from None
+
+
+def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.ndarray, k: float,
+                 reference: dict[str, float]) -> np.ndarray:
+    """(K, N) sinkage factor of a depth term at (N, 4) resampled poses t, x, y, yaw.
+
+    reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed)."""
+    K, N = len(robot.wheels), len(poses4)
+    t = poses4[:, 0]
+    if ext.id == "multi_pass_hardening":
+        x = drive.pose_passes(poses4, robot).astype(np.float64)
+    elif ext.id == "speed_dependent_sinkage":
+        v0 = max(reference.get("speed", 1.0), 1e-3)
+        x = np.broadcast_to(drive.at("speed", t) / v0 - 1.0, (K, N))
+    elif ext.id == "slip_sinkage":
+        x = np.broadcast_to(drive.at("traction", t), (K, N))
+    elif ext.id == "lateral_load_transfer":
+        side = -np.sign(robot.wheels[:, 1])[:, None]            # left -1, right +1
+        x = side * drive.at("lateral_load", t)[None]
+    else:
+        raise ValueError(f"{ext.id} is not a sinkage term")
+    return np.clip(1.0 + k * x, 0.05, 10.0)
+
+
+class ExtensionModel:
+    """An extension with a fixed coefficient, applied to the windows of one drive.
+
+    `modifiers(wd, theta)` returns the sim.Modifiers for window data wd (torchsoil.windows)
+    and full parameters theta (B, P) [m, -, rad]; sinkage factors are cached per window."""
+
+    def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot):
+        lo, hi = ext.bounds
+        if not (lo <= k <= hi):
+            raise ValueError(f"{ext.id}: coefficient {ext.parameter} = {k} outside [{lo}, {hi}]")
+        self.ext, self.k, self.drive, self.robot = ext, float(k), drive, robot
+        self.reference = {"speed": float(np.mean(drive.signals["speed"]))}
+        self._cache: dict[tuple, torch.Tensor] = {}
+
+    def modifiers(self, wd, theta: torch.Tensor) -> Modifiers:
+        B = theta.shape[0]
+        kw = dict(device=theta.device, dtype=theta.dtype)
+        if self.ext.kind == "depth":
+            key = (wd.spec.s0, wd.spec.s1, wd.crop, int(wd.geom.poses.shape[0]))
+            if key not in self._cache:
+                poses4 = wd.geom.poses.cpu().numpy()
+                f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference)
+                self._cache[key] = torch.as_tensor(f, **kw)
+                if len(self._cache) > 8:
+                    self._cache.pop(next(iter(self._cache)))
+            return Modifiers(depth_scale=self._cache[key][None].expand(B, -1, -1))
+        if self.ext.kind == "radius":
+            return Modifiers(radius_scale=torch.full((B,), 1.0 + self.k, **kw))
+        if self.ext.kind == "wall":
+            T = wd.geom.n_tracks
+            tan_wall = (torch.tan(theta[:, T + 1]) * (1.0 + self.k)).clamp(max=MAX_TAN)
+            return Modifiers(tan_beta_wall=tan_wall)
+        raise ValueError(f"unknown extension kind {self.ext.kind!r}")

@@ -1,0 +1,161 @@
+"""Signals taken from the recorded poses alone, per pose and per window.
+
+Everything here reads the trajectory (FORMATS.md (N, 7) rows t, x, y, z, roll, pitch, yaw)
+and the robot's wheel layout, never the soil. The signals are what a missing physical term
+could follow:
+
+| name | unit | meaning |
+| --- | --- | --- |
+| arc_length | m | distance travelled by base_link |
+| speed | m/s | forward speed |
+| accel | m/s^2 | forward acceleration |
+| pitch, roll | rad | chassis attitude |
+| yaw_rate | rad/s | turn rate |
+| lateral_accel | m/s^2 | speed * yaw_rate (towards the turn centre) |
+| traction | - | traction demand accel / g + sin(-pitch) (climbing: pitch < 0) |
+| lateral_load | - | lateral_accel / g + sin(roll): load shift to the right wheels when > 0 |
+| passes | - | earlier passes of the wheels over the ground under a wheel |
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from torchsoil.robot import Robot
+from torchsoil.sim.geometry import resample_poses, wheel_positions
+
+G = 9.81  # m/s^2
+POSE_SIGNALS = ("arc_length", "speed", "accel", "pitch", "roll", "yaw_rate", "lateral_accel",
+                "traction", "lateral_load")
+SIGNALS = POSE_SIGNALS + ("passes",)
+
+
+def check_poses(poses) -> np.ndarray:
+    """Validate (N, 7) FORMATS.md poses; returns a float64 copy. Raises ValueError naming the fault."""
+    p = np.asarray(poses, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 7:
+        raise ValueError(f"poses must be (N, 7) rows t, x, y, z, roll, pitch, yaw; got shape {p.shape}")
+    if len(p) < 3:
+        raise ValueError(f"poses: need at least 3 poses to take derivatives, got {len(p)}")
+    bad = ~np.isfinite(p).all(1)
+    if bad.any():
+        raise ValueError(f"poses: row {int(np.flatnonzero(bad)[0])} holds NaN or inf")
+    dt = np.diff(p[:, 0])
+    if (dt <= 0).any():
+        raise ValueError(f"poses: time must increase strictly; row {int(np.flatnonzero(dt <= 0)[0]) + 1} "
+                         "does not")
+    return p
+
+
+def pose_signals(poses, smooth_s: float = 0.2) -> dict[str, np.ndarray]:
+    """Per-pose signals (table in the module docstring) from (N, 7) poses.
+
+    Derivatives are taken after Gaussian smoothing over `smooth_s` seconds (odometry is noisy).
+    Returns {name: (N,) array}."""
+    p = check_poses(poses)
+    t = p[:, 0]
+    dt = float(np.median(np.diff(t)))
+    sigma = max(smooth_s / dt, 0.0)
+
+    def smooth(x):
+        return ndimage.gaussian_filter1d(x, sigma, mode="nearest") if sigma > 0 else x
+
+    xy = np.column_stack([smooth(p[:, 1]), smooth(p[:, 2])])
+    yaw = smooth(np.unwrap(p[:, 6]))
+    vel = np.gradient(xy, t, axis=0)
+    heading = np.column_stack([np.cos(yaw), np.sin(yaw)])
+    speed = np.abs((vel * heading).sum(1))
+    accel = np.gradient(smooth(speed), t)
+    yaw_rate = np.gradient(yaw, t)
+    pitch, roll = smooth(p[:, 5]), smooth(p[:, 4])
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, 1:3], axis=0), axis=1))])
+    lat = speed * yaw_rate
+    return {"t": t, "arc_length": arc, "speed": speed, "accel": accel, "pitch": pitch, "roll": roll,
+            "yaw_rate": yaw_rate, "lateral_accel": lat, "traction": accel / G + np.sin(-pitch),
+            "lateral_load": lat / G + np.sin(roll)}
+
+
+@dataclass
+class DriveSignals:
+    """Pose signals of one drive plus the wheel-path index needed to count earlier passes.
+
+    signals: {name: (N,)} at the recorded poses; poses4: (N, 4) t, x, y, unwrapped yaw.
+    wheel_points: (M, 2) every wheel centre along
+    the drive, resampled every `spacing` m; wheel_arc: (M,) base_link arc length there, m.
+    radius: distance [m] within which a wheel passes over the same ground; gap: base_link
+    travel [m] after which coming back counts as a new pass.
+    """
+
+    signals: dict[str, np.ndarray]
+    poses4: np.ndarray
+    wheel_points: np.ndarray
+    wheel_arc: np.ndarray
+    radius: float
+    gap: float
+
+    @classmethod
+    def from_poses(cls, poses, robot: Robot, spacing: float = 0.02) -> DriveSignals:
+        p = check_poses(poses)
+        sig = pose_signals(p)
+        dense = resample_poses(p[:, [0, 1, 2, 6]], robot.wheels[:, :2], spacing)
+        arc = np.interp(dense[:, 0], sig["t"], sig["arc_length"])
+        w = wheel_positions(dense, robot.wheels[:, :2])                     # (K, M, 2)
+        gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
+        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), robot.wheel_width / 2, gap)
+
+    def at(self, name: str, t) -> np.ndarray:
+        """Signal `name` interpolated at times t [s] (any shape)."""
+        if name not in self.signals:
+            raise KeyError(f"unknown signal {name!r}; known: {sorted(self.signals)}")
+        return np.interp(np.asarray(t, np.float64), self.signals["t"], self.signals[name])
+
+    def passes(self, points: np.ndarray, arc: np.ndarray) -> np.ndarray:
+        """Earlier passes over the ground at `points` (..., 2) [m], reached at base_link arc
+        length `arc` (...) [m]: distinct earlier visits (separated by more than `gap` of travel)
+        of any wheel within `radius`. Returns an int array of arc's shape."""
+        pts = np.asarray(points, np.float64).reshape(-1, 2)
+        a = np.broadcast_to(np.asarray(arc, np.float64), np.shape(points)[:-1]).reshape(-1)
+        tree = cKDTree(self.wheel_points)
+        out = np.zeros(len(pts), np.int64)
+        for i, hits in enumerate(tree.query_ball_point(pts, self.radius)):
+            if not hits:
+                continue
+            earlier = np.sort(self.wheel_arc[hits][self.wheel_arc[hits] < a[i] - self.gap])
+            if len(earlier):
+                out[i] = 1 + int(np.sum(np.diff(earlier) > self.gap))
+        return out.reshape(np.shape(points)[:-1])
+
+    def pose_passes(self, poses4: np.ndarray, robot: Robot) -> np.ndarray:
+        """(N, 4) poses t, x, y, yaw -> (K, N) earlier passes under each wheel."""
+        w = wheel_positions(np.asarray(poses4, np.float64), robot.wheels[:, :2])
+        arc = self.at("arc_length", poses4[:, 0])
+        return self.passes(w, np.broadcast_to(arc, w.shape[:2]))
+
+
+def window_signals(drive: DriveSignals, spans: list[tuple[float, float]], robot: Robot) -> dict[str, np.ndarray]:
+    """Mean of every signal over the poses whose arc length lies in each span [s0, s1) m.
+
+    Returns {name: (W,)}; `passes` is the mean over wheels and poses; spans without poses get
+    the signal at the span centre."""
+    sig = drive.signals
+    out = {n: np.zeros(len(spans)) for n in SIGNALS}
+    for w, (s0, s1) in enumerate(spans):
+        sel = (sig["arc_length"] >= s0) & (sig["arc_length"] < s1)
+        if sel.sum() == 0:
+            sel = np.zeros(len(sig["t"]), bool)
+            sel[np.argmin(np.abs(sig["arc_length"] - 0.5 * (s0 + s1)))] = True
+        for n in POSE_SIGNALS:
+            out[n][w] = sig[n][sel].mean()
+        out["passes"][w] = drive.pose_passes(drive.poses4[sel], robot).mean()
+    return out
+
+
+def dense_src(p: np.ndarray) -> np.ndarray:
+    """(N, 7) poses -> (N, 4) t, x, y, unwrapped yaw."""
+    q = p[:, [0, 1, 2, 6]].copy()
+    q[:, 3] = np.unwrap(q[:, 3])
+    return q

@@ -1,0 +1,171 @@
+"""Fitting a catalogue extension and comparing held-out prediction costs pairwise.
+
+A pass runs the sliding-window estimator over the whole drive with the extension's
+coefficient held fixed (the per-window base parameters are fitted as usual) and records each
+window's residual and its prediction cost on the next window's ground. The coefficient is
+chosen by two-fold cross-validation over blocks of windows: each block is scored with the
+coefficient that predicted best on the other fold (0, the base model, is always a choice),
+so the extra parameter pays for itself only if it predicts ground it was not chosen on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchsoil.diagnosis.catalogue import Extension, ExtensionModel
+from torchsoil.diagnosis.covariates import DriveSignals
+from torchsoil.diagnosis.locate import Profiles, paired_improvement
+from torchsoil.estimator import Estimator
+from torchsoil.sim import simulate
+
+
+class ExtendedEstimator(Estimator):
+    """The estimator with a fixed-coefficient extension in every simulation of a window."""
+
+    def __init__(self, pair, config: dict, model: ExtensionModel | None = None, **kw):
+        super().__init__(pair, config, **kw)
+        self.model = model
+
+    def simulate(self, free: torch.Tensor, wd):
+        theta = self.full_theta(free)
+        mods = self.model.modifiers(wd, theta) if self.model is not None else None
+        return simulate(wd.h_front, wd.geom, theta, self.sim, self.spec, modifiers=mods, h_ref=wd.h_ref)
+
+
+@dataclass
+class Pass:
+    """One estimator pass: rows (params.csv rows), residual and prediction (W,) costs [m],
+    floor (W,) noise floor [m], profiles (or None), k the coefficient (0: base model)."""
+
+    k: float
+    rows: list[dict]
+    residual: np.ndarray
+    prediction: np.ndarray
+    floor: np.ndarray
+    profiles: Profiles | None = None
+    last: dict = field(default_factory=dict)
+
+
+def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: bool = False,
+             theta0: torch.Tensor | None = None, on_window=None) -> Pass:
+    """Run the estimator once over the drive; collect costs (and profiles when asked).
+
+    on_window: optional callable(k, WindowOutput, estimator) called after every window."""
+    est = ExtendedEstimator(pair, config, model)
+    prof = None
+    if profiles:
+        r = pair.robot.wheel_width / 2
+        prof = Profiles.empty(r, pair.dx, config["estimator"]["weight_width"] * pair.robot.wheel_width)
+    stride = float(config["estimator"]["stride"])
+    rows, floor = [], []
+    wheels_y = pair.robot.wheels[:, 1]
+    for k, o in enumerate(est.run(theta=theta0)):
+        rows.append(o.row)
+        floor.append(o.reference["floor"])
+        if prof is not None and o.h_sim is not None:
+            i0, i1, j0, j1 = o.data.crop
+            c = o.row["s"]
+            prof.add(o.data, o.h_sim, est.index.s[i0:i1, j0:j1], c - stride / 2, c + stride / 2, wheels_y)
+        if on_window is not None:
+            on_window(k, o, est)
+    res = np.array([r["residual"] for r in rows], np.float64)
+    pred = np.array([r["prediction"] for r in rows], np.float64)
+    return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof)
+
+
+def folds(n: int, block: int) -> np.ndarray:
+    """(n,) fold label 0/1 of each window: alternating blocks of `block` windows."""
+    return (np.arange(n) // max(1, block)) % 2
+
+
+@dataclass
+class CandidateFit:
+    """Result of fitting one extension.
+
+    k: coefficient fitted on all windows (best mean prediction, refined). k_fold: the
+    coefficient each fold was scored with (chosen on the other fold). prediction: (W,)
+    cross-validated held-out cost per window [m]. improvement, se, z: paired per-window
+    improvement over the base model. passes: every pass run, by coefficient."""
+
+    ext: Extension
+    k: float
+    k_fold: tuple[float, float]
+    prediction: np.ndarray
+    residual: np.ndarray
+    improvement: float
+    se: float
+    z: float
+    passes: dict[float, Pass]
+    accepted: bool = False
+
+
+def _mean(x: np.ndarray, sel: np.ndarray) -> float:
+    v = x[sel & np.isfinite(x)]
+    return float(v.mean()) if len(v) else math.inf
+
+
+def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> float | None:
+    """Vertex of the parabola through the best coefficient and its neighbours (None if the
+    best is at the edge of the tried ones or the parabola is not convex)."""
+    order = np.argsort(ks)
+    k, c = np.asarray(ks)[order], np.asarray(costs)[order]
+    i = int(np.argmin(c))
+    if i == 0 or i == len(k) - 1:
+        edge = k[i] + (k[i] - k[1 if i == 0 else -2])
+        return float(np.clip(edge, *bounds)) if bounds[0] <= edge <= bounds[1] else None
+    a = np.polyfit(k[i - 1:i + 2], c[i - 1:i + 2], 2)
+    if a[0] <= 0:
+        return None
+    return float(np.clip(-a[1] / (2 * a[0]), k[i - 1], k[i + 1]))
+
+
+def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base: Pass,
+                  block_m: float = 2.0, refine_steps: int = 1, theta0=None, progress=None) -> CandidateFit:
+    """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
+    refinement, then two-fold cross-validated held-out costs and the paired comparison with
+    the base pass."""
+    passes: dict[float, Pass] = {0.0: base}
+
+    def run(k: float) -> None:
+        k = float(np.clip(k, *ext.bounds))
+        if any(abs(k - q) < 1e-9 for q in passes):
+            return
+        passes[k] = run_pass(pair, config, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
+                             theta0=theta0)
+        if progress is not None:
+            progress.update(1)
+
+    for k in ext.trials:
+        run(k)
+    every = np.ones(len(base.prediction), bool)
+    for _ in range(refine_steps):
+        ks = sorted(passes)
+        new = refine(ks, [_mean(passes[k].prediction, every) for k in ks], ext.bounds)
+        if new is not None:
+            run(new)
+    ks = sorted(passes)
+    stride = float(config["estimator"]["stride"])
+    lab = folds(len(base.prediction), int(round(block_m / stride)))
+    pred = np.full(len(base.prediction), np.nan)
+    res = np.full(len(base.prediction), np.nan)
+    k_fold = []
+    for f in (0, 1):
+        train = lab != f
+        k_best = min(ks, key=lambda k: (_mean(passes[k].prediction, train), abs(k)))
+        k_fold.append(k_best)
+        pred[lab == f] = passes[k_best].prediction[lab == f]
+        res[lab == f] = passes[k_best].residual[lab == f]
+    k_all = min(ks, key=lambda k: (_mean(passes[k].prediction, every), abs(k)))
+    imp, se, z = paired_improvement(base.prediction, pred)
+    return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes)
+
+
+def accept(fit: CandidateFit, z_crit: float) -> bool:
+    """The extension predicts held-out windows better than the noise allows: paired z above
+    z_crit and the same non-zero coefficient sign chosen independently on both folds."""
+    a, b = fit.k_fold
+    return bool(fit.z > z_crit and a != 0 and b != 0 and np.sign(a) == np.sign(b))

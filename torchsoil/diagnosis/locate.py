@@ -1,0 +1,255 @@
+"""Where simulation and recording disagree, and what the disagreement follows.
+
+Three kinds of evidence, each with honest statistics:
+
+* cross-track residual profiles: simulated minus measured H_b binned by the signed lateral
+  offset from the nearest wheel's centre line (outward positive, one cell per bin), averaged
+  along the drive over non-overlapping segments (the central stride of each window); standard
+  errors come from the spread between segments, because neighbouring cells are correlated.
+* along-track rut-floor residual: one value per cell of arc length; a periodic pattern shows
+  as a line in its periodogram, tested against the local spectral background.
+* per-window series (fitted parameters, costs) against covariates from the poses: Pearson
+  correlation with an effective sample size corrected for the autocorrelation of both series.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+ZONES = ("rut_floor", "rut_wall", "berm", "outside")
+
+
+def zone_of(offset: np.ndarray, radius: float, dx: float) -> np.ndarray:
+    """Cross-track zone index (into ZONES) of lateral offsets [m] from a wheel centre line
+    (footprint radius [m], cell edge dx [m]): floor |o| < r/2, wall up to r + dx/2, berm up
+    to r + 3.5 dx, outside beyond."""
+    a = np.abs(np.asarray(offset, np.float64))
+    return np.select([a < radius / 2, a <= radius + dx / 2, a <= radius + 3.5 * dx], [0, 1, 2], 3)
+
+
+# ------------------------------------------------------------------ statistics
+def lag1(x: np.ndarray) -> float:
+    """Lag-1 autocorrelation of a series (0 for fewer than 4 values or no variance)."""
+    x = np.asarray(x, np.float64)
+    if len(x) < 4:
+        return 0.0
+    x = x - x.mean()
+    den = float((x * x).sum())
+    return float((x[1:] * x[:-1]).sum() / den) if den > 0 else 0.0
+
+
+def effective_n(n: int, *series: np.ndarray) -> float:
+    """Effective sample size of n autocorrelated values: n (1 - r) / (1 + r) with r the product
+    of the series' lag-1 autocorrelations (one series: its own), floored at 3."""
+    r = float(np.prod([max(lag1(s), 0.0) for s in series])) if len(series) > 1 else max(lag1(series[0]), 0.0)
+    r = min(r, 0.95)
+    return float(max(3.0, n * (1 - r) / (1 + r)))
+
+
+@dataclass(frozen=True)
+class Correlation:
+    """Pearson r of y on x over n values, its effective sample size and two-sided p-value."""
+
+    r: float
+    n: int
+    n_eff: float
+    p: float
+
+
+def correlation(x, y) -> Correlation:
+    """Correlation of two per-window series with the effective-sample-size correction.
+
+    NaN entries (in either) are dropped. p = 1 when x or y does not vary."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    if x.shape != y.shape:
+        raise ValueError(f"correlation: series of different shapes {x.shape} and {y.shape}")
+    ok = np.isfinite(x) & np.isfinite(y)
+    x, y = x[ok], y[ok]
+    n = len(x)
+    if n < 4 or np.std(x) < 1e-12 or np.std(y) < 1e-12:
+        return Correlation(0.0, n, float(n), 1.0)
+    r = float(np.corrcoef(x, y)[0, 1])
+    ne = effective_n(n, x, y)
+    dof = max(ne - 2.0, 1.0)
+    t = r * math.sqrt(dof / max(1e-12, 1 - r * r))
+    return Correlation(r, n, ne, float(2 * stats.t.sf(abs(t), dof)))
+
+
+def paired_improvement(base, ext) -> tuple[float, float, float]:
+    """Mean per-window improvement base - ext [m], its standard error from the effective
+    sample size of the difference series, and z = mean / se (windows where either is NaN
+    are dropped)."""
+    b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
+    ok = np.isfinite(b) & np.isfinite(e)
+    d = b[ok] - e[ok]
+    if len(d) < 4:
+        return 0.0, math.inf, 0.0
+    se = float(np.std(d, ddof=1) / math.sqrt(effective_n(len(d), d)))
+    if se <= 0:
+        return float(d.mean()), 0.0, 0.0 if d.mean() == 0 else math.copysign(math.inf, d.mean())
+    return float(d.mean()), se, float(d.mean() / se)
+
+
+def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(0.08, 2.0)) -> dict:
+    """Strongest line in the periodogram of a series spaced dx [m] apart (NaN gaps filled by
+    linear interpolation, linear trend removed), against the local background (median of
+    the neighbouring +-half_width frequencies / ln 2, the mean of an exponential), among
+    wavelengths in the given range [m] (tread-like patterns; shorter ones are cell noise).
+
+    Returns {ratio, wavelength [m], p}: p is the chance of so strong a line anywhere in the
+    spectrum of a line-free series (Bonferroni over the frequencies)."""
+    y = np.asarray(series, np.float64)
+    idx = np.arange(len(y))
+    ok = np.isfinite(y)
+    if ok.sum() < 32:
+        return {"ratio": 0.0, "wavelength": math.nan, "p": 1.0}
+    y = np.interp(idx, idx[ok], y[ok])
+    y = y - np.polyval(np.polyfit(idx, y, 1), idx)
+    P = np.abs(np.fft.rfft(y * np.hanning(len(y)))) ** 2
+    f = np.fft.rfftfreq(len(y), dx)
+    lo = max(3, int(len(y) * dx / wavelengths[1]))
+    hi = min(len(P), int(len(y) * dx / wavelengths[0]) + 1)
+    best = (0.0, math.nan)
+    for i in range(lo, hi):
+        nb = np.r_[P[max(lo, i - half_width):max(lo, i - 2)], P[i + 3:i + half_width + 1]]
+        if len(nb) < 4:
+            continue
+        ratio = float(P[i] / (np.median(nb) / math.log(2)))
+        if ratio > best[0]:
+            best = (ratio, 1.0 / f[i])
+    m = max(hi - lo, 1)
+    p_one = math.exp(-best[0])
+    p = 1.0 - (1.0 - p_one) ** m if p_one > 1e-12 else m * p_one
+    return {"ratio": best[0], "wavelength": float(best[1]), "p": float(min(1.0, p))}
+
+
+# ------------------------------------------------------------------ profiles
+@dataclass
+class Profiles:
+    """Cross-track profiles accumulated over segments of the drive.
+
+    bins: (L,) lateral offset of each bin centre, outward from the wheel centre line, m.
+    For every segment g and side (0 left wheels, 1 right wheels): per-bin sums of the
+    residual (simulated - measured H_b), of the measured and simulated deformation
+    (H_b - start surface) and the cell count; floor: (S,) rut-floor residual per arc-length
+    cell (NaN where none)."""
+
+    bins: np.ndarray
+    dx: float
+    radius: float
+    seg_s: list = field(default_factory=list)
+    res: list = field(default_factory=list)
+    meas: list = field(default_factory=list)
+    sim: list = field(default_factory=list)
+    count: list = field(default_factory=list)
+    floor_s: list = field(default_factory=list)
+    floor_r: list = field(default_factory=list)
+
+    @classmethod
+    def empty(cls, radius: float, dx: float, reach: float) -> Profiles:
+        n = int(math.ceil(reach / dx))
+        return cls(np.arange(-n, n + 1) * dx, dx, radius)
+
+    def add(self, wd, h_sim, s_cells: np.ndarray, s0: float, s1: float, wheels_y: np.ndarray) -> None:
+        """Add the cells of window wd whose arc length (s_cells, (X, Y) on the window crop)
+        lies in [s0, s1). h_sim: (X, Y) simulated H_b on the crop, m."""
+        g = wd.geom
+        cell = g.cell.cpu().numpy()
+        order = np.argsort(g.dist.cpu().numpy(), kind="stable")
+        first = order[np.unique(cell[order], return_index=True)[1]]
+        c = cell[first]
+        wheel = g.wheel.cpu().numpy()[first]
+        lat = g.lateral.cpu().numpy()[first] * np.sign(wheels_y[wheel])       # outward positive
+        side = (wheels_y[wheel] < 0).astype(int)
+        weight = wd.weight.cpu().numpy().reshape(-1)[c] > 0
+        s = s_cells.reshape(-1)[c]
+        keep = weight & (s >= s0) & (s < s1)
+        n = len(self.bins)
+        b = np.rint(lat / self.dx).astype(int) + n // 2
+        keep &= (b >= 0) & (b < n)
+        c, b, side, s, lat = c[keep], b[keep], side[keep], s[keep], lat[keep]
+        hb = wd.h_back.cpu().numpy().reshape(-1)[c]
+        hf = wd.h_front[0].cpu().numpy().reshape(-1)[c]
+        hs = np.asarray(h_sim.detach().cpu().numpy() if hasattr(h_sim, "detach") else h_sim).reshape(-1)[c]
+        acc = {k: np.zeros((2, n)) for k in ("res", "meas", "sim", "count")}
+        for arr, val in (("res", hs - hb), ("meas", hb - hf), ("sim", hs - hf), ("count", np.ones_like(hb))):
+            np.add.at(acc[arr], (side, b), val)
+        self.seg_s.append(0.5 * (s0 + s1))
+        for k in acc:
+            getattr(self, k).append(acc[k])
+        fl = zone_of(lat, self.radius, self.dx) == 0
+        self.floor_s.append(s[fl])
+        self.floor_r.append((hs - hb)[fl])
+
+    # -------------------------------------------------------------- summaries
+    def _stack(self, name: str) -> np.ndarray:
+        return np.array(getattr(self, name))                       # (G, 2, L)
+
+    def profile(self, name: str = "res", sides=(0, 1)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Mean per bin over segments (each segment weighted equally), its standard error
+        from the spread between segments, and the number of segments. (L,) arrays, m."""
+        v = self._stack(name)[:, list(sides)].sum(1)
+        n = self._stack("count")[:, list(sides)].sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            seg = np.where(n > 0, v / n, np.nan)
+        cnt = np.isfinite(seg).sum(0)
+        mean = np.nanmean(np.where(cnt[None] > 0, seg, 0.0), 0)
+        sd = np.nanstd(np.where(cnt[None] > 0, seg, 0.0), 0, ddof=1) if len(seg) > 1 else np.full(len(cnt), np.inf)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            se = sd / np.sqrt(np.maximum(cnt, 1))
+        mean[cnt < 3] = np.nan
+        return mean, se, cnt
+
+    def zone_stats(self, name: str = "res", sides=(0, 1)) -> dict[str, dict]:
+        """Per zone: mean residual [m], standard error (from segment spread) and z."""
+        v, n = self._stack(name)[:, list(sides)].sum(1), self._stack("count")[:, list(sides)].sum(1)
+        z_idx = zone_of(self.bins, self.radius, self.dx)
+        out = {}
+        for zi, zname in enumerate(ZONES):
+            cols = z_idx == zi
+            num, den = v[:, cols].sum(1), n[:, cols].sum(1)
+            ok = den > 0
+            seg = num[ok] / den[ok]
+            if len(seg) < 3:
+                out[zname] = {"mean": math.nan, "se": math.nan, "z": 0.0, "segments": int(len(seg))}
+                continue
+            se = float(np.std(seg, ddof=1) / math.sqrt(effective_n(len(seg), seg)))
+            m = float(seg.mean())
+            out[zname] = {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "segments": int(len(seg))}
+        return out
+
+    def segment_zone_series(self, zone: str, sides=(0, 1)) -> np.ndarray:
+        """(G,) mean residual of one zone per segment, m (NaN where no cell)."""
+        v, n = self._stack("res")[:, list(sides)].sum(1), self._stack("count")[:, list(sides)].sum(1)
+        cols = zone_of(self.bins, self.radius, self.dx) == ZONES.index(zone)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return v[:, cols].sum(1) / n[:, cols].sum(1)
+
+    def asymmetry(self) -> dict:
+        """Left minus right rut-floor residual per segment: mean, se, z, and the series."""
+        left = self.segment_zone_series("rut_floor", (0,))
+        right = self.segment_zone_series("rut_floor", (1,))
+        d = left - right
+        ok = np.isfinite(d)
+        if ok.sum() < 3:
+            return {"mean": math.nan, "se": math.nan, "z": 0.0, "series": d}
+        se = float(np.std(d[ok], ddof=1) / math.sqrt(effective_n(int(ok.sum()), d[ok])))
+        m = float(d[ok].mean())
+        return {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "series": d}
+
+    def floor_series(self) -> tuple[np.ndarray, np.ndarray]:
+        """Rut-floor residual per arc-length cell: (S,) arc length [m] and mean residual [m]."""
+        if not self.floor_s:
+            return np.zeros(0), np.zeros(0)
+        s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
+        if len(s) == 0:
+            return np.zeros(0), np.zeros(0)
+        i = np.floor((s - s.min()) / self.dx).astype(int)
+        n = i.max() + 1
+        num, den = np.bincount(i, r, n), np.bincount(i, None, n)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return s.min() + (np.arange(n) + 0.5) * self.dx, np.where(den > 0, num / den, np.nan)

@@ -1,0 +1,249 @@
+"""Diagnosis outputs: DIR/diagnosis.json (exactly FORMATS.md section 4), a plain-language
+report.md, figures and TensorBoard scalars."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+KEYS = ("verdict", "missing_physics", "where", "explanation", "cost_before", "cost_after", "noise_floor",
+        "extension_parameters", "candidates")
+VERDICTS = ("adequate", "missing_physics", "unexplained")
+CROSS = ("rut_floor", "rut_wall", "berm", "outside", "mixed")
+
+
+def _mm(x: float) -> str:
+    return f"{1e3 * x:.2f} mm" if math.isfinite(x) else "n/a"
+
+
+def explain(diag) -> str:
+    """One paragraph, plain language, from a Diagnosis."""
+    s, ev = diag.summary, diag.evidence
+    before, after = s["cost_before"], s["cost_after"]
+    where = s["where"]
+    span = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in where["along_track"]) or "no particular stretch"
+    if s["verdict"] == "missing_physics":
+        f = diag.best
+        (k, v), = s["extension_parameters"].items()
+        return (f"The base model leaves out: {f.ext.description} ({f.ext.id}). Adding it with {k} = {v:.3g} "
+                f"lowers the cost of predicting the next window from {_mm(before['prediction'])} to "
+                f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
+                f"z = {f.z:.1f} against {ev['z_accept']:.1f} allowed by noise, coefficient chosen on other "
+                f"windows than those it is scored on). The mismatch lies on the "
+                f"{where['cross_track'].replace('_', ' ')}"
+                f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "
+                f"Noise floor {_mm(s['noise_floor'])}.")
+    if s["verdict"] == "unexplained":
+        line = ev["spectral_line"]
+        what = (f"a periodic pattern of wavelength {line['wavelength']:.2f} m along the rut floor "
+                f"({line['ratio']:.0f} x the spectral background)"
+                if line["p"] < 1 and where["covariate"] == "arc_length" else
+                f"a systematic residual on the {where['cross_track'].replace('_', ' ')}")
+        tried = ", ".join(f"{c['id']}" for c in s["candidates"]) or "none testable"
+        return (f"Simulation and recording disagree in structure: {what}, at {span}"
+                f"{', following ' + where['covariate'] if where['covariate'] else ''}. No catalogue term "
+                f"explains it (tried: {tried}; none predicted held-out windows better than noise allows), so "
+                f"no cause is named. Prediction cost {_mm(before['prediction'])}, noise floor {_mm(s['noise_floor'])}.")
+    z = ev["zones"]
+    return (f"No significant structured mismatch: rut-floor and rut-wall residuals average "
+            f"{_mm(z['rut_floor']['mean'])} (z = {z['rut_floor']['z']:.1f}) and {_mm(z['rut_wall']['mean'])} "
+            f"(z = {z['rut_wall']['z']:.1f}) against |z| {ev['z_locate']:.1f} allowed, no periodic pattern, and no "
+            f"catalogue term predicted held-out windows better than noise allows. Soil that varies along the "
+            f"path is followed by the per-window parameters. Prediction cost {_mm(before['prediction'])}, "
+            f"noise floor {_mm(s['noise_floor'])}.")
+
+
+def validate_summary(d: dict) -> dict:
+    """Check a diagnosis dict against FORMATS.md section 4; raises ValueError naming the key."""
+    if set(d) != set(KEYS):
+        raise ValueError(f"diagnosis.json keys {sorted(d)} differ from FORMATS.md section 4 {sorted(KEYS)}")
+    if d["verdict"] not in VERDICTS:
+        raise ValueError(f"verdict {d['verdict']!r} not in {VERDICTS}")
+    if (d["verdict"] == "missing_physics") != (d["missing_physics"] is not None):
+        raise ValueError("missing_physics must name an id exactly when the verdict is missing_physics")
+    w = d["where"]
+    if set(w) != {"cross_track", "along_track", "covariate"} or w["cross_track"] not in CROSS:
+        raise ValueError(f"where {w} does not follow FORMATS.md section 4")
+    for key in ("cost_before", "cost_after"):
+        if set(d[key]) != {"residual", "prediction"}:
+            raise ValueError(f"{key} must hold residual and prediction")
+    for c in d["candidates"]:
+        if set(c) != {"id", "prediction", "accepted"}:
+            raise ValueError(f"candidate {c} must hold id, prediction, accepted")
+    return d
+
+
+def write_json(summary: dict, path: Path) -> Path:
+    path.write_text(json.dumps(validate_summary(summary), indent=2))
+    return path
+
+
+# ------------------------------------------------------------------ figures
+def fig_residual_map(diag, pair, path: Path) -> Path:
+    r = diag.residual_map
+    fig, ax = plt.subplots(figsize=(10, 3.5))
+    xs, ys = pair.grid.centers()
+    lim = 3 * np.nanstd(r) if np.isfinite(r).any() else 1e-3
+    im = ax.pcolormesh(xs, ys, r.T * 1e3, cmap="RdBu_r", vmin=-1e3 * lim, vmax=1e3 * lim, shading="nearest")
+    fig.colorbar(im, ax=ax, label="simulated - measured H_b [mm]")
+    sidx = diag.s_index
+    for a, b in diag.summary["where"]["along_track"]:
+        mask = np.isfinite(sidx) & (sidx >= a) & (sidx < b)
+        if mask.any():
+            ax.contour(xs, ys, mask.T.astype(float), levels=[0.5], colors="k", linewidths=1.2)
+    ax.plot(pair.poses[:, 1], pair.poses[:, 2], "k--", lw=0.5)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(f"base-model residual; located region outlined ({diag.summary['verdict']})")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def fig_covariate(diag, path: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    w = diag.windows
+    cov = diag.summary["where"]["covariate"]
+    rows = diag.base.rows
+    d = np.array([np.mean([r[k] for k in r if k.startswith("d") and k[1:].isdigit()]) for r in rows])
+    if cov in w and cov != "arc_length":
+        ax.scatter(w[cov], 1e3 * d, s=12, label="base model: fitted sinkage")
+        if diag.best is not None:
+            k = min(diag.best.passes, key=lambda q: abs(q - diag.best.k))
+            de = np.array([np.mean([r[q] for q in r if q.startswith("d") and q[1:].isdigit()])
+                           for r in diag.best.passes[k].rows])
+            ax.scatter(w[cov], 1e3 * de, s=12, label=f"with {diag.best.ext.id}")
+        ax.set_xlabel(cov)
+        ax.set_ylabel("mean sinkage d per window [mm]")
+    else:
+        fs, fr = diag.base.profiles.floor_series()
+        ax.plot(fs, 1e3 * fr, lw=0.6)
+        ax.set_xlabel("arc length [m]")
+        ax.set_ylabel("rut-floor residual [mm]")
+    ax.legend(fontsize=8) if ax.get_legend_handles_labels()[0] else None
+    ax.set_title(f"what the mismatch follows: {cov}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def fig_cross_sections(diag, path: Path) -> Path:
+    p = diag.base.profiles
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    mm = 1e3 * p.bins
+    m, se, _ = p.profile("meas")
+    ax[0].errorbar(mm, 1e3 * m, 1e3 * se, fmt="k.", label="measured")
+    ax[0].plot(mm, 1e3 * p.profile("sim")[0], label="base model")
+    r, rse, _ = p.profile("res")
+    ax[1].errorbar(mm, 1e3 * r, 1e3 * rse, fmt=".-", label="base model")
+    if diag.best is not None:
+        k = min(diag.best.passes, key=lambda q: abs(q - diag.best.k))
+        pe = diag.best.passes[k].profiles
+        if pe is not None:
+            ax[0].plot(mm, 1e3 * pe.profile("sim")[0], label=f"with {diag.best.ext.id}")
+            re, ree, _ = pe.profile("res")
+            ax[1].errorbar(mm, 1e3 * re, 1e3 * ree, fmt=".-", label=f"with {diag.best.ext.id}")
+    ax[0].set_ylabel("H_b - start surface [mm]")
+    ax[1].set_ylabel("simulated - measured [mm] (+- s.e. between segments)")
+    for a in ax:
+        a.set_xlabel("lateral offset from wheel centre, outward [mm]")
+        a.axhline(0, color="0.7", lw=0.5)
+        a.legend(fontsize=8)
+    fig.suptitle("cross-sections averaged along the drive")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def fig_costs(diag, path: Path) -> Path:
+    s = diag.windows["s"]
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.plot(s, 1e3 * diag.base.prediction, ".-", label="base model")
+    if diag.best is not None:
+        ax.plot(s, 1e3 * diag.best.prediction, ".-", label=f"with {diag.best.ext.id} (cross-validated)")
+    ax.plot(s, 1e3 * diag.base.floor, ":", color="0.5", label="noise floor")
+    ax.set_xlabel("window centre s [m]")
+    ax.set_ylabel("prediction cost (next window) [mm]")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -> Path:
+    s, ev = diag.summary, diag.evidence
+    lines = [f"# Diagnosis of {input_name}", "", f"**Verdict: {s['verdict']}**"
+             + (f" — `{s['missing_physics']}`" if s["missing_physics"] else ""), "", s["explanation"], "",
+             "## Where", "", f"- across the track: {s['where']['cross_track']}",
+             f"- along the track: {s['where']['along_track'] or 'nowhere in particular'} (m of arc length)",
+             f"- follows: {s['where']['covariate']}", "", "## Evidence", "",
+             "| zone | mean residual | s.e. | z |", "| --- | --- | --- | --- |"]
+    for zn, v in ev["zones"].items():
+        lines.append(f"| {zn} | {_mm(v['mean'])} | {_mm(v['se'])} | {v['z']:.1f} |")
+    a, ln = ev["asymmetry"], ev["spectral_line"]
+    lines += ["", f"Left-right rut-floor asymmetry {_mm(a['mean'])}, z = {a['z']:.1f}; strongest along-track line "
+              f"{ln['ratio']:.1f} x background at {ln['wavelength']:.2f} m (p = {ln['p']:.2g}). Location tests "
+              f"need |z| > {ev['z_locate']:.2f}; berms are not tested (their height follows the soil parameters).",
+              "", "## Candidates", "", "| id | location evidence | fitted | held-out prediction | z | accepted |",
+              "| --- | --- | --- | --- | --- | --- |"]
+    fitted = {f.ext.id: f for f in diag.fits}
+    for i, e in ev["candidates"].items():
+        f = fitted.get(i)
+        lines.append(f"| {i} | {e['statistic']} (p = {e['p']:.2g}) | "
+                     + (f"{f.ext.parameter} = {f.k:.3g} (folds {f.k_fold[0]:.3g}, {f.k_fold[1]:.3g}) | "
+                        f"{_mm(float(np.nanmean(f.prediction)))} | {f.z:.1f} | {f.accepted} |" if f else
+                        "not fitted | | | |"))
+    lines += ["", f"Acceptance: paired per-window improvement z > {ev['z_accept']:.2f} and the same coefficient "
+              "sign chosen on both folds.", "", "## Costs", "",
+              f"- before: residual {_mm(s['cost_before']['residual'])}, "
+              f"prediction {_mm(s['cost_before']['prediction'])}",
+              f"- after: residual {_mm(s['cost_after']['residual'])}, "
+              f"prediction {_mm(s['cost_after']['prediction'])}",
+              f"- noise floor: {_mm(s['noise_floor'])}", "", "## Figures", ""]
+    lines += [f"![{k}]({v})" for k, v in figures.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def tensorboard(diag, log_dir: Path, figures: dict[str, Path]) -> None:
+    """Per-window prediction costs before/after and the figures, for TensorBoard."""
+    from torch.utils.tensorboard import SummaryWriter
+
+    w = SummaryWriter(str(log_dir))
+    try:
+        for k, s in enumerate(diag.windows["s"]):
+            w.add_scalar("prediction/base_mm", 1e3 * diag.base.prediction[k], k)
+            if diag.best is not None:
+                w.add_scalar("prediction/extended_mm", 1e3 * diag.best.prediction[k], k)
+            w.add_scalar("window/s_m", s, k)
+        for name, p in figures.items():
+            img = plt.imread(str(p))
+            w.add_image(f"diagnosis/{name}", img[..., :3], 0, dataformats="HWC")
+    finally:
+        w.close()
+
+
+def write_all(diag, pair, out: Path, input_name: str, tb: bool = True) -> Path:
+    """diagnosis.json, report.md, figures (and TensorBoard) into out."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(diag.summary, out / "diagnosis.json")
+    figs = {"residual_map": fig_residual_map(diag, pair, out / "residual_map.png"),
+            "covariate": fig_covariate(diag, out / "residual_vs_covariate.png"),
+            "cross_sections": fig_cross_sections(diag, out / "cross_sections.png"),
+            "prediction_costs": fig_costs(diag, out / "prediction_costs.png")}
+    write_markdown(diag, out / "report.md", {k: v.name for k, v in figs.items()}, input_name)
+    if tb:
+        tensorboard(diag, out / "tensorboard", figs)
+    return out / "diagnosis.json"

@@ -1,0 +1,239 @@
+"""The diagnosis of one drive: locate the mismatch, rank and fit catalogue extensions,
+accept one only on held-out evidence, and give the verdict (FORMATS.md section 4)."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from torchsoil.diagnosis import catalogue
+from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, window_signals
+from torchsoil.diagnosis.fit import CandidateFit, Pass, accept, fit_extension, run_pass
+from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
+from torchsoil.estimator import Stitcher
+
+
+@dataclass(frozen=True)
+class DiagnosisConfig:
+    """Settings of the diagnosis (defaults used by scripts/diagnose.py).
+
+    n_fit: candidates fitted (the leading ones by the location evidence). alpha_accept:
+    family-wise one-sided level of the held-out test, split over the fitted candidates.
+    alpha_locate: family-wise level of the location tests (rut-floor and rut-wall profile,
+    left/right asymmetry, along-track spectral line), split over them. block_m: length of
+    the cross-validation blocks, m. min_spread: smallest spread (std over windows) of a
+    covariate for its term to be testable on this drive."""
+
+    n_fit: int = 3
+    alpha_accept: float = 0.05
+    alpha_locate: float = 0.01
+    block_m: float = 2.0
+    refine_steps: int = 1
+    min_spread: dict = field(default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004,
+                                                      "passes": 0.05})
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> DiagnosisConfig:
+        d = dict(d or {})
+        known = set(cls.__dataclass_fields__)
+        if set(d) - known:
+            raise ValueError(f"unknown diagnosis settings {sorted(set(d) - known)}; known: {sorted(known)}")
+        return cls(**d)
+
+
+@dataclass
+class Diagnosis:
+    """Everything the report needs: `summary` is the diagnosis.json dict (FORMATS.md 4)."""
+
+    summary: dict
+    base: Pass
+    fits: list[CandidateFit]
+    best: CandidateFit | None
+    evidence: dict
+    windows: dict
+    residual_map: np.ndarray
+    s_index: np.ndarray
+
+
+def _z_two_sided(alpha: float) -> float:
+    return float(stats.norm.isf(alpha / 2))
+
+
+def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float]]:
+    """Merge the [s0, s1) spans of flagged windows into intervals, m."""
+    out: list[list[float]] = []
+    for f, a, b in zip(flags, s0, s1, strict=True):
+        if not f:
+            continue
+        if out and a <= out[-1][1] + 1e-9:
+            out[-1][1] = max(out[-1][1], float(b))
+        else:
+            out.append([float(a), float(b)])
+    return [[round(a, 2), round(b, 2)] for a, b in out]
+
+
+def _outliers(x: np.ndarray, n_sd: float = 2.5) -> np.ndarray:
+    """Entries above n_sd robust standard deviations (MAD) of a series around 0."""
+    ok = np.isfinite(x)
+    if ok.sum() < 4:
+        return np.zeros(len(x), bool)
+    sd = 1.4826 * np.median(np.abs(x[ok] - np.median(x[ok])))
+    sd = sd if sd > 0 else np.std(x[ok])
+    return ok & (np.nan_to_num(x) > n_sd * sd) & (sd > 0)
+
+
+def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.ndarray], zones: dict,
+                 n_tracks: int, cfg: DiagnosisConfig) -> dict:
+    """Location evidence for one catalogue term: {testable, p, statistic}.
+
+    Sinkage terms: correlation of the fitted sinkage (mean over tracks; for lateral load the
+    right-minus-left difference) with the term's covariate over windows, with the
+    effective-sample-size correction. Shape terms: the rut-floor / rut-wall profile z."""
+    d = np.array([[r[f"d{t + 1}"] for t in range(n_tracks)] for r in rows], np.float64)
+    if ext.covariate is None:
+        z = max(abs(zones["rut_floor"]["z"]), abs(zones["rut_wall"]["z"]))
+        return {"testable": True, "p": float(2 * stats.norm.sf(z)), "statistic": f"profile |z| = {z:.1f}"}
+    x = cov[ext.covariate]
+    spread = float(np.nanstd(x))
+    if spread < cfg.min_spread.get(ext.covariate, 0.0):
+        return {"testable": False, "p": 1.0, "statistic": f"{ext.covariate} spread {spread:.3g} too small"}
+    if ext.id == "lateral_load_transfer" and n_tracks >= 2:
+        y = (d[:, 1] - d[:, 0]) / np.maximum(d.mean(1), 1e-4)
+    else:
+        y = d.mean(1)
+    c = correlation(x, y)
+    return {"testable": True, "p": c.p, "statistic": f"r = {c.r:+.2f}, n_eff = {c.n_eff:.1f}"}
+
+
+def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=None) -> Diagnosis:
+    """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the estimator settings
+    of `config` (sections sim, estimator). progress: optional tqdm-like bar (update(n))."""
+    cfg = cfg or DiagnosisConfig()
+    robot = pair.robot
+    drive = DriveSignals.from_poses(pair.poses, robot)
+    est_cfg = config["estimator"]
+    window, stride = float(est_cfg["window"]), float(est_cfg["stride"])
+    holder: dict = {}
+
+    def keep(k, o, est):
+        if "stitch" not in holder:
+            holder["stitch"] = Stitcher(pair.h_front.shape, est.index.s)
+            holder["s"] = est.index.s
+        if o.h_sim is not None:
+            holder["stitch"].add(o.data, o.h_sim)
+        if progress is not None and k % 5 == 0:
+            progress.set_postfix_str(f"base window {k}")
+
+    base = run_pass(pair, config, profiles=True, on_window=keep)
+    if progress is not None:
+        progress.update(1)
+    rows = base.rows
+    if len(rows) < 6 or np.isfinite(base.residual).sum() < 6:
+        raise ValueError(f"drive too short to diagnose: {len(rows)} windows of {window} m "
+                         f"(need at least 6 fitted windows)")
+    s = np.array([r["s"] for r in rows])
+    cov = window_signals(drive, [(c - window / 2, c + window / 2) for c in s], robot)
+    prof = base.profiles
+    zones = prof.zone_stats()
+    asym = prof.asymmetry()
+    fs, fr = prof.floor_series()
+    line = spectral_line(fr, pair.dx)
+    n_tracks = robot.n_tracks
+
+    # ---- rank candidates by the location evidence, fit the leading testable ones
+    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg) for e in catalogue.CATALOGUE.values()}
+    ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
+    theta0 = None
+    fits: list[CandidateFit] = []
+    z_crit = float(stats.norm.isf(cfg.alpha_accept / max(len(ranked), 1)))
+    for ext_id in ranked:
+        f = fit_extension(pair, config, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
+                          theta0, progress)
+        f.accepted = accept(f, z_crit)
+        fits.append(f)
+    accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
+    best = accepted[0] if accepted else None
+    pairwise = None
+    if len(accepted) > 1:
+        m, se, z = paired_improvement(accepted[1].prediction, best.prediction)
+        pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z}
+
+    # ---- location tests (family-wise alpha_locate over four tests)
+    z_loc = _z_two_sided(cfg.alpha_locate / 4)
+    sig_zones = [zn for zn in ("rut_floor", "rut_wall") if abs(zones[zn]["z"]) > z_loc]
+    sig_asym = abs(asym["z"]) > z_loc
+    sig_line = line["p"] < cfg.alpha_locate / 4
+    located = bool(sig_zones or sig_asym or sig_line)
+    s0, s1 = s - window / 2, s + window / 2
+    covariate = None
+    if best is not None:
+        verdict = "missing_physics"
+        gain = base.prediction - best.prediction
+        spans = _spans(_outliers(gain), s0 + window, s1 + window)   # prediction is scored one window ahead
+        covariate = best.ext.covariate
+        if sig_zones:
+            cross = sig_zones[0] if len(sig_zones) == 1 else "mixed"
+        else:
+            cross = best.ext.zone
+    elif located:
+        verdict = "unexplained"
+        if sig_line:
+            cross = "rut_floor"
+            spans = [[round(float(fs[0]), 2), round(float(fs[-1]), 2)]] if len(fs) else []
+            covariate = "arc_length"
+        else:
+            if sig_zones:
+                strongest = max(sig_zones, key=lambda zn: abs(zones[zn]["z"]))
+                cross = strongest if len(sig_zones) == 1 else "mixed"
+                series = prof.segment_zone_series(strongest)
+            else:                                            # left/right asymmetry of the rut floor
+                cross, series = "rut_floor", asym["series"]
+            sd = np.nanstd(series)
+            seg = np.array(prof.seg_s)
+            far = np.abs(np.nan_to_num(series - np.nanmean(series))) > 2 * sd
+            spans = _spans(far, seg - stride / 2, seg + stride / 2) if sd > 0 else []
+            seg_cov = window_signals(drive, [(c - stride / 2, c + stride / 2) for c in prof.seg_s], robot)
+            tests = {n: correlation(seg_cov[n], series) for n in SIGNALS}
+            name, c = min(tests.items(), key=lambda kv: kv[1].p)
+            covariate = name if c.p < cfg.alpha_locate / len(SIGNALS) else None
+    else:
+        verdict, cross, spans = "adequate", "mixed", []
+
+    before = {"residual": float(np.nanmean(base.residual)), "prediction": float(np.nanmean(base.prediction))}
+    after = before if best is None else {"residual": float(np.nanmean(best.residual)),
+                                         "prediction": float(np.nanmean(best.prediction))}
+    evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
+                "spectral_line": line, "z_locate": z_loc, "z_accept": z_crit, "candidates": ev,
+                "pairwise": pairwise,
+                "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
+                                    for n in SIGNALS}}
+    summary = {
+        "verdict": verdict,
+        "missing_physics": best.ext.id if best is not None else None,
+        "where": {"cross_track": cross, "along_track": spans, "covariate": covariate},
+        "explanation": "",
+        "cost_before": before,
+        "cost_after": after,
+        "noise_floor": float(np.nanmean(base.floor)),
+        "extension_parameters": {best.ext.parameter: round(best.k, 4)} if best is not None else {},
+        "candidates": [{"id": f.ext.id, "prediction": float(np.nanmean(f.prediction)), "accepted": bool(f.accepted)}
+                       for f in fits],
+    }
+    from torchsoil.diagnosis.report import explain
+
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov},
+                     holder["stitch"].h_sim - pair.h_back if "stitch" in holder else np.full(pair.h_back.shape, np.nan),
+                     holder.get("s", np.full(pair.h_back.shape, np.nan)))
+    summary["explanation"] = explain(diag)
+    return diag
+
+
+def n_steps(cfg: DiagnosisConfig | None = None) -> int:
+    """Upper bound on the estimator passes of one diagnosis (for a progress bar)."""
+    cfg = cfg or DiagnosisConfig()
+    return 1 + cfg.n_fit * (3 + cfg.refine_steps)
+
+
+__all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]
