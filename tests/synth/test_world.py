@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from torchsoil.synth import effects as fx
 from torchsoil.synth.scenario import build_truth
@@ -221,3 +223,16 @@ def test_revisit_surface_follows_visits_in_time():
     np.testing.assert_array_equal(w.surface_at(tm)[cells], w.states[1][cells])
     np.testing.assert_array_equal(w.surface_at(1e9), w.h_after)
     np.testing.assert_array_equal(w.surface_at(-1.0), w.h_before)
+
+
+@settings(max_examples=60, deadline=None)
+@given(x=st.floats(-5, 5), y=st.floats(-5, 5), form=st.sampled_from(fx.FORMS),
+       p=st.floats(0.3, 3.0), x_s=st.floats(0.1, 3.0))
+def test_effect_shape_functions_are_odd_and_monotone(x, y, form, p, x_s):
+    f = fx.phi(np.array([x, -x, y]), form, p, x_s)
+    assert f[0] == pytest.approx(-f[1], abs=1e-12)
+    if x < y:
+        assert f[0] <= f[2] + 1e-12
+    if form == "saturating":
+        assert abs(f[0]) <= x_s + 1e-12
+    assert fx.phi(np.array([0.0]), form, p, x_s)[0] == 0.0
