@@ -35,6 +35,12 @@ def test_scenario_errors_name_the_problem():
         load_scenario("no_such_field")
     with pytest.raises(ValueError, match="unknown sections"):
         load_scenario({"trajectory": {}, "wheather": 1})
+    with pytest.raises(ValueError, match=r"`terrain.micro.rms` must be a number, got 'rough'"):
+        load_scenario({"terrain": {"micro": {"rms": "rough"}}})
+    with pytest.raises(ValueError, match=r"`landmarks.shed` must be true or false"):
+        load_scenario({"landmarks": {"shed": 1}})
+    with pytest.raises(ValueError, match=r"`trajectory.segments` must be a list of mappings"):
+        load_scenario({"trajectory": {"segments": 20}})
     with pytest.raises(ValueError, match=r"segments\[1\]: needs `straight` or `arc`"):
         planar_path([{"straight": 1.0}, {"spiral": 2.0}])
     with pytest.raises(ValueError, match=r"segments\[0\]: speed must be > 0"):

@@ -59,6 +59,26 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def _check_types(doc: dict, ref: dict, where: str, source: str) -> None:
+    """Values must have the type of their default (numbers, booleans, sections)."""
+    for k, v in doc.items():
+        if k not in ref or ref[k] is None:
+            continue
+        r, path = ref[k], f"{where}{k}"
+        if isinstance(r, dict):
+            if not isinstance(v, dict):
+                raise ValueError(f"{source}: `{path}` must be a mapping, got {v!r}")
+            _check_types(v, r, path + ".", source)
+        elif isinstance(r, bool):
+            if not isinstance(v, bool):
+                raise ValueError(f"{source}: `{path}` must be true or false, got {v!r}")
+        elif isinstance(r, (int, float)) and (isinstance(v, bool) or not isinstance(v, (int, float))):
+            raise ValueError(f"{source}: `{path}` must be a number, got {v!r}")
+    segs = doc.get("trajectory", {}).get("segments") if where == "" else None
+    if segs is not None and (not isinstance(segs, list) or not all(isinstance(x, dict) for x in segs)):
+        raise ValueError(f"{source}: `trajectory.segments` must be a list of mappings, got {segs!r}")
+
+
 def available() -> list[str]:
     """Names of the scenarios in configs/scenarios."""
     return sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml"))
@@ -80,6 +100,7 @@ def load_scenario(scenario: str | Path | dict) -> dict:
     unknown = set(doc) - SECTIONS
     if unknown:
         raise ValueError(f"{source}: unknown sections {sorted(unknown)}; known: {sorted(SECTIONS)}")
+    _check_types(doc, DEFAULTS, "", source)
     out = _merge(DEFAULTS, doc)
     out.setdefault("name", "custom")
     if "segments" in doc.get("trajectory", {}):
