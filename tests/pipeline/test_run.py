@@ -103,6 +103,12 @@ def test_landmark_free_stretch_is_flagged_and_tracked(tmp_path):
     assert err[:30].max() < 0.1 and err.max() < 0.5
 
 
+def test_landmark_free_recording_is_refused(tmp_path):
+    toy_bag(tmp_path / "bare", 2.0, relief=0.0, poles=np.zeros((0, 4)), walls=np.zeros((0, 4)))
+    with pytest.raises(ValueError, match="degenerate for .* sweeps.*landmark-free"):
+        process_bag(tmp_path / "bare", paper_platform())
+
+
 def test_empty_and_nan_clouds_are_flagged(tmp_path):
     scene = ToyScene(columns=256)
     msgs = scene.messages(4.0)
@@ -130,3 +136,24 @@ def test_config_rejects_unknown_keys():
     with pytest.raises(ValueError, match="mapping.voxels"):
         PipelineConfig.from_dict({"mapping": {"voxels": 0.1}})
     assert PipelineConfig.from_dict({"raster": {"dx": 0.05}}).raster.dx == 0.05
+
+
+def test_command_writes_outputs_and_nothing_on_error(moving_bag, tmp_path):
+    import runpy
+    from pathlib import Path
+
+    main = runpy.run_path(str(Path(__file__).parents[2] / "scripts/process_bag.py"),
+                          run_name="process_bag")["main"]
+    robot = Path(__file__).parents[2] / "configs/robot/paper_platform.yaml"
+    out = tmp_path / "out"
+    assert main([str(moving_bag[0]), "--robot", str(robot), "--out", str(out)]) == 0
+    assert {p.name for p in out.iterdir()} == {"terrain.npz", "trajectory.csv", "h_front.png",
+                                               "h_back.png", "h_delta.png"}
+    rows = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1)
+    assert rows.shape[1] == 7 and np.all(np.diff(rows[:, 0]) > 0)
+    bad = tmp_path / "bad"
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("pipeline:\n  read:\n    front_topic: /nothing\n")
+    code = main([str(moving_bag[0]), "--robot", str(robot), "--out", str(bad), "--config",
+                 str(cfg)])
+    assert code == 2 and not bad.exists()

@@ -54,7 +54,8 @@ class MappingConfig:
     velocity_window: baseline of the constant-velocity estimate, s. max_range: points
     farther from the robot are not used, m. startup_baseline: time between the two sweeps
     that measure the initial velocity, s. source_voxel: voxel of the registered sweep, m.
-    max_points: at most this many of its voxels are registered (evenly thinned)."""
+    max_points: at most this many of its voxels are registered (evenly thinned).
+    max_degenerate_share: above this share of degenerate sweeps the run stops."""
 
     voxel: float = 0.2
     map_radius: float = 30.0
@@ -70,6 +71,7 @@ class MappingConfig:
     startup_baseline: float = 0.5
     source_voxel: float = 0.2
     max_points: int = 3000
+    max_degenerate_share: float = 0.8
 
 
 class Sweep(NamedTuple):
@@ -239,6 +241,15 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
         if not flags[k] & POOR_FIT:
             local.add(icp.apply(T, pts), T[:3, 3])
         prev = k
+    degenerate = (flags & DEGENERATE) != 0
+    if degenerate.mean() > cfg.max_degenerate_share:
+        k = np.flatnonzero(degenerate)
+        raise ValueError(
+            f"registration is degenerate for {degenerate.sum()} of {S} sweeps (first at "
+            f"t = {stamps[k[0]] - stamps[0]:.2f} s, last at t = {stamps[k[-1]] - stamps[0]:.2f} "
+            "s after the start): the scene has no structure that fixes the motion along the "
+            "ground (a landmark-free field?), so the trajectory, and with it the heightmaps, "
+            "would be unreliable; nothing written")
     p_ref = local.global_map()
     normals, _ = icp.pca_normals(p_ref, cKDTree(p_ref), p_ref, radius=cfg.normal_radius)
     return MappingResult(stamps, poses, p_ref, normals, fitness, rmse, flags)
