@@ -6,7 +6,9 @@ kernel); _n256_torch_relax with the torch kernel; _n256_converged relaxed to con
 Each figure comes from a fresh process with OMP_WAIT_POLICY=PASSIVE: the OpenMP pools of
 torch and numba then sleep instead of spinning, which on 2 shared cores is 3-10x faster
 (and a fresh process does not inherit the thread pools of the benchmarks run before).
-_n256_omp_spin is the same as _n256 with the OpenMP default (spinning) in this process."""
+_n256_omp_spin is the same as _n256 with the OpenMP default (spinning) in this process.
+env_steps_per_cpu_s_n{N}: the same runs per second of process CPU time (all threads), which
+is less sensitive to other processes sharing the cores than the wall-clock figures."""
 
 from __future__ import annotations
 
@@ -18,8 +20,10 @@ import time
 import numpy as np
 
 
-def steps_per_second(num_envs: int, steps: int, blocks: int, env_overrides: dict | None = None) -> float:
-    """Median over `blocks` of num_envs * steps / wall time, driving at 1 m/s on random arcs."""
+def steps_per_second(num_envs: int, steps: int, blocks: int, env_overrides: dict | None = None,
+                     cpu: bool = False) -> float | tuple[float, float]:
+    """Median over `blocks` of num_envs * steps / wall time, driving at 1 m/s on random arcs;
+    with cpu=True also per second of process CPU time (all threads)."""
     from envs.vector import SoilTraverseVectorEnv
 
     env = SoilTraverseVectorEnv(num_envs, {"env": env_overrides or {}})
@@ -29,21 +33,26 @@ def steps_per_second(num_envs: int, steps: int, blocks: int, env_overrides: dict
                        axis=-1).astype(np.float32)
     for a in actions[:3]:
         env.step(a)
-    rates = []
+    rates, cpu_rates = [], []
     for _ in range(blocks):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for a in actions:
             env.step(a)
         rates.append(num_envs * steps / (time.perf_counter() - t0))
+        cpu_rates.append(num_envs * steps / (time.process_time() - c0))
+    if cpu:
+        return float(np.median(rates)), float(np.median(cpu_rates))
     return float(np.median(rates))
 
 
-def _in_fresh_process(num_envs: int, steps: int, blocks: int, overrides: dict, env: dict) -> float:
+def _in_fresh_process(num_envs: int, steps: int, blocks: int, overrides: dict,
+                      env: dict) -> tuple[float, float]:
     code = ("from torchsoil.bench.env import steps_per_second; "
-            f"print(steps_per_second({num_envs}, {steps}, {blocks}, {overrides!r}))")
+            f"print(*steps_per_second({num_envs}, {steps}, {blocks}, {overrides!r}, cpu=True))")
     out = subprocess.run([sys.executable, "-c", code], env={**os.environ, **env}, check=True,
                          capture_output=True, text=True)
-    return float(out.stdout.strip().splitlines()[-1])
+    wall, cpu = out.stdout.strip().splitlines()[-1].split()
+    return float(wall), float(cpu)
 
 
 def run(quick: bool = False) -> dict[str, float]:
@@ -51,10 +60,12 @@ def run(quick: bool = False) -> dict[str, float]:
     passive = {"OMP_WAIT_POLICY": "PASSIVE"}
     out: dict[str, float] = {}
     for n in (1, 16, 64, 256):
-        out[f"env_steps_per_s_n{n}"] = _in_fresh_process(n, steps, blocks, {"backend": "numba"}, passive)
+        wall, cpu = _in_fresh_process(n, steps, blocks, {"backend": "numba"}, passive)
+        out[f"env_steps_per_s_n{n}"] = wall
+        out[f"env_steps_per_cpu_s_n{n}"] = cpu
     out["env_steps_per_s_n256_torch_relax"] = _in_fresh_process(
-        256, steps, blocks, {"backend": "torch"}, passive)
+        256, steps, blocks, {"backend": "torch"}, passive)[0]
     out["env_steps_per_s_n256_converged"] = _in_fresh_process(
-        256, steps, blocks, {"backend": "numba", "relaxation": "converged"}, passive)
+        256, steps, blocks, {"backend": "numba", "relaxation": "converged"}, passive)[0]
     out["env_steps_per_s_n256_omp_spin"] = steps_per_second(256, steps, blocks, {"backend": "numba"})
     return out
