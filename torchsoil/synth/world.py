@@ -116,7 +116,26 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     gap = revisit_gap if revisit_gap is not None else 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
 
     h = h0.copy()
-    h_ref = h0.copy()
+    # the reference height of a first visit comes from the surface before the robot
+    h_ref = reference_height(torch.from_numpy(h0)[None], config.ref_radius * robot.wheel_width / 2, dx)[0].numpy()
+    # relaxation waits until the pass is over (or a revisit needs the settled surface): the
+    # base model digs and deposits for every pose first, then relaxes once
+    pending = np.zeros(grid.shape, dtype=bool)
+    dug = np.zeros(grid.shape, dtype=bool)
+
+    def settle():
+        if not pending.any():
+            return
+        ii, jj = np.nonzero(pending)
+        box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
+        tb = np.where(dug[box], tan_wall[box], tan_beta[box])
+        rr = relax(torch.from_numpy(h[box].copy())[None], torch.from_numpy(tb)[None], dx,
+                   torch.from_numpy(pending[box].copy()), config.tau, config.max_iter, None,
+                   config.eps_scale, config.backend)
+        h[box] = rr.h[0].numpy()
+        pending[:] = False
+        dug[:] = False
+
     last_arc = np.full(grid.shape, -np.inf)
     n_visits = np.zeros(grid.shape, dtype=np.int64)
     states = np.repeat(h0[None], MAX_VISITS + 1, axis=0)
@@ -149,15 +168,19 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         near = near_k.any(0)
         new = near & (float(traj.arc[idx[0]]) - last_arc[win] > gap)
         if new.any():
-            hw = h[win]
             v = n_visits[win]
+            if (new & (v >= 1)).any():
+                settle()  # a revisit starts from the settled surface
+            hw = h[win]
             if v[new].max() >= MAX_VISITS:
                 raise ValueError(f"a cell is visited more than {MAX_VISITS} times")
             for k in range(1, MAX_VISITS + 1):         # state after visit k, until overwritten
                 sel = (new & (v == k))[None]
                 states[k:, i0:i1, j0:j1] = np.where(sel, hw[None], states[k:, i0:i1, j0:j1])
-            ref = reference_height(torch.from_numpy(hw)[None], config.ref_radius * radius0, dx)[0].numpy()
-            h_ref[win] = np.where(new, ref, h_ref[win])
+            again = new & (v >= 1)
+            if again.any():
+                ref = reference_height(torch.from_numpy(hw)[None], config.ref_radius * radius0, dx)[0].numpy()
+                h_ref[win] = np.where(again, ref, h_ref[win])
             n_visits[win] = v + new
         last_arc[win] = np.where(near, float(traj.arc[idx[-1]]), last_arc[win])
 
@@ -175,8 +198,10 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
                                            .reshape(pidx.shape))
 
-        h[win], covered = _step(h[win], h_ref[win], geom, radius0 * rscale, robot, depth,
-                                float(np.median(sf["chi"][win])), tan_beta[win], tan_wall[win], config)
+        h[win], covered, domain = _step(h[win], h_ref[win], geom, radius0 * rscale, robot, depth,
+                                        sf["chi"][win], config)
+        pending[win] |= domain
+        dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
         t_wheel[win] = np.where(covered.any(0), t_cov, t_wheel[win])
         t_near = np.where(near_k, t_pose, -np.inf).max(0)
@@ -187,6 +212,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             visit_time[k - 1, i0:i1, j0:j1] = np.where(sel, np.where(np.isfinite(cur), np.maximum(cur, t_near),
                                                                      t_near), cur)
 
+    settle()
     V = int(n_visits.max())
     for k in range(1, V + 1):                               # the final state after the last visit
         states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
@@ -252,21 +278,22 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
     return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "bin": bins, "dx": grid.dx}
 
 
-def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi: float, tan_beta, tan_wall,
-          config: WorldConfig):
-    """One chunk of the base model's stages on window arrays (X, Y) [m]; depth (K, X, Y) [m].
+def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config: WorldConfig):
+    """Sinkage and deposition of one chunk on window arrays (X, Y) [m]; depth (K, X, Y) [m],
+    chi (X, Y) the soil's displacement-compaction ratio where the soil is dug.
 
     Sinkage h <- min(h, h_ref - s * depth) over each footprint; the height removed under
-    each wheel goes, times chi, to the band of width config.band_width cells beside its
-    footprint in the same 2-cell arc bin; then relaxation to tan(beta) (tan_wall on dug
-    cells). Returns the new surface (X, Y) and the (K, X, Y) bool footprint cover."""
+    each wheel goes, times the local chi, to the band of width config.band_width cells
+    beside its footprint in the same 2-cell arc bin. Relaxation comes later, once per pass.
+    Returns the new surface (X, Y), the (K, X, Y) bool footprint cover and the (X, Y) bool
+    relaxation domain of the chunk."""
     dist, lateral = geom["dist"], geom["lateral"]
     covered = dist <= radius
     s = np.zeros_like(dist)
     s[covered] = taper(torch.from_numpy(lateral[covered] / radius), robot.wheel_flat_fraction).numpy()
     target = np.where(covered, h_ref[None] - s * depth, np.inf).min(0)
     h_dug = np.minimum(h, target)
-    removed = h - h_dug
+    removed = (h - h_dug) * chi
     covered_any = covered.any(0)
     owner = covered & (np.arange(len(dist))[:, None, None] == np.where(covered, s + 1, 0).argmax(0)[None])
     band = (dist > radius) & (dist <= radius + config.band_width * geom["dx"]) & ~covered_any
@@ -278,9 +305,5 @@ def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi: float, 
         cnt = np.bincount(b[band[k]], minlength=nb)
         share = np.where(cnt > 0, vol / np.maximum(cnt, 1), 0.0)
         added[band[k]] += share[b[band[k]]]
-    tb = np.where(covered_any, tan_wall, tan_beta)
     domain = dist.min(0) <= radius + config.relax_margin * robot.wheel_width
-    rr = relax(torch.from_numpy(h_dug + chi * added)[None], torch.from_numpy(tb)[None], geom["dx"],
-               torch.from_numpy(domain), config.tau, config.max_iter, None, config.eps_scale,
-               config.backend)
-    return rr.h[0].numpy(), covered
+    return h_dug + added, covered, domain
