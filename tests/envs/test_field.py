@@ -87,3 +87,17 @@ def test_params_csv_missing_column_is_named(tmp_path):
         read_params_csv(p)
     with pytest.raises(FileNotFoundError, match="params.csv not found"):
         read_params_csv(tmp_path / "nope.csv")
+
+
+def test_soil_field_rejects_bad_layers():
+    from envs.field import SoilField
+
+    f = make_field(_cfg())
+    h0 = f.h0.clone()
+    h0[3, 4] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        SoilField(f.grid, h0, f.soil, f.names)
+    with pytest.raises(ValueError, match=r"h0 must be \(X, Y\)"):
+        SoilField(f.grid, f.h0[:-1], f.soil, f.names)
+    with pytest.raises(ValueError, match="layer names"):
+        SoilField(f.grid, f.h0, f.soil, f.names[:-1])

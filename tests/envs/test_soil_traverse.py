@@ -203,3 +203,14 @@ def test_field_from_params_csv_in_the_config(tmp_path):
         info = env.step(np.array([1.0, 0.0], np.float32))[4]
     # the left track (y = 3.0) lies within reach of the replayed path: d1 = 0.05 m, not the patch
     assert info["rut_depth"] == pytest.approx(0.05, abs=1e-4)
+
+
+def test_visit_length_covers_the_wheelbase_straight_and_on_arcs():
+    from envs.core import visit_length
+    from torchsoil.robot import paper_platform
+
+    robot = paper_platform()
+    straight = visit_length(robot, 0.0, 0.2)
+    assert straight == pytest.approx(1.38 + 0.14 + 0.2 + 0.1)
+    # on the tightest arc the inner rear wheel reaches the inner front wheel's rut later
+    assert visit_length(robot, 0.8, 0.2) > straight
