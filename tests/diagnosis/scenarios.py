@@ -77,3 +77,37 @@ def scenario(name: str, **effect_overrides) -> dict:
         (eid, law), = sc["effects"].items()
         sc["effects"] = {eid: {**law, **effect_overrides}}
     return sc
+
+
+# (case name, scenario, seed, expected verdict, expected id): the confusion-table study
+STUDY_CASES: list[tuple[str, dict, int, str, str | None]] = [
+    ("speed linear", scenario("speed_dependent_sinkage"), 1, "missing_physics", "speed_dependent_sinkage"),
+    ("speed power 0.5", scenario("speed_dependent_sinkage", form="power", p=0.5), 2, "missing_physics",
+     "speed_dependent_sinkage"),
+    ("speed saturating", scenario("speed_dependent_sinkage", form="saturating", k=0.8, x_s=0.3), 3,
+     "missing_physics", "speed_dependent_sinkage"),
+    ("slip linear", scenario("slip_sinkage"), 1, "missing_physics", "slip_sinkage"),
+    ("slip saturating", scenario("slip_sinkage", form="saturating", k=8.0, x_s=0.03), 2, "missing_physics",
+     "slip_sinkage"),
+    ("slip power 1.5", scenario("slip_sinkage", form="power", p=1.5, k=40.0), 3, "missing_physics", "slip_sinkage"),
+    ("lateral linear", scenario("lateral_load_transfer"), 1, "missing_physics", "lateral_load_transfer"),
+    ("lateral saturating", scenario("lateral_load_transfer", form="saturating", k=2.0, x_s=0.1), 2,
+     "missing_physics", "lateral_load_transfer"),
+    ("lateral power 0.7", scenario("lateral_load_transfer", form="power", p=0.7, k=1.0), 3, "missing_physics",
+     "lateral_load_transfer"),
+    ("passes saturating", scenario("multi_pass_hardening"), 1, "missing_physics", "multi_pass_hardening"),
+    ("passes linear", scenario("multi_pass_hardening", form="linear", k=-0.4), 2, "missing_physics",
+     "multi_pass_hardening"),
+    ("passes power 2", scenario("multi_pass_hardening", form="power", p=2.0, k=-0.5), 3, "missing_physics",
+     "multi_pass_hardening"),
+    ("walls saturating", scenario("cohesive_walls"), 1, "missing_physics", "cohesive_walls"),
+    ("walls linear", scenario("cohesive_walls", form="linear", k=0.8), 2, "missing_physics", "cohesive_walls"),
+    ("width linear", scenario("footprint_width"), 1, "missing_physics", "footprint_width"),
+    ("width saturating", scenario("footprint_width", form="saturating", k=0.8, x_s=0.8), 2, "missing_physics",
+     "footprint_width"),
+    ("watered seed 1", scenario("watered"), 1, "adequate", None),
+    ("watered seed 2", scenario("watered"), 2, "adequate", None),
+    ("watered seed 3", scenario("watered"), 3, "adequate", None),
+    ("tread seed 1", scenario("tread"), 1, "unexplained", None),
+    ("tread seed 2", scenario("tread", wavelength=0.3), 2, "unexplained", None),
+]

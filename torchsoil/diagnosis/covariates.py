@@ -64,15 +64,11 @@ def pose_signals(poses, smooth_s: float = 0.2) -> dict[str, np.ndarray]:
     def smooth(x):
         return ndimage.gaussian_filter1d(x, sigma, mode="nearest") if sigma > 0 else x
 
-    xy = np.column_stack([smooth(p[:, 1]), smooth(p[:, 2])])
-    yaw = smooth(np.unwrap(p[:, 6]))
-    vel = np.gradient(xy, t, axis=0)
-    heading = np.column_stack([np.cos(yaw), np.sin(yaw)])
-    speed = np.abs((vel * heading).sum(1))
-    accel = np.gradient(smooth(speed), t)
-    yaw_rate = np.gradient(yaw, t)
-    pitch, roll = smooth(p[:, 5]), smooth(p[:, 4])
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, 1:3], axis=0), axis=1))])
+    speed = smooth(np.gradient(arc, t))
+    accel = np.gradient(speed, t)
+    yaw_rate = smooth(np.gradient(np.unwrap(p[:, 6]), t))
+    pitch, roll = smooth(p[:, 5]), smooth(p[:, 4])
     lat = speed * yaw_rate
     return {"t": t, "arc_length": arc, "speed": speed, "accel": accel, "pitch": pitch, "roll": roll,
             "yaw_rate": yaw_rate, "lateral_accel": lat, "traction": accel / G + np.sin(-pitch),

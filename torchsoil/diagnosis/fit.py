@@ -11,7 +11,7 @@ so the extra parameter pays for itself only if it predicts ground it was not cho
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -39,7 +39,11 @@ class ExtendedEstimator(Estimator):
 @dataclass
 class Pass:
     """One estimator pass: rows (params.csv rows), residual and prediction (W,) costs [m],
-    floor (W,) noise floor [m], profiles (or None), k the coefficient (0: base model)."""
+    floor (W,) noise floor [m], profiles (or None), k the coefficient (0: base model).
+
+    prediction: cost of each window's fit on the next window's ground (the estimator's);
+    backward: its cost on the previous window's ground (also not used to fit it);
+    held_out: (W,) mean of the two where both exist, the per-window held-out cost."""
 
     k: float
     rows: list[dict]
@@ -47,7 +51,16 @@ class Pass:
     prediction: np.ndarray
     floor: np.ndarray
     profiles: Profiles | None = None
-    last: dict = field(default_factory=dict)
+    backward: np.ndarray | None = None
+
+    @property
+    def held_out(self) -> np.ndarray:
+        if self.backward is None:
+            return self.prediction
+        both = np.vstack([self.prediction, self.backward])
+        n = np.isfinite(both).sum(0)
+        total = np.where(np.isfinite(both), both, 0.0).sum(0)
+        return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
 def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: bool = False,
@@ -61,11 +74,17 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
         r = pair.robot.wheel_width / 2
         prof = Profiles.empty(r, pair.dx, config["estimator"]["weight_width"] * pair.robot.wheel_width)
     stride = float(config["estimator"]["stride"])
-    rows, floor = [], []
+    rows, floor, backward = [], [], []
     wheels_y = pair.robot.wheels[:, 1]
+    recent: dict[int, object] = {}
+    ahead = est.ahead or 0
     for k, o in enumerate(est.run(theta=theta0)):
         rows.append(o.row)
         floor.append(o.reference["floor"])
+        recent[k] = o.data
+        back = recent.pop(k - ahead, None) if ahead else None
+        ok = o.fit is not None and back is not None and "few_valid" not in back.flags
+        backward.append(est.predict(o.fit.theta, back)[1] if ok else np.nan)
         if prof is not None and o.h_sim is not None:
             i0, i1, j0, j1 = o.data.crop
             c = o.row["s"]
@@ -74,7 +93,8 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
             on_window(k, o, est)
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
-    return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof)
+    return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
+                np.array(backward, np.float64))
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -88,8 +108,9 @@ class CandidateFit:
 
     k: coefficient fitted on all windows (best mean prediction, refined). k_fold: the
     coefficient each fold was scored with (chosen on the other fold). prediction: (W,)
-    cross-validated held-out cost per window [m]. improvement, se, z: paired per-window
-    improvement over the base model. passes: every pass run, by coefficient."""
+    cross-validated next-window cost per window [m]; held_out: the same for the mean of the
+    next- and previous-window costs. improvement, se, z: paired per-window improvement of
+    held_out over the base model. passes: every pass run, by coefficient."""
 
     ext: Extension
     k: float
@@ -100,6 +121,7 @@ class CandidateFit:
     se: float
     z: float
     passes: dict[float, Pass]
+    held_out: np.ndarray | None = None
     accepted: bool = False
 
 
@@ -144,24 +166,25 @@ def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base:
     every = np.ones(len(base.prediction), bool)
     for _ in range(refine_steps):
         ks = sorted(passes)
-        new = refine(ks, [_mean(passes[k].prediction, every) for k in ks], ext.bounds)
+        new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
         if new is not None:
             run(new)
     ks = sorted(passes)
     stride = float(config["estimator"]["stride"])
     lab = folds(len(base.prediction), int(round(block_m / stride)))
     pred = np.full(len(base.prediction), np.nan)
+    held = np.full(len(base.prediction), np.nan)
     res = np.full(len(base.prediction), np.nan)
     k_fold = []
     for f in (0, 1):
         train = lab != f
-        k_best = min(ks, key=lambda k: (_mean(passes[k].prediction, train), abs(k)))
+        k_best = min(ks, key=lambda k: (_mean(passes[k].held_out, train), abs(k)))
         k_fold.append(k_best)
-        pred[lab == f] = passes[k_best].prediction[lab == f]
-        res[lab == f] = passes[k_best].residual[lab == f]
-    k_all = min(ks, key=lambda k: (_mean(passes[k].prediction, every), abs(k)))
-    imp, se, z = paired_improvement(base.prediction, pred)
-    return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes)
+        for out, src in ((pred, "prediction"), (held, "held_out"), (res, "residual")):
+            out[lab == f] = getattr(passes[k_best], src)[lab == f]
+    k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
+    imp, se, z = paired_improvement(base.held_out, held)
+    return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes, held)
 
 
 def accept(fit: CandidateFit, z_crit: float) -> bool:

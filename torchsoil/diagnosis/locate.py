@@ -97,11 +97,11 @@ def paired_improvement(base, ext) -> tuple[float, float, float]:
 def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(0.08, 2.0)) -> dict:
     """Strongest line in the periodogram of a series spaced dx [m] apart (NaN gaps filled by
     linear interpolation, linear trend removed), against the local background (median of
-    the neighbouring +-half_width frequencies / ln 2, the mean of an exponential), among
+    the neighbouring +-half_width frequencies), among
     wavelengths in the given range [m] (tread-like patterns; shorter ones are cell noise).
 
-    Returns {ratio, wavelength [m], p}: p is the chance of so strong a line anywhere in the
-    spectrum of a line-free series (Bonferroni over the frequencies)."""
+    Returns {ratio, wavelength [m], p}: p bounds the chance of so strong a line anywhere in
+    the spectrum of a line-free series (F test per frequency, Bonferroni over them)."""
     y = np.asarray(series, np.float64)
     idx = np.arange(len(y))
     ok = np.isfinite(y)
@@ -113,17 +113,17 @@ def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengt
     f = np.fft.rfftfreq(len(y), dx)
     lo = max(3, int(len(y) * dx / wavelengths[1]))
     hi = min(len(P), int(len(y) * dx / wavelengths[0]) + 1)
-    best = (0.0, math.nan)
+    best = (0.0, math.nan, 1.0)
     for i in range(lo, hi):
         nb = np.r_[P[max(lo, i - half_width):max(lo, i - 2)], P[i + 3:i + half_width + 1]]
         if len(nb) < 4:
             continue
-        ratio = float(P[i] / (np.median(nb) / math.log(2)))
+        ratio = float(P[i] / nb.mean())
         if ratio > best[0]:
-            best = (ratio, 1.0 / f[i])
+            # white noise: P_i / mean(neighbours) ~ F(2, 2 n); the Hann window halves n
+            best = (ratio, 1.0 / f[i], float(stats.f.sf(ratio, 2, max(len(nb), 2))))
     m = max(hi - lo, 1)
-    p_one = math.exp(-best[0])
-    p = 1.0 - (1.0 - p_one) ** m if p_one > 1e-12 else m * p_one
+    p = min(1.0, m * best[2])
     return {"ratio": best[0], "wavelength": float(best[1]), "p": float(min(1.0, p))}
 
 

@@ -170,8 +170,8 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
     covariate = None
     if best is not None:
         verdict = "missing_physics"
-        gain = base.prediction - best.prediction
-        spans = _spans(_outliers(gain), s0 + window, s1 + window)   # prediction is scored one window ahead
+        gain = base.held_out - best.held_out            # scored on the neighbouring windows' ground
+        spans = _spans(_outliers(gain), s0 - window / 2, s1 + window / 2)
         covariate = best.ext.covariate
         if sig_zones:
             cross = sig_zones[0] if len(sig_zones) == 1 else "mixed"

@@ -1,0 +1,92 @@
+"""Catalogue extensions: k = 0 is the paper's model; each term acts through its hook in the
+direction its name says."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchsoil.diagnosis.catalogue import CATALOGUE, ExtensionModel, depth_factor
+from torchsoil.diagnosis.covariates import DriveSignals
+from torchsoil.grid import Grid
+from torchsoil.robot import paper_platform
+from torchsoil.sim import ParamSpec, simulate, wheel_geometry
+
+REQUIRED = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage", "lateral_load_transfer",
+            "cohesive_walls", "footprint_width")
+
+
+class Window:
+    """The two fields of a WindowData that extensions read."""
+
+    def __init__(self, geom):
+        self.geom = geom
+        self.spec = type("S", (), {"s0": 0.0, "s1": 1.0})()
+        self.crop = (0, 0, 0, 0)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    robot = paper_platform()
+    t = np.arange(0, 4, 0.05)
+    v = np.where(t < 2, 0.6, 1.4)
+    x = np.concatenate([[0], np.cumsum(v[:-1] * 0.05)])
+    yaw = 0.05 * t
+    poses = np.column_stack([t, x, 0 * t, 0 * t, 0.05 + 0 * t, 0 * t, yaw])
+    drive = DriveSignals.from_poses(poses, robot)
+    grid = Grid.covering(-1.0, -1.0, 3.5, 1.0, 0.02)
+    geom = wheel_geometry(grid, poses[::4], robot, dtype=torch.float64)
+    rng = np.random.default_rng(0)
+    h = torch.as_tensor(0.002 * rng.standard_normal(grid.shape))
+    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+    return robot, drive, geom, h, theta
+
+
+def test_catalogue_holds_the_format_ids():
+    assert set(REQUIRED) <= set(CATALOGUE)
+    assert all(CATALOGUE[i].bounds[0] <= 0 <= CATALOGUE[i].bounds[1] for i in REQUIRED)
+
+
+@pytest.mark.parametrize("ext_id", REQUIRED)
+def test_zero_coefficient_is_the_base_model(setup, ext_id):
+    robot, drive, geom, h, theta = setup
+    model = ExtensionModel(CATALOGUE[ext_id], 0.0, drive, robot)
+    a = simulate(h, geom, theta).h
+    b = simulate(h, geom, theta, modifiers=model.modifiers(Window(geom), theta)).h
+    assert torch.allclose(a, b, atol=1e-12)
+
+
+def test_speed_term_sinks_fast_poses_more(setup):
+    robot, drive, geom, *_ = setup
+    p4 = geom.poses.numpy()
+    f = depth_factor(CATALOGUE["speed_dependent_sinkage"], drive, robot, p4, 0.5, {"speed": 1.0})
+    fast = drive.at("speed", p4[:, 0]) > 1.2
+    slow = drive.at("speed", p4[:, 0]) < 0.8
+    assert f[:, fast].min() > 1.1 and f[:, slow].max() < 0.9
+
+
+def test_lateral_term_shifts_load_between_sides(setup):
+    robot, drive, geom, *_ = setup
+    f = depth_factor(CATALOGUE["lateral_load_transfer"], drive, robot, geom.poses.numpy(), 2.0, {})
+    left, right = robot.wheels[:, 1] > 0, robot.wheels[:, 1] < 0
+    # roll > 0 and a left turn both load the right wheels
+    assert (f[right] > 1).all() and (f[left] < 1).all()
+
+
+def test_wider_footprint_and_steeper_walls_change_the_rut(setup):
+    robot, drive, geom, h, theta = setup
+    base = simulate(h, geom, theta).h
+    wide = ExtensionModel(CATALOGUE["footprint_width"], 0.3, drive, robot)
+    hw = simulate(h, geom, theta, modifiers=wide.modifiers(Window(geom), theta)).h
+    assert (h - hw > 0.005).sum() > (h - base > 0.005).sum()          # more ground dug
+    wall = ExtensionModel(CATALOGUE["cohesive_walls"], 1.5, drive, robot)
+    hs = simulate(h, geom, theta, modifiers=wall.modifiers(Window(geom), theta)).h
+    rut = (h - base) > 0.005
+    assert (h - hs)[rut].sum() > 1.03 * (h - base)[rut].sum()          # steep walls: less soil slides back
+
+
+def test_coefficient_outside_bounds_is_named(setup):
+    robot, drive, *_ = setup
+    with pytest.raises(ValueError, match="k_width"):
+        ExtensionModel(CATALOGUE["footprint_width"], 2.0, drive, robot)

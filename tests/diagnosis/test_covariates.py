@@ -1,0 +1,79 @@
+"""Pose signals: recovered from analytic trajectories; earlier passes on a racetrack loop."""
+
+import math
+
+import numpy as np
+import pytest
+
+from torchsoil.diagnosis.covariates import DriveSignals, pose_signals, window_signals
+from torchsoil.robot import paper_platform
+
+
+def poses_from(t, x, y, yaw, roll=None, pitch=None):
+    z = np.zeros_like(t)
+    return np.column_stack([t, x, y, z, z if roll is None else roll, z if pitch is None else pitch, yaw])
+
+
+def test_circle_speed_turn_rate_and_lateral_accel():
+    v, R = 1.2, 4.0
+    t = np.arange(0, 10, 0.05)
+    a = v * t / R
+    sig = pose_signals(poses_from(t, R * np.sin(a), R * (1 - np.cos(a)), a))
+    mid = slice(20, -20)
+    assert np.allclose(sig["speed"][mid], v, rtol=1e-3)
+    assert np.allclose(sig["yaw_rate"][mid], v / R, rtol=1e-3)
+    assert np.allclose(sig["lateral_accel"][mid], v * v / R, rtol=2e-3)
+    assert np.allclose(sig["arc_length"][-1], v * t[-1], rtol=1e-3)
+
+
+def test_acceleration_and_traction_demand_with_climb():
+    t = np.arange(0, 6, 0.05)
+    acc = 0.3
+    x = 0.5 * t + 0.5 * acc * t**2
+    pitch = np.full_like(t, -0.05)                          # climbing
+    sig = pose_signals(poses_from(t, x, 0 * t, 0 * t, pitch=pitch))
+    mid = slice(20, -20)
+    assert np.allclose(sig["accel"][mid], acc, atol=1e-3)
+    assert np.allclose(sig["traction"][mid], acc / 9.81 + math.sin(0.05), atol=1e-3)
+
+
+def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05):
+    """East along y = 0 for L, half circle left, west along y = 2R, half circle left, east again."""
+    pts = []
+    s = np.arange(0, 2 * L + 2 * math.pi * R + L / 2, v * dt)
+    for si in s:
+        if si < L:
+            pts.append((si, 0.0, 0.0))
+        elif si < L + math.pi * R:
+            a = (si - L) / R
+            pts.append((L + R * math.sin(a), R - R * math.cos(a), a))
+        elif si < 2 * L + math.pi * R:
+            pts.append((L - (si - L - math.pi * R), 2 * R, math.pi))
+        elif si < 2 * L + 2 * math.pi * R:
+            a = (si - 2 * L - math.pi * R) / R
+            pts.append((-R * math.sin(a), R + R * math.cos(a), math.pi + a))
+        else:
+            pts.append((si - 2 * L - 2 * math.pi * R, 0.0, 2 * math.pi))
+    p = np.array(pts)
+    return poses_from(s / v, p[:, 0], p[:, 1], p[:, 2])
+
+
+def test_passes_count_the_loop_back_only():
+    robot = paper_platform()
+    poses = racetrack()
+    drive = DriveSignals.from_poses(poses, robot)
+    arc = drive.signals["arc_length"]
+    first = (arc > 0.5) & (arc < 3.0)
+    again = arc > arc[-1] - 1.2
+    p4 = drive.poses4
+    assert drive.pose_passes(p4[first], robot).max() == 0
+    assert (drive.pose_passes(p4[again], robot) == 1).all()
+    w = window_signals(drive, [(0.5, 1.3), (arc[-1] - 1.0, arc[-1])], robot)
+    assert w["passes"][0] == 0 and w["passes"][1] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("bad, msg", [(np.zeros((10, 6)), "(N, 7)"), (np.zeros((2, 7)), "at least 3"),
+                                      (np.zeros((5, 7)), "time must increase")])
+def test_bad_poses_are_named(bad, msg):
+    with pytest.raises(ValueError, match=msg.replace("(", r"\(").replace(")", r"\)")):
+        pose_signals(bad)

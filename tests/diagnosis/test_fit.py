@@ -1,0 +1,35 @@
+"""Coefficient search and the acceptance rule."""
+
+import numpy as np
+
+from torchsoil.diagnosis.catalogue import CATALOGUE
+from torchsoil.diagnosis.fit import CandidateFit, accept, folds, refine
+
+
+def test_refine_finds_the_vertex_of_a_parabola():
+    ks = [-1.0, 0.0, 0.5, 2.0]
+    cost = [(k - 0.7) ** 2 + 3 for k in ks]
+    assert abs(refine(ks, cost, (-5, 5)) - 0.7) < 0.35
+    ks3 = [0.0, 0.5, 1.0]
+    assert abs(refine(ks3, [(k - 0.7) ** 2 for k in ks3], (-5, 5)) - 0.7) < 1e-9
+
+
+def test_refine_steps_beyond_an_edge_minimum_within_bounds():
+    assert refine([0.0, 1.0, 2.0], [3.0, 2.0, 1.0], (-5, 5)) == 3.0
+    assert refine([0.0, 1.0, 2.0], [3.0, 2.0, 1.0], (-5, 2.5)) is None
+
+
+def test_folds_alternate_blocks():
+    assert folds(10, 3).tolist() == [0, 0, 0, 1, 1, 1, 0, 0, 0, 1]
+
+
+def fit_with(z, k_fold):
+    n = np.zeros(3)
+    return CandidateFit(CATALOGUE["slip_sinkage"], 1.0, k_fold, n, n, 0.0, 1.0, z, {})
+
+
+def test_accept_needs_significance_and_agreeing_folds():
+    assert accept(fit_with(3.0, (2.0, 4.0)), 2.1)
+    assert not accept(fit_with(1.5, (2.0, 4.0)), 2.1)        # within the noise
+    assert not accept(fit_with(3.0, (0.0, 4.0)), 2.1)        # one fold preferred the base model
+    assert not accept(fit_with(3.0, (-2.0, 4.0)), 2.1)       # folds disagree on the sign

@@ -1,0 +1,66 @@
+"""Statistics of mismatch location: honest p-values for autocorrelated series, spectral
+lines, paired comparisons and the cross-track zones."""
+
+import numpy as np
+
+from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line, zone_of
+
+
+def ar1(rng, n, phi):
+    x = np.zeros(n)
+    e = rng.standard_normal(n)
+    for i in range(1, n):
+        x[i] = phi * x[i - 1] + e[i]
+    return x
+
+
+def test_effective_sample_size_keeps_false_alarms_near_nominal():
+    rng = np.random.default_rng(0)
+    naive = corrected = 0
+    trials = 300
+    for _ in range(trials):
+        x, y = ar1(rng, 50, 0.9), ar1(rng, 50, 0.9)           # independent, slowly drifting
+        c = correlation(x, y)
+        corrected += c.p < 0.05
+        r = c.r
+        t = r * np.sqrt((c.n - 2) / (1 - r * r))
+        from scipy import stats
+        naive += 2 * stats.t.sf(abs(t), c.n - 2) < 0.05
+    assert naive / trials > 0.3                                # the plain test is fooled
+    assert corrected / trials < 0.12                           # the corrected one is not
+
+
+def test_real_dependence_is_found():
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal(40)
+    c = correlation(x, 0.8 * x + 0.3 * rng.standard_normal(40))
+    assert c.r > 0.8 and c.p < 1e-6
+
+
+def test_correlation_of_constant_series_is_not_significant():
+    assert correlation(np.ones(10), np.arange(10.0)).p == 1.0
+
+
+def test_spectral_line_found_at_its_wavelength_and_absent_in_noise():
+    rng = np.random.default_rng(2)
+    dx = 0.02
+    s = np.arange(0, 10, dx)
+    line = spectral_line(0.003 * np.cos(2 * np.pi * s / 0.25) + 0.003 * rng.standard_normal(len(s)), dx)
+    assert line["p"] < 1e-4 and abs(line["wavelength"] - 0.25) < 0.01
+    false = sum(spectral_line(0.003 * rng.standard_normal(len(s)), dx)["p"] < 0.01 for _ in range(60))
+    assert false <= 4
+
+
+def test_paired_improvement_recovers_a_shift():
+    rng = np.random.default_rng(3)
+    base = 3e-3 + 3e-4 * rng.standard_normal(200)
+    m, se, z = paired_improvement(base, base - 1e-4 + 2e-5 * rng.standard_normal(200))
+    assert abs(m - 1e-4) < 3 * se and z > 10
+    m0, _, z0 = paired_improvement(base, base)
+    assert m0 == 0 and z0 == 0
+
+
+def test_zones_across_the_rut():
+    r, dx = 0.07, 0.02
+    got = [ZONES[i] for i in zone_of(np.array([0.0, -0.03, 0.05, -0.07, 0.1, 0.2]), r, dx)]
+    assert got == ["rut_floor", "rut_floor", "rut_wall", "rut_wall", "berm", "outside"]
