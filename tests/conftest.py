@@ -1,4 +1,8 @@
-import math
+import os
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch starts its thread pool
+
+import math  # noqa: E402
 
 import numpy as np
 import pytest

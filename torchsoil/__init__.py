@@ -1,9 +1,15 @@
 """torchsoil: measure how a field robot deforms soil from two lidars, and identify a
 differentiable soil model online."""
 
-from torchsoil.grid import Grid
-from torchsoil.registration import register_envs
-from torchsoil.robot import Robot
+import os
+
+# torch's and numba's OpenMP pools share the cores: threads that spin while waiting starve
+# the other pool (3-10x slower on 2 busy cores). Effective when torchsoil is imported first.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from torchsoil.grid import Grid  # noqa: E402
+from torchsoil.registration import register_envs  # noqa: E402
+from torchsoil.robot import Robot  # noqa: E402
 
 __version__ = "0.1.0"
 __all__ = ["Grid", "Robot", "register_envs"]
