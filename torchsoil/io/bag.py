@@ -72,12 +72,11 @@ def resolve_frames(edges: dict[str, tuple[str, np.ndarray]], base_frame: str) ->
     frame whose chain of parents reaches `base_frame`."""
     out = {base_frame: np.eye(4)}
     for frame in edges:
-        chain, T, f, seen = [], np.eye(4), frame, set()
+        T, f, seen = np.eye(4), frame, set()
         while f in edges and f != base_frame and f not in seen:
             seen.add(f)
             parent, P = edges[f]
             T = P @ T
-            chain.append(f)
             f = parent
         if f == base_frame:
             out[frame] = T

@@ -11,7 +11,6 @@ is kept.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
@@ -41,17 +40,6 @@ class ReregisterConfig:
     degenerate_eigen: float = 2e-3
     max_range: float = 30.0
     max_points: int = 2500
-
-
-class Registered(NamedTuple):
-    """poses (S, 4, 4) base_link in world at each sweep stamp; ok (S,) bool kept sweeps;
-    fitness (S,); rmse (S,) [m]; degenerate (S,) bool."""
-
-    poses: np.ndarray
-    ok: np.ndarray
-    fitness: np.ndarray
-    rmse: np.ndarray
-    degenerate: np.ndarray
 
 
 def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from torchsoil.io.bag import Recording, read_recording, xyzrpy_matrix
+from torchsoil.io.bag import Recording, count_messages, read_recording, xyzrpy_matrix
 from torchsoil.pipeline import icp, mapping
 from torchsoil.pipeline.mapping import MappingConfig, Sweep, build_map
 from torchsoil.pipeline.raster import Accumulator, RasterConfig, corridor
@@ -177,8 +177,10 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     timings: dict[str, float] = {}
     bar = _bars(progress)
     t0 = time.perf_counter()
+    total = count_messages(bag_path, [cfg.read.front_topic, cfg.read.back_topic]) \
+        if progress else None
     rec = read_recording(bag_path, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
-                         cfg.read.base_frame, progress=bar("read", None))
+                         cfg.read.base_frame, progress=bar("read", total))
     frames = [rec.front[0].frame, rec.back[0].frame]
     ext = extrinsics_for(rec, cfg.read, frames)
     front = _to_base(rec.front, ext[frames[0]])
@@ -203,29 +205,45 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     acc = {"front": Accumulator(grid, mask), "back": Accumulator(grid, mask)}
     wheel_x = robot.wheels[:, 0]
     edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
-    stats = {}
     tick = bar("re-register", len(front) + len(back))
-    for name, sweeps, fail_bit in (("front", front, mapping.REREG_FRONT_FAILED),
-                                   ("back", back, mapping.REREG_BACK_FAILED)):
+    keep_x = {"front": lambda x: x > wheel_x.max() + edge, "back": lambda x: x < wheel_x.min() - edge}
+
+    def stream(name: str, sweeps: list[Sweep]):
+        """Re-register and rasterize one stream; returns per-sweep fitness, rmse, accepted and
+        the indices of empty sweeps."""
         n = len(sweeps)
         fit, rmse, ok = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
+        empty = np.zeros(n, bool)
         for k, sw in enumerate(sweeps):
             tick(1)
             if len(sw.points) < 50:
-                flags[int(np.argmin(np.abs(stamps - sw.stamp)))] |= mapping.EMPTY
+                empty[k] = True
                 continue
             pts, T, fit[k], rmse[k], ok[k], _ = register_sweep(
                 sw.points, sw.t, sw.stamp, ref_stamps, ref_poses, target, cfg.reregister, period)
-            if not ok[k]:
-                j = int(np.argmin(np.abs(stamps - sw.stamp)))
+            if ok[k]:
+                sel = np.linalg.norm(sw.points, axis=1) < cfg.raster.max_range
+                sel &= keep_x[name](pts[:, 0])
+                acc[name].add(icp.apply(T, pts[sel]))
+        return fit, rmse, ok, empty
+
+    # the two streams are independent: one thread each (KD-tree queries and numpy release
+    # the interpreter lock)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        jobs = {name: pool.submit(stream, name, sweeps)
+                for name, sweeps in (("front", front), ("back", back))}
+        stats = {name: job.result() for name, job in jobs.items()}
+    for name, sweeps, fail_bit in (("front", front, mapping.REREG_FRONT_FAILED),
+                                   ("back", back, mapping.REREG_BACK_FAILED)):
+        _, _, ok, empty = stats[name]
+        for k, sw in enumerate(sweeps):
+            j = int(np.argmin(np.abs(stamps - sw.stamp)))
+            if empty[k]:
+                flags[j] |= mapping.EMPTY
+            elif not ok[k]:
                 flags[j] |= fail_bit
-                continue
-            rng = np.linalg.norm(sw.points, axis=1)  # distance from base_link, m
-            sel = rng < cfg.raster.max_range
-            sel &= (pts[:, 0] > wheel_x.max() + edge) if name == "front" else \
-                (pts[:, 0] < wheel_x.min() - edge)
-            acc[name].add(icp.apply(T, pts[sel]))
-        stats[name] = (fit, rmse, ok)
     timings["reregister_raster"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -267,7 +285,7 @@ def _bars(enabled: bool):
     from tqdm.auto import tqdm
 
     def make(name, total):
-        b = tqdm(total=total, desc=name, unit="msg" if total is None else "sweep", leave=False)
+        b = tqdm(total=total, desc=name, unit="msg" if name == "read" else "sweep", leave=False)
         return b.update
 
     return make
