@@ -194,9 +194,14 @@ def wheel_geometry(
     n_bins = int(np.floor(arcs[:, -1].max() / bin_len)) + 1
     near = np.full(len(cells), np.inf)
     cols = {n: [] for n in ("cell", "wheel", "dist", "lateral", "pose", "bin")}
+    far = max(reach, domain_reach)
     for k in range(len(w)):
         head = _headings(w[k], p[:, 3], 1e-6 * dx)
-        d, i = cKDTree(w[k]).query(cells, distance_upper_bound=max(reach, domain_reach))
+        lo, hi = w[k].min(0) - far, w[k].max(0) + far  # only cells in the path's bounding box
+        box = np.flatnonzero(np.all((cells >= lo) & (cells <= hi), axis=1))
+        d = np.full(len(cells), np.inf)
+        i = np.zeros(len(cells), dtype=np.int64)
+        d[box], i[box] = cKDTree(w[k]).query(cells[box], distance_upper_bound=far)
         near = np.minimum(near, d)
         c = np.flatnonzero(d <= reach)
         rel = cells[c] - w[k, i[c]]
