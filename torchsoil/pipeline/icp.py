@@ -121,11 +121,13 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: float,
-             max_iter: int = 30, kernel: float | None = None, tol: float = 1e-4) -> IcpResult:
+             max_iter: int = 30, kernel: float | None = None, tol: float = 1e-4,
+             workers: int = 1) -> IcpResult:
     """Point-to-plane ICP of (S, 3) source points onto `target`, starting at `init` (4, 4).
 
     max_dist: correspondence gate, m. kernel: scale of the Geman-McClure robust weight, m
-    (default max_dist / 3). Stops when the update is below `tol` (rad and m).
+    (default max_dist / 3). Stops when the update is below `tol` (rad and m). workers:
+    threads for the nearest-neighbour queries.
     """
     kernel = max_dist / 3 if kernel is None else kernel
     T = np.array(init, dtype=np.float64)
@@ -133,7 +135,7 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported
         p = apply(T, source)
-        d, idx = target.tree.query(p, distance_upper_bound=max_dist)
+        d, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
         ok = np.isfinite(d)
         if ok.sum() < 6:
             return IcpResult(T, float(ok.mean()) if len(ok) else 0.0, np.inf, H, int(ok.sum()), it)
@@ -153,7 +155,7 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
         if np.abs(delta).max() < tol:
             break
     p = apply(T, source)
-    d, idx = target.tree.query(p, distance_upper_bound=max_dist)
+    d, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
     ok = np.isfinite(d)
     if ok.sum() == 0:
         return IcpResult(T, 0.0, np.inf, H, 0, it)

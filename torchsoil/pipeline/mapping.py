@@ -55,7 +55,8 @@ class MappingConfig:
     farther from the robot are not used, m. startup_baseline: time between the two sweeps
     that measure the initial velocity, s. source_voxel: voxel of the registered sweep, m.
     max_points: at most this many of its voxels are registered (evenly thinned).
-    max_degenerate_share: above this share of degenerate sweeps the run stops."""
+    max_degenerate_share: above this share of degenerate sweeps the run stops.
+    workers: threads for nearest-neighbour queries."""
 
     voxel: float = 0.2
     map_radius: float = 30.0
@@ -72,6 +73,7 @@ class MappingConfig:
     source_voxel: float = 0.2
     max_points: int = 3000
     max_degenerate_share: float = 0.8
+    workers: int = 1
 
 
 class Sweep(NamedTuple):
@@ -222,7 +224,7 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
         pts = _prepare(sweeps[k], velocity, period, cfg)
         gate = cfg.startup_dist if k == usable[1] else cfg.max_dist
         src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points)
-        res = icp.register(src, local.target, T_pred, gate, cfg.max_iter)
+        res = icp.register(src, local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers)
         fitness[k], rmse[k] = res.fitness, res.rmse
         if res.fitness < cfg.min_fitness or not np.isfinite(res.rmse):
             flags[k] |= POOR_FIT
