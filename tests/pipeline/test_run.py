@@ -157,3 +157,36 @@ def test_command_writes_outputs_and_nothing_on_error(moving_bag, tmp_path):
     code = main([str(moving_bag[0]), "--robot", str(robot), "--out", str(bad), "--config",
                  str(cfg)])
     assert code == 2 and not bad.exists()
+
+
+def test_reregistration_cancels_a_drifting_trajectory(moving_bag, monkeypatch):
+    """T_ref given a slow pitch and height drift (as a drifting mapper would): without
+    re-registration the drift shows in H_delta off the ruts, with it it cancels."""
+    from scipy.spatial.transform import Rotation
+
+    import torchsoil.pipeline.run as run
+
+    build = run.build_map
+
+    def drifting(sweeps, cfg=None, progress=None):
+        m = build(sweeps, cfg, progress)
+        t = m.stamps - m.stamps[0]
+        drift = np.repeat(np.eye(4)[None], len(t), 0)
+        drift[:, :3, :3] = Rotation.from_euler("y", np.deg2rad(0.1) * t[:, None]).as_matrix()
+        drift[:, 2, 3] = 0.004 * t
+        return m._replace(poses=m.poses @ drift)
+
+    monkeypatch.setattr(run, "build_map", drifting)
+    path, scene = moving_bag
+    off_rut = {}
+    for enabled in (True, False):
+        cfg = PipelineConfig()
+        cfg.reregister.enabled = enabled
+        tp = process_bag(path, paper_platform(), cfg).terrain
+        X, Y = np.meshgrid(*tp.grid.centers(), indexing="ij")
+        both = np.isfinite(tp.h_delta)
+        y = (np.stack([X[both], Y[both], np.zeros(both.sum()), np.ones(both.sum())], 1)
+             @ scene.pose(tp.poses[0, 0] - 100.0).T)[:, 1]
+        off_rut[enabled] = np.median(tp.h_delta[both][np.abs(np.abs(y) - 0.5) > 0.2])
+    assert abs(off_rut[True]) < 0.003
+    assert abs(off_rut[False]) > 0.01
