@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from torchsoil.io.bag import BagError
-from torchsoil.pipeline.run import PipelineConfig, process_bag, write_outputs
+from torchsoil.pipeline.run import PipelineConfig, extrinsics_from_robot_yaml, process_bag, write_outputs
 from torchsoil.robot import Robot
 
 
@@ -33,7 +33,7 @@ def main(argv=None) -> int:
     try:
         cfg = PipelineConfig.from_yaml(a.config) if a.config else PipelineConfig()
         robot = Robot.from_yaml(a.robot)
-        cfg.read.extrinsics.update(_robot_lidars(a.robot))
+        cfg.read.extrinsics.update(extrinsics_from_robot_yaml(a.robot))
         for frame, *values in a.extrinsic:
             cfg.read.extrinsics[frame] = [float(v) for v in values]
         if a.no_reregister:
@@ -50,14 +50,6 @@ def main(argv=None) -> int:
           f"({t / max(result.duration, 1e-9):.2f} x real time); wrote "
           + ", ".join(str(p) for p in paths.values()))
     return 0
-
-
-def _robot_lidars(path: Path) -> dict:
-    """Optional `lidars: {frame: [x, y, z, roll, pitch, yaw]}` in the robot YAML."""
-    import yaml
-
-    doc = yaml.safe_load(path.read_text()) or {}
-    return {str(k): [float(x) for x in v] for k, v in (doc.get("lidars") or {}).items()}
 
 
 if __name__ == "__main__":

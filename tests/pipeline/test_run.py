@@ -70,11 +70,28 @@ def test_missing_topic_stops_before_anything(moving_bag):
         process_bag(moving_bag[0], paper_platform(), cfg)
 
 
-def test_missing_extrinsic_is_named(tmp_path):
-    scene = ToyScene(columns=64)
-    path = write_bag(tmp_path / "b", scene.messages(0.3))  # no /tf_static
+def test_missing_extrinsic_is_named_and_can_be_given(tmp_path):
+    from scipy.spatial.transform import Rotation
+
+    from torchsoil.pipeline.run import extrinsics_from_robot_yaml
+
+    scene = ToyScene(columns=128)
+    path = write_bag(tmp_path / "b", scene.messages(4.0))  # no /tf_static
     with pytest.raises(ValueError, match="lidar_front"):
         process_bag(path, paper_platform())
+    lines = ["wheel_width: 0.14", "wheels: []", "lidars:"]
+    for frame, T in scene.extrinsics.items():
+        v = [*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_euler("xyz")]
+        lines.append(f"  {frame}: [{', '.join(repr(float(x)) for x in v)}]")
+    (tmp_path / "robot.yaml").write_text("\n".join(lines) + "\n")
+    cfg = PipelineConfig()
+    cfg.read.extrinsics = extrinsics_from_robot_yaml(tmp_path / "robot.yaml")
+    res = process_bag(path, paper_platform(), cfg)
+    assert np.isfinite(res.terrain.h_front).sum() > 100
+    assert res.terrain.poses[-1, 1] == pytest.approx(3.9, abs=0.05)  # 1 m/s for 3.9 s
+    (tmp_path / "robot.yaml").write_text("lidars:\n  lidar_front: [1, 2]\n")
+    with pytest.raises(ValueError, match="lidars.lidar_front"):
+        extrinsics_from_robot_yaml(tmp_path / "robot.yaml")
 
 
 def test_standing_still_is_flagged(tmp_path):

@@ -103,6 +103,21 @@ def extrinsics_for(rec: Recording, cfg: ReadConfig, frames: list[str]) -> dict[s
     return out
 
 
+def extrinsics_from_robot_yaml(path: str | Path) -> dict[str, list[float]]:
+    """Optional `lidars: {frame: [x, y, z, roll, pitch, yaw]}` (m, rad, in base_link) of a
+    robot YAML (FORMATS.md section 2 plus this key), for `ReadConfig.extrinsics`."""
+    doc = yaml.safe_load(Path(path).read_text()) or {}
+    out = {}
+    for frame, v in (doc.get("lidars") or {}).items():
+        try:
+            out[str(frame)] = [float(x) for x in v]
+            xyzrpy_matrix(out[str(frame)])
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{path}: lidars.{frame} must be [x, y, z, roll, pitch, yaw] "
+                             f"in metres and radians ({e})") from None
+    return out
+
+
 def fuse(front: list[Sweep], back: list[Sweep], period: float) -> tuple[list[Sweep], np.ndarray]:
     """Each front sweep merged with the back sweep nearest in time (within half a period);
     returns fused sweeps (stamped like the front ones) and (S,) flags (MISSING_BACK)."""
