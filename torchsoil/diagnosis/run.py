@@ -3,6 +3,7 @@ accept one only on held-out evidence, and give the verdict (FORMATS.md section 4
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -74,27 +75,38 @@ def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float
     return [[round(a, 2), round(b, 2)] for a, b in out]
 
 
-def _outliers(x: np.ndarray, n_sd: float = 2.5) -> np.ndarray:
-    """Entries above n_sd robust standard deviations (MAD) of a series around 0."""
+def _outliers(x: np.ndarray, n_sd: float = 2.0) -> np.ndarray:
+    """Entries of a per-window gain series (base minus extended cost) above n_sd noise
+    standard deviations; the noise is measured on the losses (gain < 0), which a helpful
+    term only gets by chance, so it is symmetric about 0 there."""
     ok = np.isfinite(x)
-    if ok.sum() < 4:
+    neg = x[ok & (x < 0)]
+    if len(neg) >= 3:
+        sd = float(np.sqrt(np.mean(neg ** 2)))
+    elif ok.sum() >= 4:
+        sd = 1.4826 * float(np.median(np.abs(x[ok] - np.median(x[ok]))))
+    else:
         return np.zeros(len(x), bool)
-    sd = 1.4826 * np.median(np.abs(x[ok] - np.median(x[ok])))
-    sd = sd if sd > 0 else np.std(x[ok])
     return ok & (np.nan_to_num(x) > n_sd * sd) & (sd > 0)
 
 
 def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.ndarray], zones: dict,
-                 n_tracks: int, cfg: DiagnosisConfig) -> dict:
+                 n_tracks: int, cfg: DiagnosisConfig, held_out: np.ndarray, ahead: int,
+                 z_locate: float = 3.0) -> dict:
     """Location evidence for one catalogue term: {testable, p, statistic}.
 
-    Sinkage terms: correlation of the fitted sinkage (mean over tracks; for lateral load the
-    right-minus-left difference) with the term's covariate over windows, with the
-    effective-sample-size correction. Shape terms: the rut-floor / rut-wall profile z."""
+    Sinkage terms: Fisher's combination of two correlations over windows, each with the
+    effective-sample-size correction: the fitted sinkage (mean over tracks; for lateral load
+    the right-minus-left difference) against the term's covariate, and the held-out cost
+    against the covariate's change to the neighbouring windows (a missing term shows where
+    its covariate changes). Shape terms: the rut-floor / rut-wall profile z (two zones); they
+    are testable only when a zone's residual is significant (|z| > z_locate), since a shape
+    term has nothing else to show in."""
     d = np.array([[r[f"d{t + 1}"] for t in range(n_tracks)] for r in rows], np.float64)
     if ext.covariate is None:
         z = max(abs(zones["rut_floor"]["z"]), abs(zones["rut_wall"]["z"]))
-        return {"testable": True, "p": float(2 * stats.norm.sf(z)), "statistic": f"profile |z| = {z:.1f}"}
+        return {"testable": bool(z > z_locate), "p": float(min(1.0, 4 * stats.norm.sf(z))),
+                "statistic": f"profile |z| = {z:.1f}"}
     x = cov[ext.covariate]
     spread = float(np.nanstd(x))
     if spread < cfg.min_spread.get(ext.covariate, 0.0):
@@ -104,7 +116,16 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
     else:
         y = d.mean(1)
     c = correlation(x, y)
-    return {"testable": True, "p": c.p, "statistic": f"r = {c.r:+.2f}, n_eff = {c.n_eff:.1f}"}
+    change = np.zeros(len(x))
+    for off in (-ahead, ahead):
+        shifted = np.roll(x, -off)
+        valid = (np.arange(len(x)) + off >= 0) & (np.arange(len(x)) + off < len(x))
+        change += np.where(valid, np.abs(shifted - x), 0.0)
+    c2 = correlation(change, held_out)
+    p2 = c2.p if c2.r > 0 else 1.0
+    p = float(stats.chi2.sf(-2 * (math.log(max(c.p, 1e-300)) + math.log(max(p2, 1e-300))), 4))
+    return {"testable": True, "p": p, "statistic": f"sinkage r = {c.r:+.2f} (n_eff {c.n_eff:.1f}), "
+                                                   f"held-out cost vs change r = {c2.r:+.2f} (n_eff {c2.n_eff:.1f})"}
 
 
 def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=None) -> Diagnosis:
@@ -143,7 +164,10 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
     n_tracks = robot.n_tracks
 
     # ---- rank candidates by the location evidence, fit the leading testable ones
-    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg) for e in catalogue.CATALOGUE.values()}
+    ahead = max(1, int(round(window / stride)))
+    z_loc = _z_two_sided(cfg.alpha_locate / 4)
+    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc)
+          for e in catalogue.CATALOGUE.values()}
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
     fits: list[CandidateFit] = []
@@ -161,7 +185,6 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
         pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z}
 
     # ---- location tests (family-wise alpha_locate over four tests)
-    z_loc = _z_two_sided(cfg.alpha_locate / 4)
     sig_zones = [zn for zn in ("rut_floor", "rut_wall") if abs(zones[zn]["z"]) > z_loc]
     sig_asym = abs(asym["z"]) > z_loc
     sig_line = line["p"] < cfg.alpha_locate / 4
