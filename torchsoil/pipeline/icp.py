@@ -122,12 +122,15 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: float,
              max_iter: int = 30, kernel: float | None = None, tol: float = 1e-4,
-             workers: int = 1) -> IcpResult:
+             workers: int = 1, ground_z: float | None = None) -> IcpResult:
     """Point-to-plane ICP of (S, 3) source points onto `target`, starting at `init` (4, 4).
 
     max_dist: correspondence gate, m. kernel: scale of the Geman-McClure robust weight, m
     (default max_dist / 3). Stops when the update is below `tol` (rad and m). workers:
-    threads for the nearest-neighbour queries.
+    threads for the nearest-neighbour queries. ground_z: matches whose target normal has a
+    z component above this are ground and constrain only z, roll and pitch (their pull on
+    x, y and yaw is dropped, as in two-step ground / structure registration): a lidar's ground
+    rings move with the robot and otherwise bias the fit towards standing still.
     """
     kernel = max_dist / 3 if kernel is None else kernel
     T = np.array(init, dtype=np.float64)
@@ -143,6 +146,9 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
         c = T[:3, 3]
         r = np.einsum("ij,ij->i", p - q, n)
         J = np.hstack([np.cross(p - c, n), n])
+        if ground_z is not None:
+            ground = n[:, 2] > ground_z
+            J[np.ix_(ground, [2, 3, 4])] = 0.0
         w = (kernel**2 / (kernel**2 + r**2)) ** 2
         H = (J * w[:, None]).T @ J
         g = (J * w[:, None]).T @ r

@@ -56,7 +56,7 @@ class MappingConfig:
     that measure the initial velocity, s. source_voxel: voxel of the registered sweep, m.
     max_points: at most this many of its voxels are registered (evenly thinned).
     max_degenerate_share: above this share of degenerate sweeps the run stops.
-    workers: threads for nearest-neighbour queries."""
+    workers: threads for nearest-neighbour queries. ground_z: see icp.register (None: off)."""
 
     voxel: float = 0.2
     map_radius: float = 30.0
@@ -74,6 +74,7 @@ class MappingConfig:
     max_points: int = 3000
     max_degenerate_share: float = 0.8
     workers: int = 1
+    ground_z: float | None = 0.97
 
 
 class Sweep(NamedTuple):
@@ -224,7 +225,8 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
         pts = _prepare(sweeps[k], velocity, period, cfg)
         gate = cfg.startup_dist if k == usable[1] else cfg.max_dist
         src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points)
-        res = icp.register(src, local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers)
+        res = icp.register(src, local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers,
+                           ground_z=cfg.ground_z)
         fitness[k], rmse[k] = res.fitness, res.rmse
         if res.fitness < cfg.min_fitness or not np.isfinite(res.rmse):
             flags[k] |= POOR_FIT
