@@ -58,17 +58,19 @@ def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05):
     return poses_from(s / v, p[:, 0], p[:, 1], p[:, 2])
 
 
-def test_passes_count_the_loop_back_only():
+def test_passes_count_the_ground_driven_twice_only():
     robot = paper_platform()
     poses = racetrack()
     drive = DriveSignals.from_poses(poses, robot)
     arc = drive.signals["arc_length"]
-    first = (arc > 0.5) & (arc < 3.0)
+    first = (arc > 0.5) & (arc < 1.5)                    # driven again at the end
+    west = (arc > 4.0 + math.pi * 1.5 + 0.5) & (arc < 4.0 + math.pi * 1.5 + 3.5)   # driven once
     again = arc > arc[-1] - 1.2
     p4 = drive.poses4
-    assert drive.pose_passes(p4[first], robot).max() == 0
+    assert (drive.pose_passes(p4[first], robot) == 1).all()
+    assert drive.pose_passes(p4[west], robot).max() == 0
     assert (drive.pose_passes(p4[again], robot) == 1).all()
-    w = window_signals(drive, [(0.5, 1.3), (arc[-1] - 1.0, arc[-1])], robot)
+    w = window_signals(drive, [(5.0, 5.8), (arc[-1] - 1.0, arc[-1])], robot)
     assert w["passes"][0] == 0 and w["passes"][1] == pytest.approx(1.0)
 
 

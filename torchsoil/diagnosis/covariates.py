@@ -14,7 +14,7 @@ could follow:
 | lateral_accel | m/s^2 | speed * yaw_rate (towards the turn centre) |
 | traction | - | traction demand accel / g + sin(-pitch) (climbing: pitch < 0) |
 | lateral_load | - | lateral_accel / g + sin(roll): load shift to the right wheels when > 0 |
-| passes | - | earlier passes of the wheels over the ground under a wheel |
+| passes | - | passes of the wheels over the ground under a wheel before the last one |
 """
 
 from __future__ import annotations
@@ -110,19 +110,18 @@ class DriveSignals:
         return np.interp(np.asarray(t, np.float64), self.signals["t"], self.signals[name])
 
     def passes(self, points: np.ndarray, arc: np.ndarray) -> np.ndarray:
-        """Earlier passes over the ground at `points` (..., 2) [m], reached at base_link arc
-        length `arc` (...) [m]: distinct earlier visits (separated by more than `gap` of travel)
-        of any wheel within `radius`. Returns an int array of arc's shape."""
+        """Passes before the last one over the ground at `points` (..., 2) [m]: distinct visits
+        (separated by more than `gap` of base_link travel) of any wheel within `radius`, minus
+        one. A terrain pair holds the surface just before the last visit to each cell, so the
+        deformation it shows there is that of the last pass, whose earlier passes these are,
+        whichever pass the pose itself belongs to. arc: (...) base_link arc length [m] (kept
+        for the call signature; every visit counts). Returns an int array of arc's shape."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
-        a = np.broadcast_to(np.asarray(arc, np.float64), np.shape(points)[:-1]).reshape(-1)
         tree = cKDTree(self.wheel_points)
         out = np.zeros(len(pts), np.int64)
         for i, hits in enumerate(tree.query_ball_point(pts, self.radius)):
-            if not hits:
-                continue
-            earlier = np.sort(self.wheel_arc[hits][self.wheel_arc[hits] < a[i] - self.gap])
-            if len(earlier):
-                out[i] = 1 + int(np.sum(np.diff(earlier) > self.gap))
+            if len(hits) > 1:
+                out[i] = int(np.sum(np.diff(np.sort(self.wheel_arc[hits])) > self.gap))
         return out.reshape(np.shape(points)[:-1])
 
     def pose_passes(self, poses4: np.ndarray, robot: Robot) -> np.ndarray:

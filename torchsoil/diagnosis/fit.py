@@ -42,8 +42,9 @@ class Pass:
     floor (W,) noise floor [m], profiles (or None), k the coefficient (0: base model).
 
     prediction: cost of each window's fit on the next window's ground (the estimator's);
-    backward: its cost on the previous window's ground (also not used to fit it);
-    held_out: (W,) mean of the two where both exist, the per-window held-out cost."""
+    backward: (W, O) its cost on the ground of the windows `offsets` strides back (also not
+    used to fit it); held_out: (W,) mean of all of them, the per-window held-out cost. Far
+    offsets carry a fit across changes of a covariate, where a missing term shows."""
 
     k: float
     rows: list[dict]
@@ -57,17 +58,19 @@ class Pass:
     def held_out(self) -> np.ndarray:
         if self.backward is None:
             return self.prediction
-        both = np.vstack([self.prediction, self.backward])
+        both = np.vstack([self.prediction[None], self.backward.T])
         n = np.isfinite(both).sum(0)
         total = np.where(np.isfinite(both), both, 0.0).sum(0)
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
 def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: bool = False,
-             theta0: torch.Tensor | None = None, on_window=None) -> Pass:
+             theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6)) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
-    on_window: optional callable(k, WindowOutput, estimator) called after every window."""
+    on_window: optional callable(k, WindowOutput, estimator) called after every window.
+    offsets: windows back (in strides) on whose ground each fit is also scored; use
+    multiples of window / stride so that the ground does not overlap the fit's."""
     est = ExtendedEstimator(pair, config, model)
     prof = None
     if profiles:
@@ -77,14 +80,17 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
     rows, floor, backward = [], [], []
     wheels_y = pair.robot.wheels[:, 1]
     recent: dict[int, object] = {}
-    ahead = est.ahead or 0
     for k, o in enumerate(est.run(theta=theta0)):
         rows.append(o.row)
         floor.append(o.reference["floor"])
         recent[k] = o.data
-        back = recent.pop(k - ahead, None) if ahead else None
-        ok = o.fit is not None and back is not None and "few_valid" not in back.flags
-        backward.append(est.predict(o.fit.theta, back)[1] if ok else np.nan)
+        recent.pop(k - max(offsets, default=0) - 1, None)
+        costs = []
+        for off in offsets:
+            back = recent.get(k - off)
+            ok = o.fit is not None and back is not None and "few_valid" not in back.flags
+            costs.append(est.predict(o.fit.theta, back)[1] if ok else np.nan)
+        backward.append(costs)
         if prof is not None and o.h_sim is not None:
             i0, i1, j0, j1 = o.data.crop
             c = o.row["s"]
@@ -94,7 +100,7 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
     return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
-                np.array(backward, np.float64))
+                np.array(backward, np.float64).reshape(len(rows), len(offsets)))
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -146,7 +152,7 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
 
 
 def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base: Pass,
-                  block_m: float = 2.0, refine_steps: int = 1, theta0=None, progress=None) -> CandidateFit:
+                  block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
     the base pass."""

@@ -30,7 +30,7 @@ class DiagnosisConfig:
     n_fit: int = 3
     alpha_accept: float = 0.05
     alpha_locate: float = 0.01
-    block_m: float = 2.0
+    block_m: float = 2.4
     refine_steps: int = 1
     min_spread: dict = field(default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004,
                                                       "passes": 0.05})
