@@ -64,3 +64,19 @@ def test_zones_across_the_rut():
     r, dx = 0.07, 0.02
     got = [ZONES[i] for i in zone_of(np.array([0.0, -0.03, 0.05, -0.07, 0.1, 0.2]), r, dx)]
     assert got == ["rut_floor", "rut_floor", "rut_wall", "rut_wall", "berm", "outside"]
+
+
+def test_paired_comparison_keeps_false_alarms_low_on_correlated_windows():
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(4)
+    hits = sum(paired_improvement(lfilter([1], [1, -0.5], rng.standard_normal(40)), np.zeros(40))[2] > 1.96
+               for _ in range(300))
+    assert hits / 300 < 0.08                                     # nominal 0.025
+
+
+def test_paired_comparison_needs_the_same_windows():
+    import pytest
+
+    with pytest.raises(ValueError, match="same windows"):
+        paired_improvement(np.zeros(10), np.zeros(9))
