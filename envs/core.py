@@ -9,7 +9,7 @@ Gymnasium classes over it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +18,7 @@ import yaml
 
 from envs import dynamics as dyn
 from envs.field import FieldConfig, SoilField, field_from_params_csv, make_field
+from torchsoil.config import dataclass_from_dict
 from torchsoil.robot import Robot, paper_platform
 from torchsoil.sim.params import BETA_BOUNDS, CHI_BOUNDS, D_BOUNDS
 from torchsoil.sim.simulate import MAX_TAN_BETA
@@ -82,14 +83,10 @@ class TraverseConfig:
     @classmethod
     def from_dict(cls, d: dict | None) -> TraverseConfig:
         d = dict(d or {})
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown env settings {sorted(unknown)}; known: {sorted(known)}")
         for key in ("speed", "start", "start_jitter", "goal"):
             if key in d:
                 d[key] = tuple(float(v) for v in d[key])
-        return cls(**d)
+        return dataclass_from_dict(cls, d, "env")
 
 
 def _merge(base: dict, over: dict) -> dict:

@@ -4,6 +4,7 @@ then `section.key=value` overrides from the command line."""
 from __future__ import annotations
 
 import copy
+from dataclasses import fields
 from pathlib import Path
 
 import yaml
@@ -51,3 +52,13 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     for text in overrides or []:
         cfg = _merge(cfg, parse_override(text))
     return cfg
+
+
+def dataclass_from_dict(cls, d: dict | None, section: str):
+    """cls(**d) for a settings dataclass, naming unknown keys of `section` in the error."""
+    d = dict(d or {})
+    known = {f.name for f in fields(cls)}
+    unknown = set(d) - known
+    if unknown:
+        raise ValueError(f"unknown {section} settings {sorted(unknown)}; known: {sorted(known)}")
+    return cls(**d)

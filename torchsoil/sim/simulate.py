@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -35,12 +35,9 @@ class SimConfig:
 
     @classmethod
     def from_dict(cls, d: dict | None) -> SimConfig:
-        d = dict(d or {})
-        known = {f.name for f in fields(cls)}
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown sim settings {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**d)
+        from torchsoil.config import dataclass_from_dict
+
+        return dataclass_from_dict(cls, d, "sim")
 
 
 class Modifiers(NamedTuple):

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from torchsoil.config import dataclass_from_dict
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.synth.terrain import Landmarks, Relief, farm_landmarks, micro_topography
@@ -167,7 +168,7 @@ def build_truth(scenario: str | Path | dict, seed: int = 0, dx: float = 0.02,
     X, Y = corridor_grid.shape
     h0 = h_field[nx0:nx0 + X, ny0:ny0 + Y]
     world = simulate_world(corridor_grid, h0, traj, robot, scn["soil"], scn["effects"],
-                           WorldConfig(**scn["world"]))
+                           dataclass_from_dict(WorldConfig, scn["world"], "world"))
     t2 = time.perf_counter()
     return Truth(scn, int(seed), robot, relief, landmarks, traj, field, h_field, (nx0, ny0), world,
                  {"terrain_s": t1 - t0, "world_s": t2 - t1})

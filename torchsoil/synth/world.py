@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.sim.relaxation import relax
+from torchsoil.sim.simulate import SimConfig
 from torchsoil.sim.sinkage import reference_height, taper
 from torchsoil.synth import effects as fx
 from torchsoil.synth.terrain import soil_at
@@ -29,24 +30,10 @@ MAX_VISITS = 6
 
 
 @dataclass(frozen=True)
-class WorldConfig:
-    """World model settings (the paper's values). Lengths in metres unless said.
+class WorldConfig(SimConfig):
+    """World model settings: the simulator's (SimConfig, the paper's values) and chunk, the
+    arc length [m] of trajectory dug and deposited per step (relaxation runs once a pass)."""
 
-    tau, eps_scale, max_iter, backend: relaxation stop, rate (eps = eps_scale / dx^2), cap
-    and kernel (torchsoil.sim.relax); ref_radius: reference-height disc radius as a fraction
-    of the footprint radius; band_width: deposition band width, cells; relax_margin:
-    relaxation domain beyond the footprint, wheel widths; pose_spacing: wheels move at most
-    this many cells between simulated poses; chunk: arc length per simulation chunk.
-    """
-
-    tau: float = 0.01
-    eps_scale: float = 4.0
-    max_iter: int = 2000
-    backend: str = "auto"
-    ref_radius: float = 0.5
-    band_width: float = 1.0
-    relax_margin: float = 2.0
-    pose_spacing: float = 0.5
     chunk: float = 0.4
 
 
