@@ -25,6 +25,7 @@ def main(argv=None) -> int:
                                              "(default: the bundled demo recording)")
     ap.add_argument("--robot", help="robot YAML (default: the one beside the demo, or the pair's own wheels)")
     ap.add_argument("--config", help="YAML overriding configs/default.yaml")
+    ap.add_argument("--pipeline-config", help="lidar pipeline settings for a bag (default: configs/pipeline.yaml)")
     ap.add_argument("--out", help="output directory (default: out/<input name>)")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="override one setting, e.g. estimator.window=1.0 (repeatable)")
@@ -55,7 +56,8 @@ def main(argv=None) -> int:
                                     " (the bundled demo recording; see data/demo/README.md to regenerate it)"))
         robot_path = args.robot or (DEMO_ROBOT if not args.input else None)
         robot = Robot.from_yaml(robot_path) if robot_path else None
-        estimate(source, out, config, robot=robot, resume=args.resume, tensorboard=not args.no_tensorboard)
+        estimate(source, out, config, robot=robot, resume=args.resume, tensorboard=not args.no_tensorboard,
+                 robot_yaml=robot_path, pipeline_yaml=args.pipeline_config)
     except (ValueError, FileNotFoundError, KeyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -24,8 +24,11 @@ from torchsoil.terrain import TerrainPair
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
 
 
-def load_input(path: str | Path, out_dir: Path, robot: Robot | None, config: dict) -> TerrainPair:
-    """A terrain pair from an .npz, or from a bag through the lidar pipeline (cached in out_dir)."""
+def load_input(path: str | Path, out_dir: Path, robot: Robot | None, config: dict,
+               robot_yaml: str | Path | None = None, pipeline_yaml: str | Path | None = None) -> TerrainPair:
+    """A terrain pair from an .npz, or from a bag through the lidar pipeline (cached in out_dir,
+    with the pipeline's own outputs in out_dir/pipeline). robot_yaml may carry lidar
+    extrinsics (`lidars:` key) that override /tf_static; pipeline_yaml the stage settings."""
     path = Path(path)
     if path.suffix == ".npz":
         pair = TerrainPair.load(path)
@@ -36,9 +39,12 @@ def load_input(path: str | Path, out_dir: Path, robot: Robot | None, config: dic
         else:
             if robot is None:
                 raise ValueError(f"{path}: a bag needs a robot description (--robot configs/robot/X.yaml)")
-            from torchsoil.pipeline.run import PipelineConfig, process_bag, write_outputs
+            from torchsoil.pipeline.run import PipelineConfig, extrinsics_from_robot_yaml, process_bag, write_outputs
 
-            result = process_bag(path, robot, PipelineConfig(), progress=True)
+            cfg = PipelineConfig.from_yaml(pipeline_yaml) if pipeline_yaml else PipelineConfig()
+            if robot_yaml:
+                cfg.read.extrinsics.update(extrinsics_from_robot_yaml(robot_yaml))
+            result = process_bag(path, robot, cfg, progress=True)
             for problem in result.problems:
                 print(f"warning: {problem}")
             write_outputs(result, out_dir / "pipeline")
@@ -51,8 +57,9 @@ def load_input(path: str | Path, out_dir: Path, robot: Robot | None, config: dic
 
 
 def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: Robot | None = None,
-             resume: bool = False, tensorboard: bool = True, progress: bool = True) -> Path:
-    """Run the sliding-window estimator; returns out_dir."""
+             resume: bool = False, tensorboard: bool = True, progress: bool = True,
+             robot_yaml: str | Path | None = None, pipeline_yaml: str | Path | None = None) -> Path:
+    """Run the sliding-window estimator; returns out_dir. Arguments as `load_input`."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     meta = {"input": str(input_path), "config": config}
@@ -63,7 +70,7 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
             raise ValueError(f"{out}: --resume with a different configuration than the run being resumed")
     meta_path.write_text(json.dumps(meta, indent=1))
 
-    pair = load_input(input_path, out, robot, config)
+    pair = load_input(input_path, out, robot, config, robot_yaml, pipeline_yaml)
     est = Estimator(pair, config)
     if est.device.type == "cpu":
         # a window's tensors are small: intra-op threads only add synchronisation (and stall on
