@@ -58,21 +58,21 @@ def fit(objective, theta0: torch.Tensor, lower: torch.Tensor, upper: torch.Tenso
     theta = theta0.detach().clone().clamp(lower, upper)
     steps = torch.full_like(theta, step)
     prev = torch.zeros_like(theta)
-    best = (float("inf"), theta.clone())
+    best, best_it = (float("inf"), theta.clone()), 0
     converged = False
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 (it is the iteration count returned)
         cost, g = gradient(objective, theta, upper, grad, fd_step)
         if cost < best[0]:
-            best = (cost, theta.clone())
+            best, best_it = (cost, theta.clone()), it
         # a parameter at a bound whose gradient points outward cannot move: it has converged
         pinned = ((theta <= lower) & (g > 0)) | ((theta >= upper) & (g < 0)) | (g == 0)
         if rule == "gd":
             new = (theta - lr * g).clamp(lower, upper)
             moved = (new - theta).abs() / scale
             theta = new
-            if bool(((moved < step_tol) | pinned).all()):
-                converged = True
+            if bool(((moved < step_tol) | pinned).all()) or it - best_it > 3:
+                converged = True  # settled, or no better point in the last 3 steps
                 break
             continue
         if rule != "rprop":
