@@ -1,4 +1,4 @@
-"""Short synthetic drives (8-11 m) for the diagnosis tests: one per catalogue effect, a
+"""Short synthetic drives (10-15 m) for the diagnosis tests: one per catalogue effect, a
 null case (base physics, soil varying along the path) and an out-of-catalogue effect.
 
 `world.chunk` is 0.1 m: the recorder's world relaxes chunk by chunk and its default 0.4 m
@@ -16,13 +16,14 @@ SCENARIOS: dict[str, dict] = {
     "speed_dependent_sinkage": {
         "trajectory": {"accel_limit": 1.0, "segments": [
             {"straight": 2.0, "speed": 1.0}, {"straight": 2.0, "speed": 0.5}, {"straight": 2.0, "speed": 1.5},
-            {"straight": 2.0, "speed": 0.6}, {"straight": 2.0, "speed": 1.4}]},
+            {"straight": 2.0, "speed": 0.6}, {"straight": 2.0, "speed": 1.4}, {"straight": 2.0, "speed": 0.5},
+            {"straight": 2.0, "speed": 1.5}]},
         "soil": {"base": {"d": 0.025, "chi": 0.2, "beta_deg": 30.0}},
         "effects": {"speed_dependent_sinkage": {"form": "linear", "k": 0.6}}},
     "slip_sinkage": {
         "trajectory": {"accel_limit": 0.4, "segments": [
             {"straight": 2.5, "speed": 0.6}, {"straight": 2.5, "speed": 1.4}, {"straight": 2.5, "speed": 0.6},
-            {"straight": 2.5, "speed": 1.4}]},
+            {"straight": 2.5, "speed": 1.4}, {"straight": 2.5, "speed": 0.6}, {"straight": 2.5, "speed": 1.4}]},
         "terrain": {"relief": {"amplitude": 0.02, "slope_x": 0.06}},
         "soil": {"base": {"d": 0.025, "chi": 0.2, "beta_deg": 30.0}},
         "effects": {"slip_sinkage": {"form": "linear", "k": 6.0}}},

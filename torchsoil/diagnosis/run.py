@@ -23,13 +23,17 @@ class DiagnosisConfig:
     n_fit: candidates fitted (the leading ones by the location evidence). alpha_accept:
     family-wise one-sided level of the held-out test, split over the fitted candidates.
     alpha_locate: family-wise level of the location tests (rut-floor and rut-wall profile,
-    left/right asymmetry, along-track spectral line), split over them. block_m: length of
+    left/right asymmetry, along-track spectral line), split over them. materiality: a
+    located zone or asymmetry must also exceed this fraction of the measured noise floor
+    (with many cells a bias far below the sensor noise becomes significant, but it is not a
+    mismatch anyone could use). block_m: length of
     the cross-validation blocks, m. min_spread: smallest spread (std over windows) of a
     covariate for its term to be testable on this drive."""
 
     n_fit: int = 3
     alpha_accept: float = 0.05
     alpha_locate: float = 0.01
+    materiality: float = 0.1
     block_m: float = 2.4
     refine_steps: int = 1
     min_spread: dict = field(default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004,
@@ -92,7 +96,7 @@ def _outliers(x: np.ndarray, n_sd: float = 2.0) -> np.ndarray:
 
 def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.ndarray], zones: dict,
                  n_tracks: int, cfg: DiagnosisConfig, held_out: np.ndarray, ahead: int,
-                 z_locate: float = 3.0) -> dict:
+                 z_locate: float = 3.0, material: float = 0.0) -> dict:
     """Location evidence for one catalogue term: {testable, p, statistic}.
 
     Sinkage terms: Fisher's combination of two correlations over windows, each with the
@@ -100,11 +104,12 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
     the right-minus-left difference) against the term's covariate, and the held-out cost
     against the covariate's change to the neighbouring windows (a missing term shows where
     its covariate changes). Shape terms: the rut-floor / rut-wall profile z (two zones); they
-    are testable only when a zone's residual is significant (|z| > z_locate), since a shape
-    term has nothing else to show in."""
+    are testable only when a zone's residual is significant (|z| > z_locate) and material
+    (|mean| > material, m), since a shape term has nothing else to show in."""
     d = np.array([[r[f"d{t + 1}"] for t in range(n_tracks)] for r in rows], np.float64)
     if ext.covariate is None:
-        z = max(abs(zones["rut_floor"]["z"]), abs(zones["rut_wall"]["z"]))
+        z = max(abs(zones[zn]["z"]) if abs(zones[zn]["mean"]) > material else 0.0
+                for zn in ("rut_floor", "rut_wall"))
         return {"testable": bool(z > z_locate), "p": float(min(1.0, 4 * stats.norm.sf(z))),
                 "statistic": f"profile |z| = {z:.1f}"}
     x = cov[ext.covariate]
@@ -166,7 +171,8 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
     # ---- rank candidates by the location evidence, fit the leading testable ones
     ahead = max(1, int(round(window / stride)))
     z_loc = _z_two_sided(cfg.alpha_locate / 4)
-    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc)
+    material = cfg.materiality * float(np.nanmean(base.floor))
+    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc, material)
           for e in catalogue.CATALOGUE.values()}
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
@@ -185,8 +191,9 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
         pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z}
 
     # ---- location tests (family-wise alpha_locate over four tests)
-    sig_zones = [zn for zn in ("rut_floor", "rut_wall") if abs(zones[zn]["z"]) > z_loc]
-    sig_asym = abs(asym["z"]) > z_loc
+    sig_zones = [zn for zn in ("rut_floor", "rut_wall")
+                 if abs(zones[zn]["z"]) > z_loc and abs(zones[zn]["mean"]) > material]
+    sig_asym = abs(asym["z"]) > z_loc and abs(asym["mean"]) > material
     sig_line = line["p"] < cfg.alpha_locate / 4
     located = bool(sig_zones or sig_asym or sig_line)
     s0, s1 = s - window / 2, s + window / 2
