@@ -154,7 +154,7 @@ def fig_cross_sections(diag, path: Path) -> Path:
             re, ree, _ = pe.profile("res")
             ax[1].errorbar(mm, 1e3 * re, 1e3 * ree, fmt=".-", label=f"with {diag.best.ext.id}")
     ax[0].set_ylabel("H_b - start surface [mm]")
-    ax[1].set_ylabel("simulated - measured [mm] (+- s.e. between segments)")
+    ax[1].set_ylabel("simulated - measured [mm], +- s.e.")
     for a in ax:
         a.set_xlabel("lateral offset from wheel centre, outward [mm]")
         a.axhline(0, color="0.7", lw=0.5)

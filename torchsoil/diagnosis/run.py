@@ -35,7 +35,7 @@ class DiagnosisConfig:
     alpha_locate: float = 0.01
     materiality: float = 0.1
     block_m: float = 2.4
-    refine_steps: int = 1
+    refine_steps: int = 2
     min_spread: dict = field(default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004,
                                                       "passes": 0.05})
 
@@ -110,8 +110,9 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
     if ext.covariate is None:
         z = max(abs(zones[zn]["z"]) if abs(zones[zn]["mean"]) > material else 0.0
                 for zn in ("rut_floor", "rut_wall"))
+        raw = max(abs(zones[zn]["z"]) for zn in ("rut_floor", "rut_wall"))
         return {"testable": bool(z > z_locate), "p": float(min(1.0, 4 * stats.norm.sf(z))),
-                "statistic": f"profile |z| = {z:.1f}"}
+                "statistic": f"floor/wall profile |z| = {raw:.1f}" + ("" if z > 0 else ", below materiality")}
     x = cov[ext.covariate]
     spread = float(np.nanstd(x))
     if spread < cfg.min_spread.get(ext.covariate, 0.0):
@@ -201,7 +202,7 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
     if best is not None:
         verdict = "missing_physics"
         gain = base.held_out - best.held_out            # scored on the neighbouring windows' ground
-        spans = _spans(_outliers(gain), s0 - window / 2, s1 + window / 2)
+        spans = _spans(_outliers(gain), s0, s1)
         covariate = best.ext.covariate
         if sig_zones:
             cross = sig_zones[0] if len(sig_zones) == 1 else "mixed"
