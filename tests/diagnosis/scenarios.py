@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import copy
 
-STRAIGHT = {"segments": [{"straight": 10.0, "speed": 1.0}]}
+STRAIGHT = {"segments": [{"straight": 14.0, "speed": 1.0}]}
 WORLD = {"chunk": 0.1}
 
 SCENARIOS: dict[str, dict] = {
@@ -49,12 +49,12 @@ SCENARIOS: dict[str, dict] = {
     "footprint_width": {
         "trajectory": STRAIGHT,
         "soil": {"base": {"d": 0.02, "chi": 0.2, "beta_deg": 28.0},
-                 "patches": [{"kind": "band_x", "center": 5.0, "sigma": 1.5, "delta": {"d": 0.02}}]},
+                 "patches": [{"kind": "band_x", "center": 7.0, "sigma": 2.0, "delta": {"d": 0.02}}]},
         "effects": {"footprint_width": {"form": "linear", "k": 0.6}}},
     "watered": {
         "trajectory": STRAIGHT,
         "soil": {"base": {"d": 0.015, "chi": 0.05, "beta_deg": 25.0, "moisture": 0.2},
-                 "patches": [{"kind": "band_x", "center": 5.0, "sigma": 1.5,
+                 "patches": [{"kind": "band_x", "center": 7.0, "sigma": 2.0,
                               "delta": {"d": 0.035, "beta_deg": 15.0, "moisture": 0.7, "chi": 0.15}}],
                  "track_scale": [1.0, 1.1]}},
     "tread": {

@@ -104,8 +104,8 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
     the right-minus-left difference) against the term's covariate, and the held-out cost
     against the covariate's change to the neighbouring windows (a missing term shows where
     its covariate changes). Shape terms: the rut-floor / rut-wall profile z (two zones); they
-    are testable only when a zone's residual is significant (|z| > z_locate) and material
-    (|mean| > material, m), since a shape term has nothing else to show in."""
+    are testable only when a zone's residual is significant (|z| > z_locate; materiality is
+    left to the held-out test), since a shape term has nothing else to show in."""
     d = np.array([[r[f"d{t + 1}"] for t in range(n_tracks)] for r in rows], np.float64)
     if ext.covariate is None:
         z = max(abs(zones[zn]["z"]) if abs(zones[zn]["mean"]) > material else 0.0
@@ -173,7 +173,7 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
     ahead = max(1, int(round(window / stride)))
     z_loc = _z_two_sided(cfg.alpha_locate / 4)
     material = cfg.materiality * float(np.nanmean(base.floor))
-    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc, material)
+    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc)
           for e in catalogue.CATALOGUE.values()}
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
