@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     ap.add_argument("--config", help="YAML overriding configs/default.yaml")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                     help="override an estimator/sim setting (repeatable)")
-    ap.add_argument("--n-fit", type=int, default=3, help="catalogue candidates fitted (leading by evidence)")
+    ap.add_argument("--n-fit", type=int, default=4, help="catalogue candidates fitted (leading by evidence)")
     ap.add_argument("--no-tensorboard", action="store_true")
     args = ap.parse_args(argv)
 

@@ -23,9 +23,9 @@ ROOT = Path(__file__).resolve().parents[2]
 CFG = DiagnosisConfig(n_fit=2)
 
 
-def run(name, seed, **law):
+def run(name, seed, cfg=CFG, **law):
     pair = TerrainPair.from_mapping(make_terrain_pair(scenario(name, **law), seed=seed))
-    return pair, diagnose(pair, load_config(), CFG)
+    return pair, diagnose(pair, load_config(), cfg)
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +111,7 @@ def test_profiles_hold_finite_floor_and_wall_statistics(speed_power):
     ("cohesive_walls", {}, 1),                                                # saturating world law
 ])
 def test_each_catalogue_effect_is_named_and_fitted(effect, law, seed):
-    _, diag = run(effect, seed, **law)
+    _, diag = run(effect, seed, DiagnosisConfig(), **law)
     s = diag.summary
     assert (s["verdict"], s["missing_physics"]) == ("missing_physics", effect)
     name, truth = TRUTH[effect]

@@ -30,7 +30,7 @@ class DiagnosisConfig:
     the cross-validation blocks, m. min_spread: smallest spread (std over windows) of a
     covariate for its term to be testable on this drive."""
 
-    n_fit: int = 3
+    n_fit: int = 4
     alpha_accept: float = 0.05
     alpha_locate: float = 0.01
     materiality: float = 0.1
