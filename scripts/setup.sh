@@ -23,7 +23,12 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
   echo "[setup] installing torch==2.13.0"
   "$PY" -m pip install -q torch==2.13.0
 fi
-if ! "$PY" -c "import torchsoil, open3d, rosbags, gymnasium, numba, pytest, hypothesis" 2>/dev/null; then
+# torchsoil from this checkout (an editable install of another checkout does not count)
+if ! "$PY" -c "
+import pathlib, sys
+import open3d, rosbags, gymnasium, numba, pytest, hypothesis, torchsoil
+sys.exit(pathlib.Path(torchsoil.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())
+" 2>/dev/null; then
   echo "[setup] installing torchsoil and its dependencies"
   "$PY" -m pip install -q -e ".[dev]"
 fi
