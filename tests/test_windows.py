@@ -68,3 +68,20 @@ def test_stopped():
     x = np.where(t < 1, t, np.where(t < 2, 1.0, t - 1))
     still = np.column_stack([t, x, 0 * t, 0 * t, 0 * t, 0 * t, 0 * t])
     assert _stopped(still, 0.05, 0.5)
+
+
+def test_ground_driven_twice_belongs_to_the_last_pass(pair):
+    """Out along +x and back over the same line: the cells take the return pass's arc length."""
+    t = np.arange(0, 6.0001, 0.05)
+    x = np.where(t <= 3, t, 6 - t)
+    yaw = np.where(t <= 3, 0.0, np.pi)
+    poses = np.column_stack([t, x, 0 * t, 0 * t, 0 * t, 0 * t, yaw])
+    idx = path_index(pair.grid, poses, pair.robot, 1.6)
+    xs, ys = pair.grid.centers()
+    j = np.argmin(abs(ys))
+    for xc in (0.5, 1.5, 2.5):
+        i = np.argmin(abs(xs - xc))
+        assert idx.s[i, j] == pytest.approx(6.0 - xc, abs=0.05)
+    straight = path_index(pair.grid, pair.poses, pair.robot, 1.6)  # one pass: nearest point
+    i = np.argmin(abs(xs - 1.5))
+    assert straight.s[i, j] == pytest.approx(1.5, abs=0.05)

@@ -39,20 +39,43 @@ def path_arc(poses: np.ndarray) -> np.ndarray:
 
 
 def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float) -> PathIndex:
-    """Arc length and distances for the cells within `reach` [m] of the path."""
+    """Arc length and distances for the cells within `reach` [m] of the path; a cell the path
+    passes more than once takes the arc length of the last pass."""
     arc = path_arc(poses)
     planar = poses[:, [0, 1, 2, 6]]
     dense = resample_poses(planar, robot.wheels[:, :2], grid.dx / 2)
     dense_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense[:, 1:3], axis=0), axis=1))])
     xs, ys = grid.centers()
     cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
-    d, i = cKDTree(dense[:, 1:3]).query(cells, distance_upper_bound=reach)
-    hit = np.isfinite(d)
+    tree = cKDTree(dense[:, 1:3])
+    d, i = tree.query(cells, distance_upper_bound=reach)
+    hit = np.flatnonzero(np.isfinite(d))
+    # ground the robot drove over twice belongs to its last pass (a terrain pair shows the
+    # surface before and after the last pass): the latest path point about as near as the nearest
+    again = hit[_revisited(dense[:, 1:3], dense_arc, reach)[i[hit]]]
+    if len(again):
+        near = tree.query_ball_point(cells[again], r=d[again] + 2 * grid.dx, return_sorted=False)
+        i[again] = [max(k) for k in near]
     s = np.full(len(cells), np.nan)
     s[hit] = dense_arc[i[hit]]
     wheels = wheel_positions(dense, robot.wheels[:, :2]).reshape(-1, 2)
     wd, _ = cKDTree(wheels).query(cells, distance_upper_bound=reach)
     return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc)
+
+
+def _revisited(xy: np.ndarray, arc: np.ndarray, reach: float, step: float = 0.1) -> np.ndarray:
+    """(N,) bool: path points within 2 reach [m] of a part of the path more than 4 reach
+    of arc length away (where a cell may be seen by two passes)."""
+    k = max(1, int(np.searchsorted(arc, step)))
+    sub = np.arange(0, len(xy), k)
+    pairs = cKDTree(xy[sub]).query_pairs(2 * reach, output_type="ndarray")
+    out = np.zeros(len(xy), dtype=bool)
+    if len(pairs):
+        far = np.abs(arc[sub[pairs[:, 0]]] - arc[sub[pairs[:, 1]]]) > 4 * reach
+        flagged = np.zeros(len(sub), dtype=bool)
+        flagged[pairs[far].ravel()] = True
+        out = np.repeat(flagged, k)[: len(xy)]
+    return out
 
 
 @dataclass(frozen=True)
