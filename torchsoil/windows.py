@@ -64,14 +64,15 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float) -> Pat
 
 
 def _revisited(xy: np.ndarray, arc: np.ndarray, reach: float, step: float = 0.1) -> np.ndarray:
-    """(N,) bool: path points within 2 reach [m] of a part of the path more than 4 reach
-    of arc length away (where a cell may be seen by two passes)."""
+    """(N,) bool: path points within 2 reach [m] of a part of the path more than 2 reach
+    (+ 2 steps) of arc length away, which a straight drive never is: where a cell may lie
+    under two passes."""
     k = max(1, int(np.searchsorted(arc, step)))
     sub = np.arange(0, len(xy), k)
     pairs = cKDTree(xy[sub]).query_pairs(2 * reach, output_type="ndarray")
     out = np.zeros(len(xy), dtype=bool)
     if len(pairs):
-        far = np.abs(arc[sub[pairs[:, 0]]] - arc[sub[pairs[:, 1]]]) > 4 * reach
+        far = np.abs(arc[sub[pairs[:, 0]]] - arc[sub[pairs[:, 1]]]) > 2 * reach + 2 * step
         flagged = np.zeros(len(sub), dtype=bool)
         flagged[pairs[far].ravel()] = True
         out = np.repeat(flagged, k)[: len(xy)]
