@@ -26,6 +26,7 @@ fi
 # torchsoil from this checkout (an editable install of another checkout does not count)
 if ! "$PY" -c "
 import pathlib, sys
+sys.path.pop(0)  # not the current directory: scripts/*.py must find the installed package
 import open3d, rosbags, gymnasium, numba, pytest, hypothesis, torchsoil
 sys.exit(pathlib.Path(torchsoil.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())
 " 2>/dev/null; then
