@@ -43,8 +43,9 @@ def face_masks(domain: torch.Tensor | None, shape, device) -> tuple[torch.Tensor
     return fx, fy
 
 
-def _step_terms(h, tan_beta, fx, fy, inv_dx):
-    """Flux q_x, q_y and slope excess |grad h| - tan(beta), all (B, X, Y)."""
+def _step_terms(h, tan_beta, fx, fy):
+    """Flux q_x, q_y and slope excess |grad h| - tan(beta), all (B, X, Y); fx, fy are the
+    face masks divided by dx."""
     gx = F.pad((h[:, 1:] - h[:, :-1]), (0, 0, 0, 1)) * fx
     gy = F.pad((h[:, :, 1:] - h[:, :, :-1]), (0, 1)) * fy
     n = torch.sqrt(gx * gx + gy * gy + _EPS2)
@@ -57,15 +58,14 @@ def relax_torch(h, tan_beta, dx, domain=None, tau=0.01, max_iter=2000, fixed_ite
                 eps_scale=4.0, check_every=8) -> RelaxResult:
     """Reference relaxation in torch ops. Shapes as in `relax`."""
     fx, fy = face_masks(domain, h.shape[1:], h.device)
-    inv_dx = 1.0 / dx
-    fxs, fys = fx.to(h.dtype) * inv_dx, fy.to(h.dtype) * inv_dx
+    fxs, fys = fx.to(h.dtype) / dx, fy.to(h.dtype) / dx
     coef = dx / eps_scale
     B = h.shape[0]
     iters = torch.zeros(B, dtype=torch.int64, device=h.device)
     n_max = max_iter if fixed_iter is None else fixed_iter
     active = torch.ones(B, dtype=torch.bool, device=h.device)
     for it in range(n_max):
-        qx, qy, excess = _step_terms(h, tan_beta, fxs, fys, 1.0)
+        qx, qy, excess = _step_terms(h, tan_beta, fxs, fys)
         if fixed_iter is None:
             active = excess.flatten(1).amax(1) >= tau
         div = qx - F.pad(qx[:, :-1], (0, 0, 1, 0)) + qy - F.pad(qy[:, :, :-1], (1, 0))
@@ -75,7 +75,7 @@ def relax_torch(h, tan_beta, dx, domain=None, tau=0.01, max_iter=2000, fixed_ite
             break
     else:
         if fixed_iter is None:
-            active = _step_terms(h, tan_beta, fxs, fys, 1.0)[2].flatten(1).amax(1) >= tau
+            active = _step_terms(h, tan_beta, fxs, fys)[2].flatten(1).amax(1) >= tau
     capped = active if fixed_iter is None else torch.zeros_like(active)
     return RelaxResult(h, iters, capped)
 
@@ -83,7 +83,7 @@ def relax_torch(h, tan_beta, dx, domain=None, tau=0.01, max_iter=2000, fixed_ite
 def max_slope_excess(h, tan_beta, dx, domain=None) -> torch.Tensor:
     """(B,) max over the domain of |grad h| - tan(beta) (forward differences, no-flux edges)."""
     fx, fy = face_masks(domain, h.shape[1:], h.device)
-    return _step_terms(h, tan_beta, fx.to(h.dtype) / dx, fy.to(h.dtype) / dx, 1.0)[2].flatten(1).amax(1)
+    return _step_terms(h, tan_beta, fx.to(h.dtype) / dx, fy.to(h.dtype) / dx)[2].flatten(1).amax(1)
 
 
 def relax(h: torch.Tensor, tan_beta: torch.Tensor, dx: float, domain: torch.Tensor | None = None,
