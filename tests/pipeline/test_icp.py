@@ -58,3 +58,33 @@ def test_voxel_downsample_is_centroid_per_voxel():
     out = icp.voxel_downsample(pts, 0.1)
     assert len(out) == 2
     np.testing.assert_allclose(sorted(out[:, 0]), [0.02, 1.05])
+
+
+def test_far_face_seen_after_passing_does_not_pull_the_fit_back():
+    """A 0.2 m slab entered the map from its near face (seen from x = -5); from x = +5 its far
+    face is what the sensor sees. Matched to the near face it drags the sweep back along x;
+    with viewpoint-oriented normals and `one_sided` only the walls that face the sensor count."""
+    rng = np.random.default_rng(1)
+    ground = np.column_stack([rng.uniform(-10, 10, (3000, 2)), np.zeros(3000)])
+    near_face = np.column_stack([np.zeros(600), rng.uniform(-2, 2, 600), rng.uniform(0, 2, 600)])
+    far_face = near_face + [0.2, 0.0, 0.0]
+    wall_x = np.column_stack([np.full(800, 9.0), rng.uniform(-5, 5, 800), rng.uniform(0, 3, 800)])
+    wall_y = np.column_stack([rng.uniform(-5, 10, 800), np.full(800, 6.0), rng.uniform(0, 3, 800)])
+    mapped = np.concatenate([ground, near_face, wall_x, wall_y])
+    views = np.where(np.arange(len(mapped))[:, None] < len(ground) + len(near_face), [-5.0, 0, 1], [5.0, 0, 1])
+    n = icp.orient_to_viewpoints(mapped, icp.estimate_normals(mapped, 0.6), views)
+    target = icp.make_target(mapped, 0.6, n)
+    robot = transform([0, 0, 0], [5.0, 0, 0])
+    source = icp.apply(np.linalg.inv(robot), np.concatenate([ground[::2], far_face, wall_x[::2], wall_y[::2]]))
+    shift = {}
+    for one_sided in (False, True):
+        res = icp.register(source, target, robot, max_dist=0.5, ground_z=0.97, one_sided=one_sided)
+        shift[one_sided] = res.transform[0, 3] - robot[0, 3]
+    assert shift[False] < -0.02          # pulled back towards the near face
+    assert abs(shift[True]) < 2e-3
+
+
+def test_facing_keeps_ground_and_structure_seen_from_the_sensor():
+    p = np.array([[1.0, 0, 0], [1.0, 0, 0], [3.0, 0, 1]])   # ground above the sensor: kept anyway
+    n = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0.0, 0, 1]])
+    np.testing.assert_array_equal(icp.facing(p, n, np.zeros(3)), [True, False, True])

@@ -114,10 +114,10 @@ def test_landmark_free_stretch_is_flagged_and_tracked(tmp_path):
     assert (flags[-12:] & mapping.DEGENERATE).all()
     assert any("degenerate" in p for p in res.problems)
     # the motion model carries x through (no runaway); where landmarks fade out the weakly
-    # constrained fits slow it down, which costs up to ~0.35 m over the last 2 m
+    # constrained fits may slow it down a little (about 4 cm over the last 2 m)
     true = scene.pose(res.terrain.poses[:, 0] - 100.0)
     err = np.abs(res.terrain.poses[:, 1] - true[:, 0, 3])
-    assert err[:30].max() < 0.1 and err.max() < 0.5
+    assert err[:30].max() < 0.1 and err.max() < 0.15
 
 
 def test_landmark_free_recording_is_refused(tmp_path):

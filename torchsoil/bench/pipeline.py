@@ -4,7 +4,9 @@ Runs `process_bag` on the synthetic `road` recording (torchsoil.synth; 20 s, or 
 quick), falling back to the analytic test scene if the recorder is unavailable.
 `pipeline_realtime_factor` = processing (wall) time / recording duration (< 1: faster than
 real time); `pipeline_cpu_realtime_factor` the same with the process's CPU time, which does
-not depend on what else shares the cores.
+not depend on what else shares the cores. Accuracy against the truth
+(torchsoil.synth.evaluate) as `pipeline_road_*` and, unless quick, `pipeline_sturn_*` (the
+25 s S-turn on a side slope of the lateral_load_transfer scenario).
 """
 
 from __future__ import annotations
@@ -14,14 +16,14 @@ import time
 from pathlib import Path
 
 
-def _recording(out: Path, duration: float) -> tuple[Path, object]:
+def _recording(out: Path, duration: float | None, scenario: str = "road") -> tuple[Path, object]:
     from torchsoil.robot import paper_platform
 
     try:
         from torchsoil.robot import Robot
         from torchsoil.synth.record import make_recording
 
-        make_recording("road", out, 0, 0.02, "mcap", True, duration, None, progress=False)
+        make_recording(scenario, out, 0, 0.02, "mcap", True, duration, None, progress=False)
         return out, Robot.from_yaml(out.parent / f"{out.name}.robot.yaml")
     except ImportError:
         from torchsoil.pipeline.toyscene import ToyScene
@@ -38,11 +40,26 @@ def run(quick: bool = False) -> dict[str, float]:
         t0, c0 = time.perf_counter(), time.process_time()
         res = process_bag(bag, robot)
         total, cpu = time.perf_counter() - t0, time.process_time() - c0
-    out = {"pipeline_realtime_factor": total / res.duration,
-           "pipeline_cpu_realtime_factor": cpu / res.duration,
-           "pipeline_total_s": total, "pipeline_recording_s": res.duration}
-    out.update({f"pipeline_{k}_s": v for k, v in res.timings.items()})
+        out = {"pipeline_realtime_factor": total / res.duration,
+               "pipeline_cpu_realtime_factor": cpu / res.duration,
+               "pipeline_total_s": total, "pipeline_recording_s": res.duration}
+        out.update({f"pipeline_{k}_s": v for k, v in res.timings.items()})
+        out.update(_accuracy("road", bag, res))
+        if not quick:
+            bag, robot = _recording(Path(tmp) / "sturn", None, "lateral_load_transfer")
+            out.update(_accuracy("sturn", bag, process_bag(bag, robot)))
     return out
+
+
+def _accuracy(name: str, bag: Path, res) -> dict[str, float]:
+    try:
+        from torchsoil.synth.evaluate import pipeline_errors
+        from torchsoil.synth.truthfile import load_truth
+
+        truth = load_truth(bag)
+    except (ImportError, FileNotFoundError):
+        return {}
+    return {f"pipeline_{name}_{k}": v for k, v in pipeline_errors(res.terrain, truth).items()}
 
 
 if __name__ == "__main__":

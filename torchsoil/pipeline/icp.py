@@ -122,7 +122,7 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: float,
              max_iter: int = 30, kernel: float | None = None, tol: float = 1e-4,
-             workers: int = 1, ground_z: float | None = None) -> IcpResult:
+             workers: int = 1, ground_z: float | None = None, one_sided: bool = False) -> IcpResult:
     """Point-to-plane ICP of (S, 3) source points onto `target`, starting at `init` (4, 4).
 
     max_dist: correspondence gate, m. kernel: scale of the Geman-McClure robust weight, m
@@ -131,6 +131,11 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
     z component above this are ground and constrain only z, roll and pitch (their pull on
     x, y and yaw is dropped, as in two-step ground / structure registration): a lidar's ground
     rings move with the robot and otherwise bias the fit towards standing still.
+    one_sided: the target's steep normals point towards the sensor that saw them (see
+    `orient_to_viewpoints`); a match on a steep surface that faces away from the robot is
+    dropped, since the robot cannot see that side of it. Without this, the far face of a
+    pole or post seen after passing it pairs with its near face in the map (kept from the
+    approach), which pulls every sweep back along the path (lag builds up in the map).
     """
     kernel = max_dist / 3 if kernel is None else kernel
     T = np.array(init, dtype=np.float64)
@@ -144,6 +149,11 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
             return IcpResult(T, float(ok.mean()) if len(ok) else 0.0, np.inf, H, int(ok.sum()), it)
         p, q, n = p[ok], target.points[idx[ok]], target.normals[idx[ok]]
         c = T[:3, 3]
+        if one_sided:
+            seen = facing(p, n, c)
+            if seen.sum() < 6:
+                return IcpResult(T, float(seen.sum() / len(source)), np.inf, H, int(seen.sum()), it)
+            p, q, n = p[seen], q[seen], n[seen]
         r = np.einsum("ij,ij->i", p - q, n)
         J = np.hstack([np.cross(p - c, n), n])
         if ground_z is not None:
@@ -163,12 +173,33 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
     p = apply(T, source)
     d, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
     ok = np.isfinite(d)
+    if one_sided:
+        ok[ok] = facing(p[ok], target.normals[idx[ok]], T[:3, 3])
     if ok.sum() == 0:
         return IcpResult(T, 0.0, np.inf, H, 0, it)
     r = np.einsum("ij,ij->i", p[ok] - target.points[idx[ok]], target.normals[idx[ok]])
     w = (kernel**2 / (kernel**2 + r**2)) ** 2
     rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
     return IcpResult(T, float(ok.mean()), rmse, H / max(int(ok.sum()), 1), int(ok.sum()), it)
+
+
+STEEP = 0.7   # |normal z| below this: a wall, pole or post face (oriented to its viewer)
+
+
+def facing(p: np.ndarray, n: np.ndarray, center: np.ndarray) -> np.ndarray:
+    """(K,) True where a match of point p (K, 3) onto a target surface with normal n (K, 3)
+    is plausible from a sensor at `center` (3,): gentle surfaces (|n_z| >= STEEP) always,
+    steep ones only where their viewpoint-oriented normal faces the sensor."""
+    toward = np.einsum("ij,ij->i", n, center[None, :] - p) > 0
+    return toward | (np.abs(n[:, 2]) >= STEEP)
+
+
+def orient_to_viewpoints(points: np.ndarray, normals: np.ndarray, viewpoints: np.ndarray) -> np.ndarray:
+    """Normals (M, 3) of steep surfaces (|n_z| < STEEP) flipped to point from points (M, 3)
+    towards the sensor positions viewpoints (M, 3) that saw them (the visible side); gentle
+    ones keep their +z orientation (a sensor at ground height sees the ground edge-on)."""
+    flip = (np.einsum("ij,ij->i", normals, viewpoints - points) < 0) & (np.abs(normals[:, 2]) < STEEP)
+    return np.where(flip[:, None], -normals, normals)
 
 
 def weak_directions(hessian: np.ndarray, threshold: float) -> np.ndarray:

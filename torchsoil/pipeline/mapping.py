@@ -56,7 +56,8 @@ class MappingConfig:
     that measure the initial velocity, s. source_voxel: voxel of the registered sweep, m.
     max_points: at most this many of its voxels are registered (evenly thinned).
     max_degenerate_share: above this share of degenerate sweeps the run stops.
-    workers: threads for nearest-neighbour queries. ground_z: see icp.register (None: off)."""
+    workers: threads for nearest-neighbour queries. ground_z, one_sided: see icp.register
+    (ground_z None: off)."""
 
     voxel: float = 0.2
     map_radius: float = 30.0
@@ -75,6 +76,7 @@ class MappingConfig:
     max_degenerate_share: float = 0.8
     workers: int = 1
     ground_z: float | None = 0.97
+    one_sided: bool = True
 
 
 class Sweep(NamedTuple):
@@ -108,7 +110,8 @@ def voxel_pick(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 class LocalMap:
-    """Voxelised world points near the robot (one point per voxel, oldest kept)."""
+    """Voxelised world points near the robot (one point per voxel, oldest kept), with
+    normals turned towards the robot position from which each point was first seen."""
 
     def __init__(self, voxel: float, radius: float, normal_radius: float):
         self.voxel, self.radius, self.normal_radius = voxel, radius, normal_radius
@@ -116,6 +119,7 @@ class LocalMap:
         self.normals = np.zeros((0, 3))
         self.good = np.zeros(0, bool)
         self.age = np.zeros(0, np.int64)
+        self.views = np.zeros((0, 3))
         self.retries = 10
         self.target: icp.Target | None = None
         self.history: list[np.ndarray] = []
@@ -129,9 +133,10 @@ class LocalMap:
         self.history.append(world_points)
         n_old = len(self.points)
         pts = np.concatenate([self.points, world_points])
+        views = np.concatenate([self.views, np.broadcast_to(center, world_points.shape)])
         keep = np.sort(voxel_pick(pts, self.voxel))  # earlier (older) points win their voxel
         keep = keep[np.linalg.norm(pts[keep, :2] - center[:2], axis=1) < self.radius]
-        pts = pts[keep]
+        pts, views = pts[keep], views[keep]
         tree = cKDTree(pts)
         new = keep >= n_old
         normals = np.zeros_like(pts)
@@ -145,7 +150,8 @@ class LocalMap:
         redo = ~good & (age < self.retries)
         normals[redo], good[redo] = icp.pca_normals(pts, tree, pts[redo],
                                                     radius=self.normal_radius)
-        self.points, self.normals, self.good, self.age = pts, normals, good, age
+        normals[redo] = icp.orient_to_viewpoints(pts[redo], normals[redo], views[redo])
+        self.points, self.normals, self.good, self.age, self.views = pts, normals, good, age, views
         self.target = icp.Target(pts, normals, tree)
 
 
@@ -226,7 +232,7 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
         gate = cfg.startup_dist if k == usable[1] else cfg.max_dist
         src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points)
         res = icp.register(src, local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers,
-                           ground_z=cfg.ground_z)
+                           ground_z=cfg.ground_z, one_sided=cfg.one_sided)
         fitness[k], rmse[k] = res.fitness, res.rmse
         if res.fitness < cfg.min_fitness or not np.isfinite(res.rmse):
             flags[k] |= POOR_FIT
