@@ -10,6 +10,18 @@ from __future__ import annotations
 import copy
 
 STRAIGHT = {"segments": [{"straight": 14.0, "speed": 1.0}]}
+
+
+def _lane_change(side: int) -> list[dict]:
+    """Two opposite 37 deg arcs of 1.25 m radius: 0.5 m sideways (half a track) over 1.5 m."""
+    return [{"arc": 1.25, "angle_deg": 37 * side, "speed": 1.0}, {"arc": 1.25, "angle_deg": -37 * side, "speed": 1.0}]
+
+
+# back along the first leg, on and off its tracks four times: pass-count changes are the only
+# lever a per-window sinkage leaves a hardening term, and one revisit gives just two of them
+WEAVE = [{"straight": 0.8, "speed": 1.0}]
+for _side in (1, -1, 1, -1):
+    WEAVE += _lane_change(_side) + [{"straight": 0.8, "speed": 1.0}]
 WORLD = {"chunk": 0.1}
 
 SCENARIOS: dict[str, dict] = {
@@ -37,9 +49,8 @@ SCENARIOS: dict[str, dict] = {
         "effects": {"lateral_load_transfer": {"form": "linear", "k": 1.5}}},
     "multi_pass_hardening": {
         "trajectory": {"segments": [
-            {"straight": 3.0, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8},
-            {"straight": 3.0, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8},
-            {"straight": 4.0, "speed": 1.0}]},
+            {"straight": 10.0, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8},
+            {"straight": 10.0, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8}] + WEAVE},
         "soil": {"base": {"d": 0.025, "chi": 0.25, "beta_deg": 28.0, "moisture": 0.3}},
         "effects": {"multi_pass_hardening": {"form": "saturating", "k": -0.6}}},
     "cohesive_walls": {

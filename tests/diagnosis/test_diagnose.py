@@ -45,7 +45,7 @@ def test_speed_effect_is_named_located_and_fitted(speed_power):
     k = s["extension_parameters"][name]
     assert 0.4 * truth < k < 2.5 * truth                     # power law vs linear: same sign, same size
     assert s["cost_after"]["prediction"] < s["cost_before"]["prediction"]
-    assert diag.best.z > diag.evidence["z_accept"]
+    assert diag.best.z > diag.evidence["z_accept"][diag.best.ext.id]
     # the improvement sits around the speed changes (segments end every 2 m)
     spans = s["where"]["along_track"]
     assert spans and all(any(a - 1.0 <= c <= b + 1.0 for c in range(2, 14, 2)) for a, b in spans)

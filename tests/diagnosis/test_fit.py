@@ -1,6 +1,8 @@
 """Coefficient search and the acceptance rule."""
 
 import numpy as np
+import pytest
+from scipy import stats
 
 from torchsoil.diagnosis.catalogue import CATALOGUE
 from torchsoil.diagnosis.fit import CandidateFit, accept, folds, refine
@@ -33,3 +35,28 @@ def test_accept_needs_significance_and_agreeing_folds():
     assert not accept(fit_with(1.5, (2.0, 4.0)), 2.1)        # within the noise
     assert not accept(fit_with(3.0, (0.0, 4.0)), 2.1)        # one fold preferred the base model
     assert not accept(fit_with(3.0, (-2.0, 4.0)), 2.1)       # folds disagree on the sign
+
+
+def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
+    from types import SimpleNamespace
+
+    from torchsoil.diagnosis.run import accept_in_order, thresholds
+
+    levels = thresholds(4, 0.05, 0.6)
+    assert sum(levels) == pytest.approx(0.05) and levels[0] == pytest.approx(0.03)
+    assert thresholds(1, 0.05, 0.6) == [0.05]
+
+    def fit(z):
+        return SimpleNamespace(z=z, k_fold=(-0.3, -0.3), accepted=None)
+
+    # the leading candidate needs less than a Bonferroni split would ask (z 1.88 vs 2.24) ...
+    fits = [fit(2.0), fit(2.4), fit(0.0)]
+    used = accept_in_order(fits, 0.05, 0.6)
+    assert [f.accepted for f in fits] == [True, True, False]
+    assert used[0] == pytest.approx(stats.norm.isf(0.03))
+    # ... a later one more, unless the ones before it were accepted and passed their level on
+    assert used[1] == pytest.approx(stats.norm.isf(0.03 + 0.01))
+    fits = [fit(1.0), fit(2.3), fit(0.0)]
+    used = accept_in_order(fits, 0.05, 0.6)
+    assert [f.accepted for f in fits] == [False, False, False]
+    assert used[1] == pytest.approx(stats.norm.isf(0.01))

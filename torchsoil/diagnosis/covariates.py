@@ -82,8 +82,11 @@ class DriveSignals:
     signals: {name: (N,)} at the recorded poses; poses4: (N, 4) t, x, y, unwrapped yaw.
     wheel_points: (M, 2) every wheel centre along
     the drive, resampled every `spacing` m; wheel_arc: (M,) base_link arc length there, m.
-    radius: distance [m] within which a wheel passes over the same ground; gap: base_link
-    travel [m] after which coming back counts as a new pass.
+    radius: distance [m] from an earlier wheel centre line within which ground counts as
+    passed over (1.5 wheel widths: the footprint and one wheel width beside it, where the
+    load of the wheel also compacts the soil; a path that joins an old track at an angle
+    runs on compacted ground before its wheels meet the old ruts); gap: base_link travel [m]
+    after which coming back counts as a new pass.
     """
 
     signals: dict[str, np.ndarray]
@@ -101,7 +104,7 @@ class DriveSignals:
         arc = np.interp(dense[:, 0], sig["t"], sig["arc_length"])
         w = wheel_positions(dense, robot.wheels[:, :2])                     # (K, M, 2)
         gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
-        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), robot.wheel_width / 2, gap)
+        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), 1.5 * robot.wheel_width, gap)
 
     def at(self, name: str, t) -> np.ndarray:
         """Signal `name` interpolated at times t [s] (any shape)."""

@@ -152,10 +152,11 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
 
 
 def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base: Pass,
-                  block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None) -> CandidateFit:
+                  block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
+                  offsets: tuple[int, ...] = (2, 4, 6)) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
-    the base pass."""
+    the base pass (which must have been scored with the same `offsets`)."""
     passes: dict[float, Pass] = {0.0: base}
 
     def run(k: float) -> None:
@@ -163,7 +164,7 @@ def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base:
         if any(abs(k - q) < 1e-9 for q in passes):
             return
         passes[k] = run_pass(pair, config, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
-                             theta0=theta0)
+                             theta0=theta0, offsets=offsets)
         if progress is not None:
             progress.update(1)
 

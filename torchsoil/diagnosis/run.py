@@ -21,21 +21,26 @@ class DiagnosisConfig:
     """Settings of the diagnosis (defaults used by scripts/diagnose.py).
 
     n_fit: candidates fitted (the leading ones by the location evidence). alpha_accept:
-    family-wise one-sided level of the held-out test, split over the fitted candidates.
-    alpha_locate: family-wise level of the location tests (rut-floor and rut-wall profile,
-    left/right asymmetry, along-track spectral line), split over them. materiality: a
+    family-wise one-sided level of the held-out test, spent over the fitted candidates in
+    their order by the fallback procedure: the leading candidate gets lead_share of it, the
+    others share the rest, and a candidate accepted passes its level on to the next
+    (`thresholds`). alpha_locate: family-wise level of the location tests (rut-floor, rut-wall
+    and outside profile, left/right asymmetry, along-track spectral line), split over them. materiality: a
     located zone or asymmetry must also exceed this fraction of the measured noise floor
     (with many cells a bias far below the sensor noise becomes significant, but it is not a
     mismatch anyone could use). block_m: length of
     the cross-validation blocks, m. min_spread: smallest spread (std over windows) of a
-    covariate for its term to be testable on this drive."""
+    covariate for its term to be testable on this drive. offsets: windows back (in strides)
+    on whose ground each fit is also scored (held-out costs; see fit.run_pass)."""
 
     n_fit: int = 4
     alpha_accept: float = 0.05
+    lead_share: float = 0.6
     alpha_locate: float = 0.01
     materiality: float = 0.1
     block_m: float = 2.4
     refine_steps: int = 2
+    offsets: tuple = (2, 4, 6)
     min_spread: dict = field(default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004,
                                                       "passes": 0.05})
 
@@ -64,6 +69,32 @@ class Diagnosis:
 
 def _z_two_sided(alpha: float) -> float:
     return float(stats.norm.isf(alpha / 2))
+
+
+LOCATED_ZONES = ("rut_floor", "rut_wall", "outside")   # berm heights follow chi: not a location test
+N_LOCATE_TESTS = len(LOCATED_ZONES) + 2                 # + left/right asymmetry + spectral line
+
+
+def thresholds(n: int, alpha: float, lead_share: float) -> list[float]:
+    """Base one-sided levels (alphas) of n candidates tested in order by the fallback procedure
+    (Wiens 2003): alpha * lead_share for the first, alpha (1 - lead_share) / (n - 1) for each
+    other. They sum to alpha; the level of an accepted candidate carries over to the next
+    (see `accept_in_order`), so the family-wise error stays at alpha."""
+    if n <= 1:
+        return [alpha] * n
+    return [alpha * lead_share] + [alpha * (1 - lead_share) / (n - 1)] * (n - 1)
+
+
+def accept_in_order(fits: list[CandidateFit], alpha: float, lead_share: float) -> list[float]:
+    """Set `accepted` on fits (in location-evidence order) by the fallback procedure; returns
+    the z level each was tested at."""
+    levels, carry, used = thresholds(len(fits), alpha, lead_share), 0.0, []
+    for f, a in zip(fits, levels, strict=True):
+        z = float(stats.norm.isf(a + carry))
+        f.accepted = accept(f, z)
+        carry = a + carry if f.accepted else 0.0
+        used.append(z)
+    return used
 
 
 def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float]]:
@@ -153,7 +184,7 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
         if progress is not None and k % 5 == 0:
             progress.set_postfix_str(f"base window {k}")
 
-    base = run_pass(pair, config, profiles=True, on_window=keep)
+    base = run_pass(pair, config, profiles=True, on_window=keep, offsets=cfg.offsets)
     if progress is not None:
         progress.update(1)
     rows = base.rows
@@ -171,19 +202,18 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
 
     # ---- rank candidates by the location evidence, fit the leading testable ones
     ahead = max(1, int(round(window / stride)))
-    z_loc = _z_two_sided(cfg.alpha_locate / 4)
+    z_loc = _z_two_sided(cfg.alpha_locate / N_LOCATE_TESTS)
     material = cfg.materiality * float(np.nanmean(base.floor))
     ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc)
           for e in catalogue.CATALOGUE.values()}
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
     fits: list[CandidateFit] = []
-    z_crit = float(stats.norm.isf(cfg.alpha_accept / max(len(ranked), 1)))
     for ext_id in ranked:
         f = fit_extension(pair, config, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
-                          theta0, progress)
-        f.accepted = accept(f, z_crit)
+                          theta0, progress, cfg.offsets)
         fits.append(f)
+    z_crit = dict(zip(ranked, accept_in_order(fits, cfg.alpha_accept, cfg.lead_share), strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
     best = accepted[0] if accepted else None
     pairwise = None
@@ -191,11 +221,11 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
         m, se, z = paired_improvement(accepted[1].prediction, best.prediction)
         pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z}
 
-    # ---- location tests (family-wise alpha_locate over four tests)
-    sig_zones = [zn for zn in ("rut_floor", "rut_wall")
+    # ---- location tests (family-wise alpha_locate over N_LOCATE_TESTS tests)
+    sig_zones = [zn for zn in LOCATED_ZONES
                  if abs(zones[zn]["z"]) > z_loc and abs(zones[zn]["mean"]) > material]
     sig_asym = abs(asym["z"]) > z_loc and abs(asym["mean"]) > material
-    sig_line = line["p"] < cfg.alpha_locate / 4
+    sig_line = line["p"] < cfg.alpha_locate / N_LOCATE_TESTS
     located = bool(sig_zones or sig_asym or sig_line)
     s0, s1 = s - window / 2, s + window / 2
     covariate = None
