@@ -200,7 +200,8 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
     lines += ["", f"Left-right rut-floor asymmetry {_mm(a['mean'])}, z = {a['z']:.1f}; strongest along-track line "
               f"{ln['ratio']:.1f} x background at {ln['wavelength']:.2f} m (p = {ln['p']:.2g}). Location tests "
               f"need |z| > {ev['z_locate']:.2f}; berms are not tested (their height follows the soil parameters).",
-              "", "## Candidates", "", "| id | location evidence | fitted | held-out prediction | z (needed) | accepted |",
+              "", "## Candidates", "",
+              "| id | location evidence | fitted | held-out prediction | z (needed) | accepted |",
               "| --- | --- | --- | --- | --- | --- |"]
     fitted = {f.ext.id: f for f in diag.fits}
     for i, e in ev["candidates"].items():
