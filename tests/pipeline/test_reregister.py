@@ -11,7 +11,8 @@ from torchsoil.pipeline.toyscene import ToyScene
 
 
 def reference(scene, stamps, rng):
-    """P_ref from true poses (no motion distortion: the robot is slow here)."""
+    """P_ref from true poses (no motion distortion: the robot is slow here, so every point is
+    seen from about where it is at the middle of the stamps)."""
     pts = []
     for t in stamps:
         for sensor in ("lidar_front", "lidar_back"):
@@ -20,7 +21,9 @@ def reference(scene, stamps, rng):
             pts.append(icp.apply(scene.pose(t) @ scene.extrinsics[sensor], xyz))
     ref = icp.voxel_downsample(np.concatenate(pts), 0.1)
     tree = cKDTree(ref)
-    return icp.Target(ref, icp.pca_normals(ref, tree, ref)[0], tree)
+    view = scene.pose(np.array([stamps.mean()]))[0, :3, 3]
+    normals = icp.orient_to_viewpoints(ref, icp.pca_normals(ref, tree, ref)[0], np.broadcast_to(view, ref.shape))
+    return icp.Target(ref, normals, tree)
 
 
 def test_wrong_seed_is_corrected_and_bad_fit_refused():

@@ -90,7 +90,8 @@ class Sweep(NamedTuple):
 
 class MappingResult(NamedTuple):
     """stamps (S,) [s]; poses (S, 4, 4) base_link in world at each stamp; map_points (M, 3)
-    and map_normals (M, 3) of P_ref [m]; fitness (S,), rmse (S,) [m], flags (S,) int."""
+    and map_normals (M, 3) of P_ref [m] (wall and pole normals turned towards where they
+    were seen from: icp.orient_to_viewpoints); fitness (S,), rmse (S,) [m], flags (S,) int."""
 
     stamps: np.ndarray
     poses: np.ndarray
@@ -122,15 +123,20 @@ class LocalMap:
         self.views = np.zeros((0, 3))
         self.retries = 10
         self.target: icp.Target | None = None
-        self.history: list[np.ndarray] = []
+        self.history: list[tuple[np.ndarray, np.ndarray]] = []
 
-    def global_map(self) -> np.ndarray:
-        """(M, 3) every point ever added, one per voxel (oldest kept): P_ref."""
-        pts = np.concatenate(self.history) if self.history else np.zeros((0, 3))
-        return pts[np.sort(voxel_pick(pts, self.voxel))]
+    def global_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every point ever added, one per voxel (oldest kept): P_ref (M, 3), and the robot
+        position (M, 3) each was seen from, m."""
+        if not self.history:
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        pts = np.concatenate([h[0] for h in self.history])
+        views = np.concatenate([np.broadcast_to(h[1], h[0].shape) for h in self.history])
+        keep = np.sort(voxel_pick(pts, self.voxel))
+        return pts[keep], views[keep]
 
     def add(self, world_points: np.ndarray, center: np.ndarray) -> None:
-        self.history.append(world_points)
+        self.history.append((world_points, np.array(center, np.float64)))
         n_old = len(self.points)
         pts = np.concatenate([self.points, world_points])
         views = np.concatenate([self.views, np.broadcast_to(center, world_points.shape)])
@@ -260,8 +266,9 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
             "s after the start): the scene has no structure that fixes the motion along the "
             "ground (a landmark-free field?), so the trajectory, and with it the heightmaps, "
             "would be unreliable; nothing written")
-    p_ref = local.global_map()
+    p_ref, views = local.global_map()
     normals, _ = icp.pca_normals(p_ref, cKDTree(p_ref), p_ref, radius=cfg.normal_radius)
+    normals = icp.orient_to_viewpoints(p_ref, normals, views)
     return MappingResult(stamps, poses, p_ref, normals, fitness, rmse, flags)
 
 

@@ -27,7 +27,8 @@ class ReregisterConfig:
     max_rmse: robust point-to-plane RMS above which it is dropped, m. max_shift: largest
     accepted translation from the seed, m; max_turn: largest rotation, degrees.
     degenerate_eigen: see MappingConfig. max_range: points used for ICP, m. max_points: at
-    most this many source voxels (evenly thinned)."""
+    most this many source voxels (evenly thinned). one_sided: see icp.register (needs P_ref
+    normals oriented to their viewpoints, as build_map gives them)."""
 
     enabled: bool = True
     voxel: float = 0.1
@@ -40,6 +41,7 @@ class ReregisterConfig:
     degenerate_eigen: float = 2e-3
     max_range: float = 30.0
     max_points: int = 2500
+    one_sided: bool = True
 
 
 def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -80,7 +82,7 @@ def register_sweep(points: np.ndarray, t: np.ndarray, stamp: float, ref_stamps: 
     src = icp.thin(icp.voxel_downsample(near, cfg.voxel), cfg.max_points)
     if len(src) < 50:
         return pts, seed, 0.0, np.inf, False, False
-    res = icp.register(src, target, seed, cfg.max_dist, cfg.max_iter)
+    res = icp.register(src, target, seed, cfg.max_dist, cfg.max_iter, one_sided=cfg.one_sided)
     weak = icp.weak_directions(res.hessian, cfg.degenerate_eigen)
     T = icp.project_update(seed, res.transform, weak)
     D = np.linalg.inv(seed) @ T
