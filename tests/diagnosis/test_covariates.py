@@ -79,3 +79,15 @@ def test_passes_count_the_ground_driven_twice_only():
 def test_bad_poses_are_named(bad, msg):
     with pytest.raises(ValueError, match=msg.replace("(", r"\(").replace(")", r"\)")):
         pose_signals(bad)
+
+
+@pytest.mark.parametrize("beside, share", [(0.05, 1.0), (0.21, 0.5), (0.4, 0.0)])
+def test_an_old_track_beside_the_wheel_counts_in_part(beside, share):
+    """Compaction fades over two wheel widths beside an old footprint (0.14 m wheels)."""
+    x = np.arange(0.0, 6.0, 0.02)
+    old = np.column_stack([x, np.zeros_like(x)])
+    new = np.column_stack([x, np.full_like(x, beside)])
+    drive = DriveSignals({}, np.zeros((0, 4)), np.concatenate([old, new]), np.concatenate([x, x + 20.0]),
+                         radius=0.07 + 0.28, gap=3.0, inner=0.07)
+    got = drive.passes(np.array([[3.0, beside]]), np.array([23.0]))
+    assert got[0] == pytest.approx(share, abs=0.02)

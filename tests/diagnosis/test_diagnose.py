@@ -102,7 +102,7 @@ def test_too_short_a_drive_is_refused():
 
 def test_profiles_hold_finite_floor_and_wall_statistics(speed_power):
     zones = speed_power[1].evidence["zones"]
-    assert all(np.isfinite(zones[z]["se"]) and zones[z]["segments"] >= 15 for z in ("rut_floor", "rut_wall"))
+    assert all(np.isfinite(zones[z]["se"]) and zones[z]["segments"] >= 15 for z in ("rut_floor", "rut_wall", "outside"))
 
 
 @pytest.mark.parametrize("effect, law, seed", [

@@ -42,21 +42,24 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
 
     from torchsoil.diagnosis.run import accept_in_order, thresholds
 
-    levels = thresholds(4, 0.05, 0.6)
+    levels = thresholds([1e-5, 1e-3, 0.01, 0.2], 0.05, 0.6)
     assert sum(levels) == pytest.approx(0.05) and levels[0] == pytest.approx(0.03)
-    assert thresholds(1, 0.05, 0.6) == [0.05]
+    assert thresholds([0.3], 0.05, 0.6) == [0.05]
+    tied = thresholds([1e-30, 1e-30, 0.01], 0.05, 0.6)       # two shape terms, same profile evidence
+    assert tied == pytest.approx([0.015, 0.015, 0.02])
 
     def fit(z):
         return SimpleNamespace(z=z, k_fold=(-0.3, -0.3), accepted=None)
 
     # the leading candidate needs less than a Bonferroni split would ask (z 1.88 vs 2.24) ...
     fits = [fit(2.0), fit(2.4), fit(0.0)]
-    used = accept_in_order(fits, 0.05, 0.6)
+    p = [1e-4, 1e-3, 1e-2]
+    used = accept_in_order(fits, p, 0.05, 0.6)
     assert [f.accepted for f in fits] == [True, True, False]
     assert used[0] == pytest.approx(stats.norm.isf(0.03))
     # ... a later one more, unless the ones before it were accepted and passed their level on
     assert used[1] == pytest.approx(stats.norm.isf(0.03 + 0.01))
     fits = [fit(1.0), fit(2.3), fit(0.0)]
-    used = accept_in_order(fits, 0.05, 0.6)
+    used = accept_in_order(fits, p, 0.05, 0.6)
     assert [f.accepted for f in fits] == [False, False, False]
     assert used[1] == pytest.approx(stats.norm.isf(0.01))

@@ -82,11 +82,12 @@ class DriveSignals:
     signals: {name: (N,)} at the recorded poses; poses4: (N, 4) t, x, y, unwrapped yaw.
     wheel_points: (M, 2) every wheel centre along
     the drive, resampled every `spacing` m; wheel_arc: (M,) base_link arc length there, m.
-    radius: distance [m] from an earlier wheel centre line within which ground counts as
-    passed over (1.5 wheel widths: the footprint and one wheel width beside it, where the
-    load of the wheel also compacts the soil; a path that joins an old track at an angle
-    runs on compacted ground before its wheels meet the old ruts); gap: base_link travel [m]
-    after which coming back counts as a new pass.
+    inner, radius: an earlier wheel passing within `inner` m of a point (its footprint)
+    counts as a full pass there, one passing `radius` m away or farther not at all, and in
+    between the share falls linearly: the load of a wheel compacts the soil beside its
+    footprint too, fading over about two wheel widths (a path that joins an old track at an
+    angle runs on compacted ground before its wheels meet the old ruts). gap: base_link
+    travel [m] after which coming back counts as a new pass.
     """
 
     signals: dict[str, np.ndarray]
@@ -95,6 +96,7 @@ class DriveSignals:
     wheel_arc: np.ndarray
     radius: float
     gap: float
+    inner: float = 0.0
 
     @classmethod
     def from_poses(cls, poses, robot: Robot, spacing: float = 0.02) -> DriveSignals:
@@ -104,7 +106,8 @@ class DriveSignals:
         arc = np.interp(dense[:, 0], sig["t"], sig["arc_length"])
         w = wheel_positions(dense, robot.wheels[:, :2])                     # (K, M, 2)
         gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
-        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), 1.5 * robot.wheel_width, gap)
+        r = robot.wheel_width / 2
+        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), r + 2 * robot.wheel_width, gap, r)
 
     def at(self, name: str, t) -> np.ndarray:
         """Signal `name` interpolated at times t [s] (any shape)."""
@@ -114,21 +117,33 @@ class DriveSignals:
 
     def passes(self, points: np.ndarray, arc: np.ndarray) -> np.ndarray:
         """Passes before the last one over the ground at `points` (..., 2) [m]: distinct visits
-        (separated by more than `gap` of base_link travel) of any wheel within `radius`, minus
-        one. A terrain pair holds the surface just before the last visit to each cell, so the
-        deformation it shows there is that of the last pass, whose earlier passes these are,
-        whichever pass the pose itself belongs to. arc: (...) base_link arc length [m] (kept
-        for the call signature; every visit counts). Returns an int array of arc's shape."""
+        (separated by more than `gap` of base_link travel) of any wheel within `radius`, each
+        weighted by its closest wheel's distance (1 within `inner`, falling linearly to 0 at
+        `radius`), all but the last. A terrain pair holds the surface just before the last
+        visit to each cell, so the deformation it shows there is that of the last pass, whose
+        earlier passes these are, whichever pass the pose itself belongs to. arc: (...)
+        base_link arc length [m] (kept for the call signature; every visit counts). Returns a
+        float array of arc's shape (whole numbers where old tracks are driven exactly)."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
         tree = cKDTree(self.wheel_points)
-        out = np.zeros(len(pts), np.int64)
+        out = np.zeros(len(pts))
+        span = max(self.radius - self.inner, 1e-9)
         for i, hits in enumerate(tree.query_ball_point(pts, self.radius)):
-            if len(hits) > 1:
-                out[i] = int(np.sum(np.diff(np.sort(self.wheel_arc[hits])) > self.gap))
+            if len(hits) < 2:
+                continue
+            hits = np.asarray(hits)
+            order = np.argsort(self.wheel_arc[hits])
+            hits = hits[order]
+            visit = np.concatenate([[0], np.cumsum(np.diff(self.wheel_arc[hits]) > self.gap)])
+            if visit[-1] == 0:
+                continue
+            dist = np.linalg.norm(self.wheel_points[hits] - pts[i], axis=1)
+            share = np.clip((self.radius - dist) / span, 0.0, 1.0)
+            out[i] = float(np.maximum.reduceat(share, np.flatnonzero(np.diff(visit, prepend=-1)))[:-1].sum())
         return out.reshape(np.shape(points)[:-1])
 
     def pose_passes(self, poses4: np.ndarray, robot: Robot) -> np.ndarray:
-        """(N, 4) poses t, x, y, yaw -> (K, N) earlier passes under each wheel."""
+        """(N, 4) poses t, x, y, yaw -> (K, N) earlier passes under each wheel (float)."""
         w = wheel_positions(np.asarray(poses4, np.float64), robot.wheels[:, :2])
         arc = self.at("arc_length", poses4[:, 0])
         return self.passes(w, np.broadcast_to(arc, w.shape[:2]))

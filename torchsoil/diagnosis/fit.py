@@ -94,7 +94,8 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
         if prof is not None and o.h_sim is not None:
             i0, i1, j0, j1 = o.data.crop
             c = o.row["s"]
-            prof.add(o.data, o.h_sim, est.index.s[i0:i1, j0:j1], c - stride / 2, c + stride / 2, wheels_y)
+            prof.add(o.data, o.h_sim, est.index.s[i0:i1, j0:j1], c - stride / 2, c + stride / 2, wheels_y,
+                     (est.index.offset[i0:i1, j0:j1], est.index.wheel_dist[i0:i1, j0:j1]))
         if on_window is not None:
             on_window(k, o, est)
     res = np.array([r["residual"] for r in rows], np.float64)

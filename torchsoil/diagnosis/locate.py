@@ -166,9 +166,14 @@ class Profiles:
         n = int(math.ceil(reach / dx))
         return cls(np.arange(-n, n + 1) * dx, dx, radius)
 
-    def add(self, wd, h_sim, s_cells: np.ndarray, s0: float, s1: float, wheels_y: np.ndarray) -> None:
+    def add(self, wd, h_sim, s_cells: np.ndarray, s0: float, s1: float, wheels_y: np.ndarray,
+            outer: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         """Add the cells of window wd whose arc length (s_cells, (X, Y) on the window crop)
-        lies in [s0, s1). h_sim: (X, Y) simulated H_b on the crop, m."""
+        lies in [s0, s1). h_sim: (X, Y) simulated H_b on the crop, m. outer: optional
+        (offset, wheel_dist) (X, Y) crops of the path index (distance to the base_link path
+        and to the nearest wheel path, m): cells beyond the wheels' footprints and deposition
+        bands, which the wheel-cell incidence does not hold, then enter the profile too
+        (outward sign from the offset; half to each side, as the side is not known)."""
         g = wd.geom
         cell = g.cell.cpu().numpy()
         order = np.argsort(g.dist.cpu().numpy(), kind="stable")
@@ -176,24 +181,34 @@ class Profiles:
         c = cell[first]
         wheel = g.wheel.cpu().numpy()[first]
         lat = g.lateral.cpu().numpy()[first] * np.sign(wheels_y[wheel])       # outward positive
-        side = (wheels_y[wheel] < 0).astype(int)
+        side = (wheels_y[wheel] < 0).astype(float)
+        w_side = np.ones(len(c))
+        if outer is not None:
+            offset, wdist = (np.asarray(a).reshape(-1) for a in outer)
+            rest = np.setdiff1d(np.flatnonzero(np.isfinite(wdist)), c)
+            lat_r = np.sign(offset[rest] - np.abs(wheels_y).mean()) * wdist[rest]
+            c = np.concatenate([c, rest, rest])
+            lat = np.concatenate([lat, lat_r, lat_r])
+            side = np.concatenate([side, np.zeros(len(rest)), np.ones(len(rest))])
+            w_side = np.concatenate([w_side, np.full(2 * len(rest), 0.5)])
+        side = side.astype(int)
         weight = wd.weight.cpu().numpy().reshape(-1)[c] > 0
         s = s_cells.reshape(-1)[c]
         keep = weight & (s >= s0) & (s < s1)
         n = len(self.bins)
         b = np.rint(lat / self.dx).astype(int) + n // 2
         keep &= (b >= 0) & (b < n)
-        c, b, side, s, lat = c[keep], b[keep], side[keep], s[keep], lat[keep]
+        c, b, side, s, lat, w_side = c[keep], b[keep], side[keep], s[keep], lat[keep], w_side[keep]
         hb = wd.h_back.cpu().numpy().reshape(-1)[c]
         hf = wd.h_front[0].cpu().numpy().reshape(-1)[c]
         hs = np.asarray(h_sim.detach().cpu().numpy() if hasattr(h_sim, "detach") else h_sim).reshape(-1)[c]
         acc = {k: np.zeros((2, n)) for k in ("res", "meas", "sim", "count")}
         for arr, val in (("res", hs - hb), ("meas", hb - hf), ("sim", hs - hf), ("count", np.ones_like(hb))):
-            np.add.at(acc[arr], (side, b), val)
+            np.add.at(acc[arr], (side, b), val * w_side)
         self.seg_s.append(0.5 * (s0 + s1))
         for k in acc:
             getattr(self, k).append(acc[k])
-        fl = zone_of(lat, self.radius, self.dx) == 0
+        fl = (zone_of(lat, self.radius, self.dx) == 0) & (w_side == 1)
         self.floor_s.append(s[fl])
         self.floor_r.append((hs - hb)[fl])
 

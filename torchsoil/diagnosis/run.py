@@ -22,8 +22,8 @@ class DiagnosisConfig:
 
     n_fit: candidates fitted (the leading ones by the location evidence). alpha_accept:
     family-wise one-sided level of the held-out test, spent over the fitted candidates in
-    their order by the fallback procedure: the leading candidate gets lead_share of it, the
-    others share the rest, and a candidate accepted passes its level on to the next
+    their order by the fallback procedure: the leading candidate (or those tied for the lead)
+    gets lead_share of it, the others share the rest, and a candidate accepted passes its level on to the next
     (`thresholds`). alpha_locate: family-wise level of the location tests (rut-floor, rut-wall
     and outside profile, left/right asymmetry, along-track spectral line), split over them. materiality: a
     located zone or asymmetry must also exceed this fraction of the measured noise floor
@@ -75,20 +75,26 @@ LOCATED_ZONES = ("rut_floor", "rut_wall", "outside")   # berm heights follow chi
 N_LOCATE_TESTS = len(LOCATED_ZONES) + 2                 # + left/right asymmetry + spectral line
 
 
-def thresholds(n: int, alpha: float, lead_share: float) -> list[float]:
-    """Base one-sided levels (alphas) of n candidates tested in order by the fallback procedure
-    (Wiens 2003): alpha * lead_share for the first, alpha (1 - lead_share) / (n - 1) for each
-    other. They sum to alpha; the level of an accepted candidate carries over to the next
-    (see `accept_in_order`), so the family-wise error stays at alpha."""
-    if n <= 1:
-        return [alpha] * n
-    return [alpha * lead_share] + [alpha * (1 - lead_share) / (n - 1)] * (n - 1)
+def thresholds(p: list[float], alpha: float, lead_share: float) -> list[float]:
+    """Base one-sided levels (alphas) of candidates tested in order of their location
+    evidence p (ascending) by the fallback procedure (Wiens 2003): the leading candidates
+    (all tied at the smallest p) share alpha * lead_share, the others share the rest. They
+    sum to alpha; the level of an accepted candidate carries over to the next (see
+    `accept_in_order`), so the family-wise error stays at alpha."""
+    n = len(p)
+    if n == 0:
+        return []
+    lead = [abs(q - p[0]) <= 1e-12 + 1e-9 * abs(p[0]) for q in p]
+    n_lead = sum(lead)
+    if n_lead == n:
+        return [alpha / n] * n
+    return [alpha * lead_share / n_lead if is_lead else alpha * (1 - lead_share) / (n - n_lead) for is_lead in lead]
 
 
-def accept_in_order(fits: list[CandidateFit], alpha: float, lead_share: float) -> list[float]:
-    """Set `accepted` on fits (in location-evidence order) by the fallback procedure; returns
-    the z level each was tested at."""
-    levels, carry, used = thresholds(len(fits), alpha, lead_share), 0.0, []
+def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float) -> list[float]:
+    """Set `accepted` on fits (in order of their location evidence p) by the fallback
+    procedure; returns the z level each was tested at."""
+    levels, carry, used = thresholds(p, alpha, lead_share), 0.0, []
     for f, a in zip(fits, levels, strict=True):
         z = float(stats.norm.isf(a + carry))
         f.accepted = accept(f, z)
@@ -213,7 +219,8 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
         f = fit_extension(pair, config, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets)
         fits.append(f)
-    z_crit = dict(zip(ranked, accept_in_order(fits, cfg.alpha_accept, cfg.lead_share), strict=True))
+    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
+                                              cfg.lead_share), strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
     best = accepted[0] if accepted else None
     pairwise = None
