@@ -51,9 +51,11 @@ class Estimator:
         modifiers: optional callable (WindowData, B) -> sim.Modifiers: a model extension with
             fixed parameters (e.g. a sinkage factor per pose from the window's speed), applied
             in every simulation of that window, fit and prediction alike.
+        index: the pair's windows.PathIndex for these settings, when already computed (it
+            depends on the poses, robot and corridor only; repeated runs over one pair share it).
     """
 
-    def __init__(self, pair, config: dict, device=None, dtype=torch.float64, modifiers=None):
+    def __init__(self, pair, config: dict, device=None, dtype=torch.float64, modifiers=None, index=None):
         self.pair = pair
         self.modifiers = modifiers
         self.est = config["estimator"]
@@ -64,7 +66,7 @@ class Estimator:
         self.spec = ParamSpec.base(robot.n_tracks)
         reach = max(self.est["corridor"] / 2, self.est["floor_outer"] * robot.wheel_width + np.abs(
             robot.wheels[:, 1]).max()) + robot.wheel_width
-        self.index = path_index(pair.grid, pair.poses, robot, reach)
+        self.index = path_index(pair.grid, pair.poses, robot, reach) if index is None else index
         self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), self.est["window"],
                                                       self.est["stride"])
         ratio = self.est["window"] / self.est["stride"]

@@ -122,7 +122,7 @@ class ExtensionModel:
                 poses4 = wd.geom.poses.cpu().numpy()
                 f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference)
                 self._cache[key] = torch.as_tensor(f, **kw)
-                if len(self._cache) > 8:
+                if len(self._cache) > 32:          # the held-out offsets revisit windows up to 6 back
                     self._cache.pop(next(iter(self._cache)))
             return Modifiers(depth_scale=self._cache[key][None].expand(B, -1, -1))
         if self.ext.kind == "radius":

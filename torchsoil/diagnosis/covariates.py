@@ -19,7 +19,7 @@ could follow:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
@@ -97,6 +97,7 @@ class DriveSignals:
     radius: float
     gap: float
     inner: float = 0.0
+    _tree: cKDTree | None = field(default=None, repr=False, compare=False)
 
     @classmethod
     def from_poses(cls, poses, robot: Robot, spacing: float = 0.02) -> DriveSignals:
@@ -125,21 +126,25 @@ class DriveSignals:
         base_link arc length [m] (kept for the call signature; every visit counts). Returns a
         float array of arc's shape (whole numbers where old tracks are driven exactly)."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
-        tree = cKDTree(self.wheel_points)
+        if self._tree is None:
+            self._tree = cKDTree(self.wheel_points)
+        hits = self._tree.query_ball_point(pts, self.radius)
+        n_hits = np.fromiter((len(h) for h in hits), np.int64, len(hits))
         out = np.zeros(len(pts))
-        span = max(self.radius - self.inner, 1e-9)
-        for i, hits in enumerate(tree.query_ball_point(pts, self.radius)):
-            if len(hits) < 2:
-                continue
-            hits = np.asarray(hits)
-            order = np.argsort(self.wheel_arc[hits])
-            hits = hits[order]
-            visit = np.concatenate([[0], np.cumsum(np.diff(self.wheel_arc[hits]) > self.gap)])
-            if visit[-1] == 0:
-                continue
-            dist = np.linalg.norm(self.wheel_points[hits] - pts[i], axis=1)
-            share = np.clip((self.radius - dist) / span, 0.0, 1.0)
-            out[i] = float(np.maximum.reduceat(share, np.flatnonzero(np.diff(visit, prepend=-1)))[:-1].sum())
+        if n_hits.sum() == 0:
+            return out.reshape(np.shape(points)[:-1])
+        i = np.repeat(np.arange(len(pts)), n_hits)                       # one row per (point, hit)
+        j = np.concatenate([np.asarray(h, np.int64) for h in hits if len(h)])
+        a = self.wheel_arc[j]
+        order = np.lexsort((a, i))
+        i, j, a = i[order], j[order], a[order]
+        dist = np.linalg.norm(self.wheel_points[j] - pts[i], axis=1)
+        share = np.clip((self.radius - dist) / max(self.radius - self.inner, 1e-9), 0.0, 1.0)
+        first = np.flatnonzero(np.r_[True, (i[1:] != i[:-1]) | (np.diff(a) > self.gap)])   # visit starts
+        best = np.maximum.reduceat(share, first)                         # closest wheel of each visit
+        owner = i[first]
+        earlier = np.r_[owner[1:] == owner[:-1], False]                  # every visit but a point's last
+        out += np.bincount(owner, weights=best * earlier, minlength=len(pts))
         return out.reshape(np.shape(points)[:-1])
 
     def pose_passes(self, poses4: np.ndarray, robot: Robot) -> np.ndarray:

@@ -44,7 +44,8 @@ class Pass:
     prediction: cost of each window's fit on the next window's ground (the estimator's);
     backward: (W, O) its cost on the ground of the windows `offsets` strides back (also not
     used to fit it); held_out: (W,) mean of all of them, the per-window held-out cost. Far
-    offsets carry a fit across changes of a covariate, where a missing term shows."""
+    offsets carry a fit across changes of a covariate, where a missing term shows. index: the
+    windows.PathIndex the pass used (shared by the passes of one diagnosis)."""
 
     k: float
     rows: list[dict]
@@ -53,6 +54,7 @@ class Pass:
     floor: np.ndarray
     profiles: Profiles | None = None
     backward: np.ndarray | None = None
+    index: object = None
 
     @property
     def held_out(self) -> np.ndarray:
@@ -65,13 +67,16 @@ class Pass:
 
 
 def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: bool = False,
-             theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6)) -> Pass:
+             theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
+             index=None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
     on_window: optional callable(k, WindowOutput, estimator) called after every window.
     offsets: windows back (in strides) on whose ground each fit is also scored; use
-    multiples of window / stride so that the ground does not overlap the fit's."""
-    est = ExtendedEstimator(pair, config, model)
+    multiples of window / stride so that the ground does not overlap the fit's. index: the
+    pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
+    recomputing it."""
+    est = ExtendedEstimator(pair, config, model, index=index)
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
@@ -101,7 +106,7 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
     return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
-                np.array(backward, np.float64).reshape(len(rows), len(offsets)))
+                np.array(backward, np.float64).reshape(len(rows), len(offsets)), est.index)
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -165,7 +170,7 @@ def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base:
         if any(abs(k - q) < 1e-9 for q in passes):
             return
         passes[k] = run_pass(pair, config, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
-                             theta0=theta0, offsets=offsets)
+                             theta0=theta0, offsets=offsets, index=base.index)
         if progress is not None:
             progress.update(1)
 
