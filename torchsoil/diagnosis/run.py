@@ -22,11 +22,11 @@ class DiagnosisConfig:
 
     n_fit: candidates fitted (the leading ones by the location evidence). alpha_accept:
     family-wise one-sided level of the held-out test, spent over the fitted candidates in
-    their order by the fallback procedure: the leading candidate (or those tied for the lead)
-    gets lead_share of it, the others share the rest, and a candidate accepted passes its level on to the next
-    (`thresholds`). alpha_locate: family-wise level of the location tests (rut-floor, rut-wall
-    and outside profile, left/right asymmetry, along-track spectral line), split over them. materiality: a
-    located zone or asymmetry must also exceed this fraction of the measured noise floor
+    their order by the fallback procedure: the leading candidate (or those tied for the
+    lead) gets lead_share of it, the others share the rest, and an accepted candidate passes
+    its level on to the next (`thresholds`). alpha_locate: family-wise level of the location
+    tests (rut-floor, rut-wall and outside profile, left/right asymmetry, along-track
+    spectral line), split over them. materiality: a located zone or asymmetry must also exceed this fraction of the measured noise floor
     (with many cells a bias far below the sensor noise becomes significant, but it is not a
     mismatch anyone could use). block_m: length of
     the cross-validation blocks, m. min_spread: smallest spread (std over windows) of a
