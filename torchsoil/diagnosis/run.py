@@ -26,12 +26,12 @@ class DiagnosisConfig:
     lead) gets lead_share of it, the others share the rest, and an accepted candidate passes
     its level on to the next (`thresholds`). alpha_locate: family-wise level of the location
     tests (rut-floor, rut-wall and outside profile, left/right asymmetry, along-track
-    spectral line), split over them. materiality: a located zone or asymmetry must also exceed this fraction of the measured noise floor
-    (with many cells a bias far below the sensor noise becomes significant, but it is not a
-    mismatch anyone could use). block_m: length of
-    the cross-validation blocks, m. min_spread: smallest spread (std over windows) of a
-    covariate for its term to be testable on this drive. offsets: windows back (in strides)
-    on whose ground each fit is also scored (held-out costs; see fit.run_pass)."""
+    spectral line), split over them. materiality: a located zone or asymmetry must also
+    exceed this fraction of the measured noise floor (with many cells a bias far below the
+    sensor noise becomes significant, but it is not a mismatch anyone could use). block_m:
+    length of the cross-validation blocks, m. min_spread: smallest spread (std over windows)
+    of a covariate for its term to be testable on this drive. offsets: windows back (in
+    strides) on whose ground each fit is also scored (held-out costs; see fit.run_pass)."""
 
     n_fit: int = 4
     alpha_accept: float = 0.05
