@@ -11,20 +11,17 @@ the whole map without changing H_delta).
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from torchsoil.synth.truthfile import TruthFile
 
 
 def truth_poses(truth: TruthFile, stamps: np.ndarray) -> np.ndarray:
     """(S, 4, 4) true base_link poses at bag times `stamps` (S,) [s], interpolated."""
+    from torchsoil.pipeline.reregister import interpolate_poses
+    from torchsoil.pipeline.run import rows_to_poses
+
     tr = truth["poses"]
-    t = np.clip(np.asarray(stamps, np.float64) - truth.t0, tr[0, 0], tr[-1, 0])
-    P = np.zeros((len(t), 4, 4))
-    P[:, :3, :3] = Slerp(tr[:, 0], Rotation.from_euler("xyz", tr[:, 4:]))(t).as_matrix()
-    P[:, :3, 3] = np.column_stack([np.interp(t, tr[:, 0], tr[:, 1 + i]) for i in range(3)])
-    P[:, 3, 3] = 1.0
-    return P
+    return interpolate_poses(tr[:, 0], rows_to_poses(tr), np.asarray(stamps, np.float64) - truth.t0)
 
 
 def _rigid_fit(P: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
