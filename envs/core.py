@@ -23,7 +23,7 @@ from torchsoil.robot import Robot, paper_platform
 from torchsoil.sim.params import BETA_BOUNDS, CHI_BOUNDS, D_BOUNDS
 from torchsoil.sim.simulate import MAX_TAN_BETA
 
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "configs/env/soil_traverse.yaml"
+DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "torchsoil/configs/env/soil_traverse.yaml"
 
 DEFAULT_WEIGHTS = {"progress": 1.0, "displaced": 40.0, "compacted": 40.0, "rut_depth": 1.0,
                    "repeat_cells": 0.001, "time": 0.01, "goal": 10.0, "off_field": 10.0}

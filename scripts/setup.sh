@@ -27,7 +27,7 @@ fi
 if ! "$PY" -c "
 import pathlib, sys
 sys.path.pop(0)  # not the current directory: scripts/*.py must find the installed package
-import open3d, rosbags, gymnasium, numba, pytest, hypothesis, torchsoil
+import open3d, rosbags, gymnasium, numba, pytest, hypothesis, pydantic, torchsoil
 sys.exit(pathlib.Path(torchsoil.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())
 " 2>/dev/null; then
   echo "[setup] installing torchsoil and its dependencies"

@@ -95,6 +95,31 @@ class Robot:
         }
 
 
+ROBOT_DIR = Path(__file__).resolve().parent / "configs" / "robot"
+
+
+def available_robots() -> list[str]:
+    """Names of the robot descriptions shipped with torchsoil."""
+    return sorted(p.stem for p in ROBOT_DIR.glob("*.yaml"))
+
+
+def robot_path(name_or_path: str | Path) -> Path:
+    """A robot YAML path from a shipped name (`paper_platform`) or a path to a YAML file."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    shipped = ROBOT_DIR / f"{name_or_path}.yaml"
+    if path.suffix == "" and shipped.is_file():
+        return shipped
+    raise FileNotFoundError(f"robot description {str(name_or_path)!r} not found: neither a YAML file nor a "
+                            f"shipped robot ({', '.join(available_robots())})")
+
+
+def load_robot(name_or_path: str | Path) -> Robot:
+    """Robot from a shipped name or a YAML path (FORMATS.md section 2)."""
+    return Robot.from_yaml(robot_path(name_or_path))
+
+
 def paper_platform() -> Robot:
     """The paper's robot: track 1.0 m, wheelbase 1.38 m, wheels 0.14 m wide."""
-    return Robot.from_yaml(Path(__file__).resolve().parent.parent / "configs/robot/paper_platform.yaml")
+    return load_robot("paper_platform")

@@ -4,12 +4,13 @@ import importlib.util
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from torchsoil.synth import effects as fx
-from torchsoil.synth.scenario import ROOT, available, build_truth, load_scenario, make_terrain_pair
+from torchsoil.synth.scenario import available, build_truth, load_scenario, make_terrain_pair
 from torchsoil.synth.terrain import Relief, micro_topography, soil_at
 from torchsoil.synth.trajectory import build_trajectory, planar_path
 
@@ -126,7 +127,7 @@ def test_soil_fields_patch_weights():
 
 
 def _script_main():
-    spec = importlib.util.spec_from_file_location("make_recording", ROOT / "scripts/make_recording.py")
+    spec = importlib.util.spec_from_file_location("make_recording", Path(__file__).resolve().parents[2] / "scripts/make_recording.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.main
@@ -147,7 +148,7 @@ def test_make_recording_script_pair_only(tmp_path, capsys):
 
 
 def test_make_recording_script_runs_as_a_command(tmp_path):
-    r = subprocess.run([sys.executable, str(ROOT / "scripts/make_recording.py"), "--help"],
+    r = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[2] / "scripts/make_recording.py"), "--help"],
                        capture_output=True, text=True)
     assert r.returncode == 0 and "--pair-only" in r.stdout
 

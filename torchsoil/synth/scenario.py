@@ -33,9 +33,8 @@ from torchsoil.synth.terrain import Landmarks, Relief, farm_landmarks, micro_top
 from torchsoil.synth.trajectory import Trajectory, build_trajectory
 from torchsoil.synth.world import WorldConfig, WorldResult, simulate_world
 
-ROOT = Path(__file__).resolve().parents[2]
-SCENARIO_DIR = ROOT / "configs" / "scenarios"
-DEFAULT_ROBOT = ROOT / "configs" / "robot" / "paper_platform.yaml"
+SCENARIO_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
+DEFAULT_ROBOT = Path(__file__).resolve().parents[1] / "configs" / "robot" / "paper_platform.yaml"
 
 DEFAULTS: dict = {
     "trajectory": {"start": [0.0, 0.0, 0.0], "segments": [{"straight": 20.0, "speed": 1.0}],

@@ -1,0 +1,571 @@
+"""The settings tree: every setting of torchsoil, its default (the paper's values), type and unit.
+
+    settings = load_settings("my.yaml", overrides=["estimator.window=1.0", "sim.tau=0.005"])
+    est = Estimator(pair, settings.estimator, settings.sim)
+
+One frozen pydantic model per stage, combined in `Settings` (sections sim, estimator,
+pipeline, diagnosis, env, synth). Defaults live here and nowhere else; YAML files and
+`section.key=value` overrides only change them. Unknown keys and wrong types are refused
+with the key named (`SettingsError`). Each stage receives its own section, never the tree.
+`torchsoil settings` prints the effective tree as YAML, with units as comments.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+
+class SettingsError(ValueError):
+    """A setting that does not exist, or a value of the wrong type or range (the key is named)."""
+
+
+class Section(BaseModel):
+    """A settings section: frozen, unknown keys refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+    def replace(self, **changes):
+        """A copy with some fields changed (validated like a YAML override)."""
+        return type(self).model_validate({**self.model_dump(), **changes})
+
+
+# ---------------------------------------------------------------------------- simulator
+class SimConfig(Section):
+    """Forward model (paper section IV-B). Lengths in metres, cells or wheel widths as named."""
+
+    tau: float = Field(0.01, gt=0, description="relaxation stop: max |grad h| - tan(beta) < tau [-]")
+    eps_scale: float = Field(4.0, gt=0, description="relaxation rate: epsilon = eps_scale / dx^2")
+    max_iter: int = Field(2000, ge=1, description="relaxation iteration cap (flagged when hit)")
+    fixed_iter: int | None = Field(None, ge=0, description="run exactly this many relaxation iterations "
+                                                           "(capped relaxation); null: until tau")
+    ref_radius: float = Field(0.5, ge=0, description="reference-height disc radius, fraction of half the "
+                                                     "wheel width")
+    band_width: float = Field(1.0, gt=0, description="deposition band beside the rut, cells")
+    relax_margin: float = Field(2.0, ge=0, description="relaxation domain: rut plus this many wheel widths "
+                                                       "each side")
+    pose_spacing: float = Field(0.5, gt=0, description="trajectory resampled so wheels move at most this "
+                                                       "many cells per pose")
+    backend: Literal["auto", "numba", "torch"] = Field("auto", description="relaxation kernel: auto (numba "
+                                                                            "on CPU, torch on CUDA)")
+
+
+# ---------------------------------------------------------------------------- estimator
+class PerKind(Section):
+    """One value per kind of parameter: sinkage d (all tracks), chi, beta."""
+
+    d: float = Field(gt=0, description="m")
+    chi: float = Field(gt=0, description="-")
+    beta: float = Field(gt=0, description="rad")
+
+
+class InitialParams(Section):
+    """Parameters the first window starts from."""
+
+    d: float = Field(0.02, ge=0, description="sinkage, m")
+    chi: float = Field(0.5, ge=0, description="displacement-compaction ratio, -")
+    beta_deg: float = Field(30.0, gt=0, le=90, description="angle of repose, degrees")
+
+
+class EstimatorConfig(Section):
+    """Sliding-window estimation (paper section IV-C)."""
+
+    window: float = Field(0.8, gt=0, description="window length along the path, m")
+    stride: float = Field(0.4, gt=0, description="advance between windows, m")
+    corridor: float = Field(3.0, gt=0, description="ROI corridor width d_w around the path, m")
+    front_smoothing: float = Field(1.0, ge=0, description="the simulation starts from H_f smoothed by a "
+                                                          "Gaussian of this sigma, cells")
+    weight_width: float = Field(2.0, gt=0, description="cost weight 1 within this many wheel widths of "
+                                                       "each wheel path")
+    floor_inner: float = Field(2.5, ge=0, description="noise-floor zone starts this many wheel widths "
+                                                      "from the wheel paths")
+    floor_outer: float = Field(4.0, gt=0, description="noise-floor zone ends this many wheel widths from "
+                                                      "the wheel paths")
+    grad: Literal["autograd", "fd"] = Field("autograd", description="autograd, or fd (forward "
+                                                                    "differences, the paper's)")
+    fd_step: PerKind = Field(PerKind(d=0.0005, chi=0.01, beta=0.01),
+                             description="forward-difference steps: m, -, rad")
+    optimizer: Literal["rprop", "gd"] = Field("rprop", description="rprop (adaptive sign steps) or gd "
+                                                                    "(the paper's fixed steps)")
+    scale: PerKind = Field(PerKind(d=0.005, chi=0.1, beta=0.1),
+                           description="the unit the optimizer steps in: m, -, rad")
+    step: float = Field(0.25, gt=0, description="initial rprop step, in scale units")
+    lr: PerKind = Field(PerKind(d=0.03, chi=10.0, beta=20.0),
+                        description="gd only: alpha_i, parameter unit per m of cost gradient")
+    max_iter: int = Field(40, ge=1, description="optimizer iteration cap per window")
+    step_tol: float = Field(0.05, gt=0, description="stop when every step is below this, scale units")
+    init: InitialParams = Field(InitialParams(), description="first window's starting parameters")
+    merged_sinkage: bool = Field(False, description="ablation: one sinkage for all tracks")
+    min_valid_fraction: float = Field(0.3, ge=0, le=1, description="of the weighted window cells; "
+                                                                   "fewer: window flagged and skipped")
+    stop_speed: float = Field(0.05, ge=0, description="slower than this for more than stop_time: window "
+                                                      "flagged 'stopped', m/s")
+    stop_time: float = Field(0.5, ge=0, description="s")
+    image_every: int = Field(5, ge=0, description="TensorBoard image of measured vs simulated H_delta "
+                                                  "every N windows (0: none)")
+    device: str = Field("auto", description="auto (cuda when present), cpu, cuda, cuda:N")
+
+    @model_validator(mode="after")
+    def _floor_zone(self):
+        if self.floor_outer <= self.floor_inner:
+            raise ValueError(f"floor_outer ({self.floor_outer}) must exceed floor_inner ({self.floor_inner})")
+        return self
+
+
+# ---------------------------------------------------------------------------- pipeline
+class ReadConfig(Section):
+    """Topics and frames of a recording."""
+
+    front_topic: str = Field("/lidar_front/points", description="front lidar PointCloud2 topic")
+    back_topic: str = Field("/lidar_back/points", description="back lidar PointCloud2 topic")
+    tf_topic: str = Field("/tf_static", description="static transforms topic")
+    base_frame: str = Field("base_link", description="robot body frame")
+    extrinsics: dict[str, tuple[float, ...]] = Field(
+        default_factory=dict, description="{frame: [x, y, z, roll, pitch, yaw]} in base_frame (m, rad), "
+                                          "overriding the recording's transforms")
+
+    @field_validator("extrinsics")
+    @classmethod
+    def _six(cls, v):
+        for frame, xyzrpy in v.items():
+            if len(xyzrpy) != 6 or not all(math.isfinite(x) for x in xyzrpy):
+                raise ValueError(f"{frame}: need 6 finite numbers [x, y, z, roll, pitch, yaw] (m, rad), "
+                                 f"got {list(xyzrpy)}")
+        return v
+
+
+class MappingConfig(Section):
+    """Reference map P_ref and trajectory T_ref by scan-to-map point-to-plane ICP."""
+
+    voxel: float = Field(0.2, gt=0, description="scan and map voxel edge, m")
+    map_radius: float = Field(30.0, gt=0, description="local map kept around the robot, m")
+    normal_radius: float = Field(0.6, gt=0, description="normal estimation radius, m")
+    max_dist: float = Field(0.5, gt=0, description="correspondence gate while tracking, m")
+    startup_dist: float = Field(1.5, gt=0, description="correspondence gate of the first registration, m")
+    max_iter: int = Field(30, ge=1, description="ICP iterations")
+    degenerate_eigen: float = Field(2e-3, ge=0, description="normal-matrix eigenvalue below which a "
+                                                            "direction counts as unconstrained")
+    min_fitness: float = Field(0.3, ge=0, le=1, description="share of matched points below which a "
+                                                            "registration fails")
+    stationary_speed: float = Field(0.02, ge=0, description="below this the robot stands still, m/s")
+    max_range: float = Field(40.0, gt=0, description="points farther from the robot are not used, m")
+    velocity_window: float = Field(0.3, gt=0, description="baseline of the constant-velocity estimate, s")
+    startup_baseline: float = Field(0.5, gt=0, description="time between the two sweeps that measure "
+                                                           "the initial velocity, s")
+    source_voxel: float = Field(0.2, gt=0, description="voxel of the registered sweep, m")
+    max_points: int = Field(3000, ge=10, description="registered voxels per sweep at most (evenly thinned)")
+    max_degenerate_share: float = Field(0.8, ge=0, le=1, description="above this share of degenerate "
+                                                                     "sweeps the run stops")
+    workers: int = Field(1, ge=1, description="threads for nearest-neighbour queries")
+    ground_z: float | None = Field(0.97, description="normals with |n_z| above this count as ground "
+                                                     "(see icp.register); null: off")
+    one_sided: bool = Field(True, description="drop matches on steep faces turned away from the robot")
+
+
+class ReregisterConfig(Section):
+    """Re-registration of each stream onto P_ref (drift cancellation)."""
+
+    enabled: bool = Field(True, description="false: rasterize with T_ref (the ablation)")
+    voxel: float = Field(0.1, gt=0, description="source downsampling for ICP, m")
+    max_dist: float = Field(0.3, gt=0, description="correspondence gate, m")
+    max_iter: int = Field(20, ge=1, description="ICP iterations")
+    min_fitness: float = Field(0.5, ge=0, le=1, description="share of matched points below which a sweep "
+                                                            "is dropped")
+    max_rmse: float = Field(0.05, gt=0, description="robust point-to-plane RMS above which a sweep is "
+                                                    "dropped, m")
+    max_shift: float = Field(0.3, gt=0, description="largest accepted translation from the seed, m")
+    max_turn: float = Field(2.0, gt=0, description="largest accepted rotation from the seed, degrees")
+    degenerate_eigen: float = Field(2e-3, ge=0, description="see mapping.degenerate_eigen")
+    max_range: float = Field(30.0, gt=0, description="points used for ICP, m")
+    max_points: int = Field(2500, ge=10, description="source voxels at most (evenly thinned)")
+    one_sided: bool = Field(True, description="see mapping.one_sided")
+
+
+class RasterConfig(Section):
+    """Corridor extraction and rasterization into H_f, H_b."""
+
+    dx: float = Field(0.02, gt=0, description="cell edge, m")
+    corridor_width: float = Field(3.0, gt=0, description="d_w, width of the kept corridor, m")
+    fill_radius: int = Field(2, ge=0, description="empty cells filled from measured cells up to this "
+                                                  "many cells away")
+    max_range: float = Field(12.0, gt=0, description="points farther from their lidar are not used, m")
+    wheel_margin: float = Field(0.1, ge=0, description="front stream: points ahead of the front wheels' "
+                                                       "footprint plus this; back stream: behind the rear "
+                                                       "wheels' plus this, m")
+
+
+class PipelineConfig(Section):
+    """The lidar pipeline (paper section III), one section per stage."""
+
+    read: ReadConfig = ReadConfig()
+    mapping: MappingConfig = MappingConfig()
+    reregister: ReregisterConfig = ReregisterConfig()
+    raster: RasterConfig = RasterConfig()
+
+
+# ---------------------------------------------------------------------------- diagnosis
+class DiagnosisConfig(Section):
+    """Model-mismatch diagnosis: location tests, candidate fits, held-out acceptance."""
+
+    n_fit: int = Field(4, ge=0, description="catalogue candidates fitted (the leading ones by location "
+                                            "evidence)")
+    alpha_accept: float = Field(0.05, gt=0, lt=1, description="family-wise one-sided level of the held-out "
+                                                              "test, spent over the fitted candidates")
+    lead_share: float = Field(0.6, gt=0, le=1, description="share of alpha_accept given to the leading "
+                                                           "candidate(s) (fallback procedure)")
+    alpha_locate: float = Field(0.01, gt=0, lt=1, description="family-wise level of the location tests")
+    materiality: float = Field(0.1, ge=0, description="a located zone must exceed this fraction of the "
+                                                      "measured noise floor")
+    block_m: float = Field(2.4, gt=0, description="cross-validation block length, m")
+    refine_steps: int = Field(2, ge=0, description="parabolic refinements of a candidate's coefficient")
+    offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "
+                                                            "each fit is also scored")
+    min_spread: dict[str, float] = Field(
+        default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004, "passes": 0.05},
+        description="smallest spread (std over windows) of a covariate for its term to be testable, in "
+                    "the covariate's unit")
+
+
+# ---------------------------------------------------------------------------- environment
+class SoilValues(Section):
+    """Soil parameters of a field region: d (one value, or one per track) [m], chi [-], beta [deg]."""
+
+    d: float | list[float] | None = None
+    chi: float | None = None
+    beta_deg: float | None = None
+
+
+class Patch(SoilValues):
+    """A disc of other soil (wet: deep sinkage)."""
+
+    center: tuple[float, float]
+    radius: float = Field(gt=0)
+
+
+class Lane(SoilValues):
+    """A band along x of other soil (packed: shallow sinkage); y: (ymin, ymax), m."""
+
+    y: tuple[float, float]
+
+
+class FieldConfig(Section):
+    """The env's field: rough initial surface and soil maps."""
+
+    size: tuple[float, float] = Field((20.0, 10.0), description="length along x, width along y, m")
+    dx: float = Field(0.05, gt=0, description="cell edge, m")
+    roughness: float = Field(0.003, ge=0, description="standard deviation of the initial surface, m")
+    roughness_length: float = Field(0.3, gt=0, description="correlation length of the roughness, m")
+    seed: int = Field(0, description="terrain noise seed")
+    soil: SoilValues = Field(SoilValues(d=0.02, chi=0.6, beta_deg=30.0), description="background soil")
+    patches: tuple[Patch, ...] = Field(
+        (Patch(center=(10.0, 5.0), radius=2.0, d=0.08, chi=0.3, beta_deg=20.0),),
+        description="wet discs: deep sinkage, little spill-over, low angle of repose")
+    lanes: tuple[Lane, ...] = Field((Lane(y=(8.0, 9.5), d=0.005, chi=0.8, beta_deg=35.0),),
+                                    description="packed lanes: shallow sinkage")
+    edge: float = Field(0.5, ge=0, description="soft edge of the patches, m")
+
+
+class RewardWeights(Section):
+    """reward = progress * distance gained - damage - time (+ goal, - off_field)."""
+
+    progress: float = Field(1.0, description="per m towards the goal")
+    displaced: float = Field(40.0, description="per m^3 of soil dug")
+    compacted: float = Field(40.0, description="per m^3 dug and not deposited")
+    rut_depth: float = Field(1.0, description="per m of the deepest rut under the wheels this step")
+    repeat_cells: float = Field(0.001, description="per cell entered again after an earlier pass")
+    time: float = Field(0.01, description="per step")
+    goal: float = Field(10.0, description="bonus on reaching the goal")
+    off_field: float = Field(10.0, description="penalty for leaving the field")
+
+
+class EnvConfig(Section):
+    """SoilTraverse environment: episode, platform, field, physics, observation, reward."""
+
+    dt: float = Field(0.2, gt=0, description="control period, s")
+    speed: tuple[float, float] = Field((-0.5, 1.0), description="platform speed limits (min, max), m/s")
+    curvature_max: float = Field(0.8, ge=0, description="symmetric dual steering limit, 1/m")
+    start: tuple[float, float, float] = Field((2.0, 5.0, 0.0), description="x [m], y [m], yaw [deg]")
+    start_jitter: tuple[float, float, float] = Field((0.2, 0.2, 5.0), description="uniform half-ranges of "
+                                                                                 "the start, m, m, deg")
+    goal: tuple[float, float] = Field((18.0, 5.0), description="m")
+    goal_jitter: float = Field(0.0, ge=0, description="radius of a uniform disc around the goal, m")
+    goal_radius: float = Field(0.5, gt=0, description="episode ends when base_link is this close, m")
+    max_steps: int = Field(400, ge=1, description="truncation")
+    obs_size: int = Field(24, ge=1, description="local observation patch, cells per side")
+    obs_dx: float = Field(0.1, gt=0, description="spacing of the observation patch, m")
+    soil_noise: float = Field(0.0, ge=0, description="relative std of observed soil parameters (0: true)")
+    weights: RewardWeights = RewardWeights()
+    sim: SimConfig = Field(SimConfig(fixed_iter=4, relax_margin=0.7),
+                           description="the env's physics (same meaning as section sim; per step)")
+    field: FieldConfig = FieldConfig()
+    robot: str = Field("paper_platform", description="robot name (shipped) or YAML path")
+    params_csv: str | None = Field(None, description="replay the soil of an estimator run's params.csv")
+
+    @model_validator(mode="after")
+    def _limits(self):
+        if self.speed[0] > self.speed[1]:
+            raise ValueError(f"speed must be (min, max), got {self.speed}")
+        return self
+
+
+# ---------------------------------------------------------------------------- synthetic world
+class TrajectorySegment(Section):
+    """A straight (length, m) or an arc (radius m, angle_deg) at a speed, m/s."""
+
+    straight: float | None = None
+    arc: float | None = None
+    angle_deg: float | None = None
+    speed: float = Field(1.0, description="m/s")
+
+    @model_validator(mode="after")
+    def _kind(self):
+        if (self.straight is None) == (self.arc is None):
+            raise ValueError("a segment is either {straight: m} or {arc: radius m, angle_deg: deg}")
+        if self.arc is not None and self.angle_deg is None:
+            raise ValueError("an arc segment needs angle_deg")
+        return self
+
+
+class TrajectoryConfig(Section):
+    start: tuple[float, float, float] = Field((0.0, 0.0, 0.0), description="x [m], y [m], yaw [deg]")
+    segments: tuple[TrajectorySegment, ...] = (TrajectorySegment(straight=20.0, speed=1.0),)
+    accel_limit: float = Field(0.5, gt=0, description="m/s^2")
+
+
+class ReliefConfig(Section):
+    amplitude: float = Field(0.05, ge=0, description="m")
+    wavelength: float = Field(25.0, gt=0, description="m")
+    slope_x: float = Field(0.0, description="m/m")
+    slope_y: float = Field(0.0, description="m/m")
+
+
+class MicroConfig(Section):
+    rms: float = Field(0.007, ge=0, description="m")
+    corr_length: float = Field(0.07, gt=0, description="m")
+
+
+class TerrainConfig(Section):
+    relief: ReliefConfig = ReliefConfig()
+    micro: MicroConfig = MicroConfig()
+    margin: float = Field(10.0, ge=0, description="field around the path, m")
+
+
+class WorldSoil(Section):
+    """Soil of the synthetic world: base values, patches (free-form, see synth.terrain), a
+    per-track scale."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    base: dict[str, float] = Field(default_factory=lambda: {"d": 0.03, "chi": 0.2, "beta_deg": 30.0,
+                                                            "moisture": 0.0})
+    patches: list[dict] = Field(default_factory=list)
+    track_scale: list[float] | None = None
+
+    @field_validator("base")
+    @classmethod
+    def _base_keys(cls, v):
+        unknown = set(v) - {"d", "chi", "beta_deg", "moisture"}
+        if unknown:
+            raise ValueError(f"unknown keys {sorted(unknown)}; known: d, chi, beta_deg, moisture")
+        return {"d": 0.03, "chi": 0.2, "beta_deg": 30.0, "moisture": 0.0, **v}
+
+
+class LandmarkConfig(Section):
+    poles: int = Field(10, ge=0)
+    trunks: int = Field(6, ge=0)
+    shed: bool = True
+    fence: bool = True
+
+
+class LidarConfig(Section):
+    columns: Literal[512, 1024, 2048] = 1024
+    rate_hz: float = Field(10.0, gt=0, description="Hz")
+    range_noise: float = Field(0.01, ge=0, description="m")
+    dropout: float = Field(0.02, ge=0, le=1, description="fraction of returns dropped")
+    organized: bool = Field(False, description="full beams x columns clouds, NaN where nothing returned")
+
+
+class WorldConfig(SimConfig):
+    """The world's physics: the simulator's settings and chunk, the arc length of trajectory
+    dug and deposited per step, m (relaxation runs once a pass)."""
+
+    chunk: float = Field(0.4, gt=0, description="m")
+
+
+class SynthConfig(Section):
+    """A synthetic scenario (configs/scenarios/NAME.yaml are documents of this section)."""
+
+    name: str = "custom"
+    description: str = ""
+    trajectory: TrajectoryConfig = TrajectoryConfig()
+    terrain: TerrainConfig = TerrainConfig()
+    soil: WorldSoil = WorldSoil()
+    effects: dict[str, dict] = Field(default_factory=dict, description="{id: {form, k, ...}} (synth.effects)")
+    landmarks: LandmarkConfig = LandmarkConfig()
+    lidar: LidarConfig = LidarConfig()
+    world: WorldConfig = WorldConfig()
+    robot: str = Field("paper_platform", description="robot name (shipped) or YAML path")
+
+
+# ---------------------------------------------------------------------------- the tree
+class Settings(Section):
+    """All of torchsoil's settings, one section per part."""
+
+    sim: SimConfig = SimConfig()
+    estimator: EstimatorConfig = EstimatorConfig()
+    pipeline: PipelineConfig = PipelineConfig()
+    diagnosis: DiagnosisConfig = DiagnosisConfig()
+    env: EnvConfig = EnvConfig()
+    synth: SynthConfig = SynthConfig()
+
+    def to_yaml(self, sections: Iterable[str] | None = None) -> str:
+        """The settings as YAML, each leaf with its description (unit) as a comment."""
+        return dump_yaml(self, sections)
+
+    def fingerprint(self) -> dict:
+        """JSON-ready dict of every value (for run.json)."""
+        return self.model_dump(mode="json")
+
+
+def merge(base: dict, top: dict) -> dict:
+    """Mappings merged key by key (recursively); anything else in `top` replaces."""
+    out = copy.deepcopy(base)
+    for key, value in (top or {}).items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = merge(out[key], value)
+        else:
+            out[key] = copy.deepcopy(value)
+    return out
+
+
+def parse_override(text: str) -> dict:
+    """'estimator.window=1.0' -> {'estimator': {'window': 1.0}} (the value parsed as YAML)."""
+    if "=" not in text:
+        raise SettingsError(f"override {text!r} must look like section.key=value")
+    path, value = text.split("=", 1)
+    keys = [k for k in path.strip().split(".")]
+    if not all(keys):
+        raise SettingsError(f"override {text!r}: empty key in {path!r}")
+    try:
+        node: object = yaml.safe_load(value)
+    except yaml.YAMLError as e:
+        raise SettingsError(f"override {text!r}: value is not valid YAML ({e})") from None
+    for k in reversed(keys):
+        node = {k: node}
+    return node  # type: ignore[return-value]
+
+
+def read_yaml(path: str | Path) -> dict:
+    """A YAML file as a mapping (empty file: {}); clear errors for a missing or bad file."""
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"settings file not found: {path}") from None
+    except yaml.YAMLError as e:
+        raise SettingsError(f"{path}: not valid YAML ({e})") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise SettingsError(f"{path}: must be a mapping of sections, got {type(doc).__name__}")
+    return doc
+
+
+def validate(model: type[Section], doc: dict, source: str = "settings", prefix: str = ""):
+    """model.model_validate(doc) with errors that name the key and the source."""
+    try:
+        return model.model_validate(doc)
+    except ValidationError as e:
+        raise SettingsError(f"{source}: " + "; ".join(_describe(model, err, prefix) for err in e.errors())) \
+            from None
+
+
+def load_settings(*sources: str | Path | dict | None, overrides: Iterable[str] = ()) -> Settings:
+    """Defaults, then each YAML path or dict in `sources` (in order), then `overrides`
+    ('section.key=value', repeatable). Unknown keys and wrong types raise SettingsError."""
+    doc: dict = Settings().model_dump()
+    names = []
+    for src in sources:
+        if src is None:
+            continue
+        if isinstance(src, dict):
+            doc, name = merge(doc, src), "settings dict"
+        else:
+            doc, name = merge(doc, read_yaml(src)), str(src)
+        names.append(name)
+    for text in overrides:
+        doc = merge(doc, parse_override(text))
+        names.append(f"--set {text}")
+    return validate(Settings, doc, " + ".join(names) or "settings")
+
+
+def _describe(model: type[BaseModel], err: dict, prefix: str) -> str:
+    loc = [str(p) for p in err["loc"]]
+    key = prefix + ".".join(loc)
+    if err["type"] == "extra_forbidden":
+        known = _known_keys(model, err["loc"][:-1])
+        return f"unknown setting `{key}`" + (f" (known here: {', '.join(known)})" if known else "")
+    value = err.get("input")
+    shown = repr(value) if not isinstance(value, dict) else "a mapping"
+    return f"`{key}` = {shown}: {err['msg']}"
+
+
+def _known_keys(model: type[BaseModel], loc) -> list[str]:
+    """Field names of the section at `loc` inside `model` (empty when it is not a section)."""
+    node = model
+    for part in loc:
+        field = node.model_fields.get(str(part)) if isinstance(node, type) and issubclass(node, BaseModel) \
+            else None
+        if field is None:
+            return []
+        node = field.annotation
+    if isinstance(node, type) and issubclass(node, BaseModel):
+        return list(node.model_fields)
+    return []
+
+
+def dump_yaml(model: BaseModel, sections: Iterable[str] | None = None, indent: int = 0) -> str:
+    """YAML of a settings model with each field's description as a comment."""
+    lines: list[str] = []
+    names = list(sections) if sections is not None else list(type(model).model_fields)
+    for name in names:
+        if name not in type(model).model_fields:
+            raise SettingsError(f"no settings section `{name}`; known: {', '.join(type(model).model_fields)}")
+        info = type(model).model_fields[name]
+        value = getattr(model, name)
+        pad = " " * indent
+        comment = f"  # {info.description}" if info.description else ""
+        if isinstance(value, BaseModel) and not _is_small(value):
+            lines.append(f"{pad}{name}:{comment}")
+            lines.append(dump_yaml(value, indent=indent + 2).rstrip("\n"))
+        else:
+            plain = value.model_dump(mode="json") if isinstance(value, BaseModel) else _jsonable(value)
+            text = yaml.safe_dump(plain, default_flow_style=True, width=10_000, sort_keys=False).strip()
+            if text.endswith("\n...") or text.endswith("..."):
+                text = text.rsplit("\n", 1)[0].strip()
+            lines.append(f"{pad}{name}: {text}{comment}")
+    return "\n".join(lines) + "\n"
+
+
+def _is_small(value: BaseModel) -> bool:
+    """Sections of a few plain numbers print on one line ({d: .., chi: .., beta: ..})."""
+    fields = type(value).model_fields
+    return len(fields) <= 4 and all(not isinstance(getattr(value, f), (BaseModel, dict, list, tuple))
+                                    for f in fields)
+
+
+def _jsonable(value):
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
+    if isinstance(value, (tuple, list)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, float) and math.isinf(value):
+        return ".inf"
+    return value
