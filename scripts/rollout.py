@@ -1,24 +1,12 @@
-"""Straight line through the wet patch vs a detour through the packed lane, on one field:
-print the soil damage vs time trade-off and plot it (OUT/rollout.png, OUT/rollout.json)."""
+#!/usr/bin/env python3
+"""Scripted policies on the soil-traverse environment: damage vs time.
 
-from __future__ import annotations
+Same as `torchsoil rollout` (see `torchsoil rollout --help`).
+"""
 
-import argparse
+import sys
 
-from envs.scripted import compare_detour
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--config", default=None, help="env YAML (default: configs/env/soil_traverse.yaml)")
-    ap.add_argument("--out", default="out/rollout", help="output directory")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--speed", type=float, default=1.0, help="driving speed, m/s")
-    ap.add_argument("--detour-y", type=float, default=8.4, help="y of the detour's straight part, m")
-    args = ap.parse_args(argv)
-    compare_detour(args.config, args.out, seed=args.seed, speed=args.speed, detour_y=args.detour_y)
-    return 0
-
+from torchsoil.cli import main
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(main(["rollout", *sys.argv[1:]]))

@@ -25,10 +25,11 @@ if ! "$PY" -c "import torch" 2>/dev/null; then
 fi
 # torchsoil from this checkout (an editable install of another checkout does not count)
 if ! "$PY" -c "
-import pathlib, sys
+import pathlib, shutil, sys
 sys.path.pop(0)  # not the current directory: scripts/*.py must find the installed package
 import open3d, rosbags, gymnasium, numba, pytest, hypothesis, pydantic, torchsoil
-sys.exit(pathlib.Path(torchsoil.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())
+here = pathlib.Path(torchsoil.__file__).resolve().parents[1] == pathlib.Path.cwd().resolve()
+sys.exit(not here or shutil.which("torchsoil") is None)  # the command comes with the install
 " 2>/dev/null; then
   echo "[setup] installing torchsoil and its dependencies"
   "$PY" -m pip install -q -e ".[dev]"

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from tests.synthetic_pair import sim_pair
-from torchsoil.config import load_config
 from torchsoil.estimator import Estimator
 from torchsoil.runner import estimate, simulated_error
+from torchsoil.settings import load_settings
 
 TRUE = dict(d1=0.03, d2=0.025, chi=0.8, beta_deg=35.0)
 
@@ -15,6 +15,11 @@ TRUE = dict(d1=0.03, d2=0.025, chi=0.8, beta_deg=35.0)
 @pytest.fixture(scope="module")
 def pair_truth():
     return sim_pair(length=3.2, **TRUE)
+
+
+def make(pair, *overrides):
+    settings = load_settings(overrides=overrides)
+    return Estimator(pair, settings.estimator, settings.sim)
 
 
 def _rows(est, limit=None):
@@ -29,8 +34,7 @@ def _rows(est, limit=None):
 @pytest.mark.parametrize("grad", ["autograd", "fd"])
 def test_recovers_known_parameters(pair_truth, grad):
     pair, _ = pair_truth
-    cfg = load_config(overrides=[f"estimator.grad={grad}"])
-    rows = _rows(Estimator(pair, cfg), limit=None if grad == "autograd" else 3)
+    rows = _rows(make(pair, f"estimator.grad={grad}"), limit=None if grad == "autograd" else 3)
     assert rows
     for r in rows:
         assert r["d1"] == pytest.approx(TRUE["d1"], abs=0.002)
@@ -44,7 +48,7 @@ def test_recovers_known_parameters(pair_truth, grad):
 
 def test_prediction_uses_ground_ahead(pair_truth):
     pair, _ = pair_truth
-    est = Estimator(pair, load_config())
+    est = make(pair)
     outs = list(est.run())
     assert all(math.isnan(o.row["prediction"]) for o in outs[-est.ahead:])
     assert all(not math.isnan(o.row["prediction"]) for o in outs[:-est.ahead])
@@ -56,14 +60,14 @@ def test_prediction_uses_ground_ahead(pair_truth):
 
 def test_merged_sinkage_ties_tracks(pair_truth):
     pair, _ = pair_truth
-    rows = _rows(Estimator(pair, load_config(overrides=["estimator.merged_sinkage=true"])), limit=2)
+    rows = _rows(make(pair, "estimator.merged_sinkage=true"), limit=2)
     assert all(r["d1"] == r["d2"] for r in rows)
     assert TRUE["d2"] - 0.003 < rows[0]["d1"] < TRUE["d1"] + 0.003
 
 
 def test_stopped_robot_flagged():
     pair, _ = sim_pair(length=3.2, stop=(1.5, 3.5), **TRUE)
-    rows = _rows(Estimator(pair, load_config()))
+    rows = _rows(make(pair))
     flagged = [r for r in rows if "stopped" in r["flags"]]
     assert flagged and all(0.7 < r["s"] < 2.3 for r in flagged)
 
@@ -72,7 +76,7 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
     pair, truth_hb = pair_truth
     src = tmp_path / "pair.npz"
     pair.save(src)
-    cfg = load_config()
+    cfg = load_settings()
     out = estimate(src, tmp_path / "run", cfg, tensorboard=True, progress=False)
     names = ["s", "t", "x", "y", "d1", "d2", "chi", "beta", "residual", "prediction", "iterations", "seconds",
              "flags"]
@@ -97,5 +101,5 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
     assert len(resumed) == len(full)
     for a, b in zip(full, resumed, strict=True):
         assert float(a["d1"]) == pytest.approx(float(b["d1"]), abs=3e-4)
-    with pytest.raises(ValueError, match="different configuration"):
-        estimate(src, out, load_config(overrides=["estimator.window=1.0"]), resume=True, progress=False)
+    with pytest.raises(ValueError, match=r"settings differ \(estimator.window\)"):
+        estimate(src, out, load_settings(overrides=["estimator.window=1.0"]), resume=True, progress=False)

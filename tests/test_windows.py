@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from tests.synthetic_pair import sim_pair
-from torchsoil.config import load_config
+from torchsoil.settings import EstimatorConfig
 from torchsoil.sim import SimConfig
 from torchsoil.windows import _stopped, path_index, plan_windows, prepare_window
 
@@ -35,10 +35,9 @@ def test_path_index(pair):
 
 
 def test_prepare_window_masks(pair):
-    cfg = load_config()
     idx = path_index(pair.grid, pair.poses, pair.robot, 1.6)
     spec = plan_windows(3.0, 0.8, 0.4)[2]
-    wd = prepare_window(pair, idx, spec, cfg["estimator"], SimConfig())
+    wd = prepare_window(pair, idx, spec, EstimatorConfig(), SimConfig())
     assert wd.flags == ()
     i0, i1, j0, j1 = wd.crop
     x, _ = pair.grid.crop(*wd.crop).centers()
@@ -49,16 +48,15 @@ def test_prepare_window_masks(pair):
 
 
 def test_unmeasured_window_is_flagged(pair):
-    cfg = load_config()
     idx = path_index(pair.grid, pair.poses, pair.robot, 1.6)
     spec = plan_windows(3.0, 0.8, 0.4)[2]
     holed = sim_pair(length=3.0)[0]
     x, _ = holed.grid.centers()
     holed.h_back[(x > spec.s0 - 0.1) & (x < spec.s1 + 0.1)] = np.nan
-    wd = prepare_window(holed, idx, spec, cfg["estimator"], SimConfig())
+    wd = prepare_window(holed, idx, spec, EstimatorConfig(), SimConfig())
     assert "few_valid" in wd.flags
     holed.h_front[:] = np.nan
-    assert prepare_window(holed, idx, spec, cfg["estimator"], SimConfig()) is None
+    assert prepare_window(holed, idx, spec, EstimatorConfig(), SimConfig()) is None
 
 
 def test_stopped():

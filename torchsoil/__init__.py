@@ -1,17 +1,20 @@
 """torchsoil: measure how a field robot deforms soil from two lidars, and identify a
-differentiable soil model online."""
+differentiable soil model online.
 
-import os
+Importing torchsoil changes nothing process-wide (environment variables, thread counts,
+matplotlib backends); the `torchsoil` command chooses those (README, Speed).
+"""
 
-# torch's and numba's OpenMP pools share the cores: threads that spin while waiting starve
-# the other pool (3-10x slower on 2 busy cores). Effective when torchsoil is imported first.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import sys
 
-from torchsoil.grid import Grid  # noqa: E402
-from torchsoil.registration import register_envs  # noqa: E402
-from torchsoil.robot import Robot  # noqa: E402
+from torchsoil.grid import Grid
+from torchsoil.robot import Robot, load_robot
+from torchsoil.settings import Settings, load_settings
 
 __version__ = "0.1.0"
-__all__ = ["Grid", "Robot", "register_envs"]
+__all__ = ["Grid", "Robot", "Settings", "load_robot", "load_settings"]
 
-register_envs()  # gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0") imports this module
+if "gymnasium" in sys.modules:  # gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0") imports this module
+    from torchsoil.registration import register_envs
+
+    register_envs()

@@ -1,6 +1,6 @@
 """Online soil-parameter estimation along a drive (paper section IV-C).
 
-`Estimator(pair, config)` cuts the drive into windows, fits (d_1..d_T, chi, beta) in each one
+`Estimator(pair, settings.estimator, settings.sim)` cuts the drive into windows, fits (d_1..d_T, chi, beta) in each one
 from the measured H_f (never from an earlier window's simulation), warm-started from the
 previous window, and scores the fit on the window itself (residual) and one window length
 ahead, on ground it did not see (prediction).
@@ -18,7 +18,8 @@ import torch
 
 from torchsoil.cost import weighted_l1
 from torchsoil.optimizer import FitResult, fit
-from torchsoil.sim import ParamSpec, SimConfig, simulate
+from torchsoil.settings import EstimatorConfig, SimConfig
+from torchsoil.sim import ParamSpec, simulate
 from torchsoil.windows import WindowData, WindowSpec, path_index, plan_windows, prepare_window, smooth_heightmap
 
 
@@ -26,6 +27,11 @@ def pick_device(name: str = "auto") -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
+
+
+def kind(name: str) -> str:
+    """The kind of a parameter for per-kind settings: "d" for the sinkages d1..dT, else its name."""
+    return "d" if name[:1] == "d" and name[1:].isdigit() else name
 
 
 class WindowOutput(NamedTuple):
@@ -46,50 +52,56 @@ class Estimator:
 
     Args:
         pair: the terrain pair.
-        config: the full configuration (sections `sim` and `estimator`).
-        device: torch device (default: config estimator.device).
-        modifiers: optional callable (WindowData, B) -> sim.Modifiers: a model extension with
-            fixed parameters (e.g. a sinkage factor per pose from the window's speed), applied
-            in every simulation of that window, fit and prediction alike.
+        est: estimator settings (settings section `estimator`).
+        sim: simulator settings (section `sim`).
+        device: torch device (default: est.device).
+        modifiers: optional callable (WindowData, theta (B, P)) -> sim.Modifiers: a model
+            extension with fixed parameters (e.g. a sinkage factor per pose from the window's
+            speed), applied in every simulation of that window, fit and prediction alike.
         index: the pair's windows.PathIndex for these settings, when already computed (it
             depends on the poses, robot and corridor only; repeated runs over one pair share it).
+
+    The optimizer's variables are named (`free_names`): the simulator's parameters
+    (`spec.names`, d1..dT, chi, beta), or with `est.merged_sinkage` one sinkage `d` shared
+    by all tracks. Settings given per kind of parameter (scale, lr, fd_step, init) are looked
+    up by `kind(name)`.
     """
 
-    def __init__(self, pair, config: dict, device=None, dtype=torch.float64, modifiers=None, index=None):
+    def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
+                 dtype=torch.float64, modifiers=None, index=None):
         self.pair = pair
         self.modifiers = modifiers
-        self.est = config["estimator"]
-        self.sim = SimConfig.from_dict(config["sim"])
-        self.device = torch.device(device) if device is not None else pick_device(self.est["device"])
+        self.est = est = est or EstimatorConfig()
+        self.sim = sim or SimConfig()
+        self.device = torch.device(device) if device is not None else pick_device(est.device)
         self.dtype = dtype
         robot = pair.robot
         self.spec = ParamSpec.base(robot.n_tracks)
-        reach = max(self.est["corridor"] / 2, self.est["floor_outer"] * robot.wheel_width + np.abs(
+        reach = max(est.corridor / 2, est.floor_outer * robot.wheel_width + np.abs(
             robot.wheels[:, 1]).max()) + robot.wheel_width
         self.index = path_index(pair.grid, pair.poses, robot, reach) if index is None else index
-        self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), self.est["window"],
-                                                      self.est["stride"])
-        ratio = self.est["window"] / self.est["stride"]
+        self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), est.window, est.stride)
+        ratio = est.window / est.stride
         self.ahead = int(round(ratio)) if abs(ratio - round(ratio)) < 1e-6 else None
-        T = robot.n_tracks
         self.names = self.spec.names
-        # optimizer variables: all parameters, or one shared sinkage (merged ablation)
-        self.expand = ([0] * T + [1, 2]) if self.est["merged_sinkage"] else list(range(T + 2))
-        n_free = max(self.expand) + 1
-        kinds = [("d" if n.startswith("d") else n) for n in self.names]
-        free_kind = [kinds[self.expand.index(i)] for i in range(n_free)]
+        self.free_names = tuple(dict.fromkeys(self._free_name(n) for n in self.names))
+        # column of each simulator parameter among the optimizer's variables
+        self.expand = [self.free_names.index(self._free_name(n)) for n in self.names]
         kw = dict(device=self.device, dtype=dtype)
         lo, hi = self.spec.bounds(torch.zeros(1, **kw))
-        self.lower = torch.stack([lo[self.expand.index(i)] for i in range(n_free)])
-        self.upper = torch.stack([hi[self.expand.index(i)] for i in range(n_free)])
-        self.scale = torch.tensor([self.est["scale"][k] for k in free_kind], **kw)
-        self.lr = torch.tensor([self.est["lr"][k] for k in free_kind], **kw)
-        self.fd_step = torch.tensor([self.est["fd_step"][k] for k in free_kind], **kw)
-        init = self.est["init"]
-        full = [init["d"]] * T + [init["chi"], math.radians(init["beta_deg"])]
-        self.theta0 = torch.tensor([full[self.expand.index(i)] for i in range(n_free)], **kw)
+        first = [self.expand.index(i) for i in range(len(self.free_names))]  # a parameter per variable
+        self.lower, self.upper = lo[first], hi[first]
+        kinds = [kind(n) for n in self.free_names]
+        self.scale = torch.tensor([getattr(est.scale, k) for k in kinds], **kw)
+        self.lr = torch.tensor([getattr(est.lr, k) for k in kinds], **kw)
+        self.fd_step = torch.tensor([getattr(est.fd_step, k) for k in kinds], **kw)
+        init = {"d": est.init.d, "chi": est.init.chi, "beta": math.radians(est.init.beta_deg)}
+        self.theta0 = torch.tensor([init[k] for k in kinds], **kw)
         self._cache: dict[int, WindowData | None] = {}
-        self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(self.est["front_smoothing"]))
+        self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
+
+    def _free_name(self, name: str) -> str:
+        return "d" if self.est.merged_sinkage and kind(name) == "d" else name
 
     # ------------------------------------------------------------------ helpers
     def full_theta(self, free: torch.Tensor) -> torch.Tensor:
@@ -104,9 +116,9 @@ class Estimator:
 
     def simulate(self, free: torch.Tensor, wd: WindowData):
         """Simulate window wd for optimizer variables free (B, P_free)."""
-        mods = self.modifiers(wd, free.shape[0]) if self.modifiers is not None else None
-        return simulate(wd.h_front, wd.geom, self.full_theta(free), self.sim, self.spec, modifiers=mods,
-                        h_ref=wd.h_ref)
+        theta = self.full_theta(free)
+        mods = self.modifiers(wd, theta) if self.modifiers is not None else None
+        return simulate(wd.h_front, wd.geom, theta, self.sim, self.spec, modifiers=mods, h_ref=wd.h_ref)
 
     def objective(self, wd: WindowData):
         def cost(free: torch.Tensor) -> torch.Tensor:
@@ -116,9 +128,9 @@ class Estimator:
 
     def fit_window(self, wd: WindowData, theta0: torch.Tensor) -> FitResult:
         e = self.est
-        return fit(self.objective(wd), theta0, self.lower, self.upper, scale=self.scale, rule=e["optimizer"],
-                   step=e["step"], lr=self.lr, max_iter=e["max_iter"], step_tol=e["step_tol"],
-                   grad=e["grad"], fd_step=self.fd_step)
+        return fit(self.objective(wd), theta0, self.lower, self.upper, scale=self.scale, rule=e.optimizer,
+                   step=e.step, lr=self.lr, max_iter=e.max_iter, step_tol=e.step_tol,
+                   grad=e.grad, fd_step=self.fd_step)
 
     def predict(self, free: torch.Tensor, wd: WindowData) -> tuple[torch.Tensor, float]:
         """Simulated H_b (X, Y) and cost of parameters `free` on window data wd."""
@@ -164,9 +176,9 @@ class Estimator:
         if self.ahead is not None:
             return self.data(k + self.ahead) if k + self.ahead < len(self.windows) else None
         spec = self.windows[k]
-        if spec.s1 + self.est["window"] > self.index.arc[-1]:
+        if spec.s1 + self.est.window > self.index.arc[-1]:
             return None
-        return self._prepare(WindowSpec(-1, spec.s1, spec.s1 + self.est["window"]))
+        return self._prepare(WindowSpec(-1, spec.s1, spec.s1 + self.est.window))
 
     def _prepare(self, spec: WindowSpec) -> WindowData | None:
         return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
@@ -187,8 +199,8 @@ class Estimator:
         row = {"s": spec.centre,
                "t": wd.t if wd else math.nan, "x": wd.x if wd else math.nan, "y": wd.y if wd else math.nan}
         full = self.full_theta(free[None])[0].tolist() if free is not None else [math.nan] * len(self.names)
-        for name, value in zip(self.names, full, strict=True):
-            row[name] = math.degrees(value) if name == "beta" else value
+        for name, unit, value in zip(self.names, self.spec.units, full, strict=True):
+            row[name] = math.degrees(value) if unit == "rad" else value
         row.update(residual=residual, prediction=prediction, iterations=iterations, seconds=seconds,
                    flags="|".join(flags))
         return row
@@ -198,8 +210,8 @@ class Estimator:
         full = [float(row[n]) for n in self.names]
         if any(math.isnan(v) for v in full):
             return None
-        full[-1] = math.radians(full[-1])
-        return torch.tensor([full[self.expand.index(i)] for i in range(max(self.expand) + 1)],
+        full = [math.radians(v) if unit == "rad" else v for v, unit in zip(full, self.spec.units, strict=True)]
+        return torch.tensor([full[self.expand.index(i)] for i in range(len(self.free_names))],
                             device=self.device, dtype=self.dtype)
 
 

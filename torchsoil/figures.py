@@ -6,12 +6,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy import ndimage  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure
+from scipy import ndimage
 
 CMAP = "PiYG"  # pink: excavation, green: deposition (as in the paper)
 
@@ -23,7 +20,8 @@ def _col(rows, key):
 def parameter_curves(rows: list[dict], reference: list[dict], names, path: Path) -> Path:
     """Fig. 4: sinkages (mm), chi, beta (deg) and costs (mm) against arc length s (m)."""
     s = _col(rows, "s")
-    fig, ax = plt.subplots(4, 1, figsize=(8, 9), sharex=True)
+    fig = Figure(figsize=(8, 9))
+    ax = fig.subplots(4, 1, sharex=True)
     for n in names:
         if n.startswith("d"):
             ax[0].plot(s, 1e3 * _col(rows, n), ".-", label=n)
@@ -45,7 +43,6 @@ def parameter_curves(rows: list[dict], reference: list[dict], names, path: Path)
         a.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
     return path
 
 
@@ -87,7 +84,7 @@ def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dic
     X, Y = measured.shape
     extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)
     lim = float(np.nanpercentile(np.abs(measured), 99)) if np.isfinite(measured).any() else 0.05
-    fig = plt.figure(figsize=(12, 8))
+    fig = Figure(figsize=(12, 8))
     gs = fig.add_gridspec(3, max(len(picks), 1), height_ratios=[1, 1, 1.1])
     for row_i, (title, img) in enumerate([("measured $H_\\Delta$", measured), ("simulated $H_\\Delta$", simulated)]):
         ax = fig.add_subplot(gs[row_i, :])
@@ -113,7 +110,6 @@ def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dic
         ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -123,7 +119,8 @@ def window_figure(h_front: np.ndarray, h_start: np.ndarray, h_back: np.ndarray, 
     meas = np.where(weight > 0, h_back - h_front, np.nan)
     sim = h_sim - h_start
     lim = float(np.nanpercentile(np.abs(meas), 99)) if np.isfinite(meas).any() else 0.05
-    fig, ax = plt.subplots(1, 2, figsize=(8, 3.5))
+    fig = Figure(figsize=(8, 3.5))
+    ax = fig.subplots(1, 2)
     for a, img, t in [(ax[0], meas, "measured"), (ax[1], sim, "simulated")]:
         im = a.imshow(img.T, origin="lower", cmap=CMAP, vmin=-lim, vmax=lim)
         a.set_title(f"{t} $H_\\Delta$")

@@ -1,4 +1,4 @@
-"""The estimation job behind scripts/estimate.py: input in, run directory out.
+"""The estimation job behind `torchsoil estimate`: input in, run directory out.
 
 DIR/params.csv and DIR/reference.csv grow one row per window; DIR/simulated.npz (the
 simulated H_b stitched over windows) is rewritten every few windows; figures and summary.md
@@ -7,75 +7,117 @@ come at the end. `resume=True` continues an interrupted run from its last row.
 
 from __future__ import annotations
 
-import json
 import math
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from torchsoil import figures
+from torchsoil import figures, provenance
 from torchsoil.estimator import Estimator, Stitcher
 from torchsoil.logging import CsvLog, TensorBoardLog
 from torchsoil.robot import Robot
+from torchsoil.settings import PipelineConfig, Settings
 from torchsoil.terrain import TerrainPair
 
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
+OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_parameters.png",
+           "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline")
 
 
-def load_input(path: str | Path, out_dir: Path, robot: Robot | None, config: dict,
-               robot_yaml: str | Path | None = None, pipeline_yaml: str | Path | None = None) -> TerrainPair:
-    """A terrain pair from an .npz, or from a bag through the lidar pipeline (cached in out_dir,
-    with the pipeline's own outputs in out_dir/pipeline). robot_yaml may carry lidar
-    extrinsics (`lidars:` key) that override /tf_static; pipeline_yaml the stage settings."""
+def pipeline_settings(settings: Settings, robot_yaml: str | Path | None) -> PipelineConfig:
+    """The pipeline section with the robot YAML's `lidars:` extrinsics added (they override
+    the settings' read.extrinsics for the frames they name)."""
+    cfg = settings.pipeline
+    if robot_yaml:
+        from torchsoil.pipeline.run import extrinsics_from_robot_yaml
+
+        extra = extrinsics_from_robot_yaml(robot_yaml)
+        if extra:
+            cfg = cfg.replace(read=cfg.read.replace(extrinsics={**cfg.read.extrinsics, **extra}))
+    return cfg
+
+
+def load_input(path: str | Path, out_dir: Path, robot: Robot | None, pipeline: PipelineConfig | None = None,
+               cache: dict | None = None) -> TerrainPair:
+    """A terrain pair from an .npz, or from a bag through the lidar pipeline, with the
+    pipeline's own outputs in out_dir/pipeline. The bag's terrain pair is cached as
+    out_dir/terrain_pair.npz under `cache` (a provenance.cache_key: the input, robot and
+    pipeline settings that made it); a cache made by anything else is recomputed."""
     path = Path(path)
     if path.suffix == ".npz":
         pair = TerrainPair.load(path)
     else:
+        if robot is None:
+            raise ValueError(f"{path}: a bag needs a robot description (--robot NAME or PATH)")
         cached = out_dir / "terrain_pair.npz"
-        if cached.exists():
+        if cache is not None and provenance.cache_valid(cached, cache):
             pair = TerrainPair.load(cached)
         else:
-            if robot is None:
-                raise ValueError(f"{path}: a bag needs a robot description (--robot configs/robot/X.yaml)")
-            from torchsoil.pipeline.run import PipelineConfig, extrinsics_from_robot_yaml, process_bag, write_outputs
+            from torchsoil.pipeline.run import process_bag, write_outputs
 
-            cfg = PipelineConfig.from_yaml(pipeline_yaml) if pipeline_yaml else PipelineConfig()
-            if robot_yaml:
-                cfg.read.extrinsics.update(extrinsics_from_robot_yaml(robot_yaml))
-            result = process_bag(path, robot, cfg, progress=True)
+            result = process_bag(path, robot, pipeline or PipelineConfig(), progress=True)
             for problem in result.problems:
                 print(f"warning: {problem}")
             write_outputs(result, out_dir / "pipeline")
             pair = result.terrain
             pair.save(cached)
+            if cache is not None:
+                provenance.mark_cache(cached, cache)
     if robot is not None:
         pair.wheels, pair.wheel_width = robot.wheels, robot.wheel_width
         pair.wheel_flat_fraction = robot.wheel_flat_fraction
     return pair
 
 
-def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: Robot | None = None,
-             resume: bool = False, tensorboard: bool = True, progress: bool = True,
-             robot_yaml: str | Path | None = None, pipeline_yaml: str | Path | None = None) -> Path:
-    """Run the sliding-window estimator; returns out_dir. Arguments as `load_input`."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    meta = {"input": str(input_path), "config": config}
-    meta_path = out / "run.json"
-    if resume and meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        if old["config"] != json.loads(json.dumps(config)):
-            raise ValueError(f"{out}: --resume with a different configuration than the run being resumed")
-    meta_path.write_text(json.dumps(meta, indent=1))
+def run_record(job: str, input_path: str | Path, settings: Settings, pipeline: PipelineConfig,
+               robot: Robot | None, sections: tuple[str, ...]) -> dict:
+    """run.json of a job: the input's identity, the robot, the pipeline settings (with the
+    robot's extrinsics) and the other settings sections the job reads."""
+    used = {name: getattr(settings, name).model_dump(mode="json") for name in sections}
+    return provenance.run_record(input_path, {**used, "pipeline": pipeline.model_dump(mode="json")},
+                                 robot.to_dict() if robot is not None else None, job)
 
-    pair = load_input(input_path, out, robot, config, robot_yaml, pipeline_yaml)
-    est = Estimator(pair, config)
-    if est.device.type == "cpu":
-        # a window's tensors are small: intra-op threads only add synchronisation (and stall on
-        # a busy robot computer); the relaxation kernel parallelises over the batch itself
-        torch.set_num_threads(1)
+
+@contextmanager
+def torch_threads(n: int | None):
+    """Within the block, torch uses n intra-op threads (None: unchanged); restored after."""
+    old = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(int(n))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
+
+
+def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
+             robot: Robot | None = None, resume: bool = False, overwrite: bool = False,
+             tensorboard: bool = True, progress: bool = True, robot_yaml: str | Path | None = None,
+             threads: int | None = None) -> Path:
+    """Run the sliding-window estimator on a recording or terrain pair; returns out_dir.
+
+    out_dir/run.json records the input's identity, the robot and the settings; an out_dir
+    holding another run is refused (`provenance.OutputMismatch`) unless `overwrite`, and
+    `resume` continues only the same run. robot_yaml may carry lidar extrinsics (`lidars:`
+    key); threads: torch intra-op threads during the run (restored after; None: unchanged).
+    """
+    settings = settings or Settings()
+    out = Path(out_dir)
+    pipeline = pipeline_settings(settings, robot_yaml)
+    record = run_record("estimate", input_path, settings, pipeline, robot, ("sim", "estimator"))
+    provenance.claim(out, record, resume=resume, overwrite=overwrite, outputs=OUTPUTS)
+    pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))
+    with torch_threads(threads):
+        _estimate(pair, out, settings, resume, tensorboard, progress, str(input_path))
+    return out
+
+
+def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, tensorboard: bool,
+              progress: bool, name: str) -> None:
+    est = Estimator(pair, settings.estimator, settings.sim)
     names = list(est.names)
     params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "residual", "prediction",
                                          "iterations", "seconds", "flags"], resume)
@@ -94,7 +136,7 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
         if theta is not None:
             break
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
-    every = int(config["estimator"]["image_every"])
+    every = settings.estimator.image_every
     bar = tqdm(total=len(est.windows), initial=n_done, unit="window", disable=None if progress else True,
                desc="estimating")
     try:
@@ -119,10 +161,9 @@ def estimate(input_path: str | Path, out_dir: str | Path, config: dict, robot: R
         _save_simulated(sim_path, pair, stitch.h_sim)
     figures.parameter_curves(params.rows, reference.rows, est.names, out / "fig4_parameters.png")
     figures.difference_maps(pair, est.h_start, stitch.h_sim, params.rows, out / "fig6_difference_maps.png")
+    e = settings.estimator
     figures.write_summary(out / "summary.md", params.rows, reference.rows,
-                          {"input": str(input_path), **{k: config["estimator"][k] for k in ("window", "stride",
-                                                                                              "grad")}})
-    return out
+                          {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad})
 
 
 def _save_simulated(path: Path, pair: TerrainPair, h_sim: np.ndarray) -> None:

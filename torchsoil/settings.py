@@ -32,8 +32,10 @@ class Section(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
 
     def replace(self, **changes):
-        """A copy with some fields changed (validated like a YAML override)."""
-        return type(self).model_validate({**self.model_dump(), **changes})
+        """A copy with some fields changed, validated like a YAML override (a mapping given
+        for a nested section changes only the keys it names)."""
+        plain = {k: v.model_dump() if isinstance(v, BaseModel) else v for k, v in changes.items()}
+        return type(self).model_validate(merge(self.model_dump(), plain))
 
 
 # ---------------------------------------------------------------------------- simulator

@@ -13,7 +13,8 @@ from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
-from torchsoil.sim import SimConfig, WheelGeometry, wheel_geometry
+from torchsoil.settings import EstimatorConfig, SimConfig
+from torchsoil.sim import WheelGeometry, wheel_geometry
 from torchsoil.sim.geometry import resample_poses, wheel_positions
 from torchsoil.sim.sinkage import reference_height
 
@@ -157,7 +158,7 @@ def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
     return best > duration
 
 
-def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: SimConfig,
+def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfig, sim: SimConfig,
                    device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = (),
                    h_start: np.ndarray | None = None) -> WindowData | None:
     """Crop, fill and index one window. Returns None when the window holds no ground at all.
@@ -165,8 +166,8 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: Sim
     h_start: (X, Y) surface the simulation starts from (default: pair.h_front)."""
     robot = pair.robot
     w = robot.wheel_width
-    ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est["corridor"] / 2)
-    near = index.wheel_dist <= max(est["weight_width"] * w, w / 2 + sim.relax_margin * w)
+    ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est.corridor / 2)
+    near = index.wheel_dist <= max(est.weight_width * w, w / 2 + sim.relax_margin * w)
     cells = np.argwhere(ground_full & near)
     if len(cells) == 0:
         return None
@@ -196,14 +197,14 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: dict, sim: Sim
         idx = ndimage.distance_transform_edt(~measured_f, return_distances=False, return_indices=True)
         hf = hf[tuple(idx)]
     ground = ground_full[sl]
-    zone = ground & (index.wheel_dist[sl] <= est["weight_width"] * w)
+    zone = ground & (index.wheel_dist[sl] <= est.weight_width * w)
     weight = zone & np.isfinite(raw) & np.isfinite(hb)
-    floor = (ground & np.isfinite(raw) & np.isfinite(hb) & (index.wheel_dist[sl] >= est["floor_inner"] * w)
-             & (index.wheel_dist[sl] <= est["floor_outer"] * w))
-    if weight.sum() < est["min_valid_fraction"] * max(zone.sum(), 1):
+    floor = (ground & np.isfinite(raw) & np.isfinite(hb) & (index.wheel_dist[sl] >= est.floor_inner * w)
+             & (index.wheel_dist[sl] <= est.floor_outer * w))
+    if weight.sum() < est.min_valid_fraction * max(zone.sum(), 1):
         flags.append("few_valid")
     in_window = pair.poses[(index.arc >= spec.s0) & (index.arc <= spec.s1)]
-    if _stopped(in_window, est["stop_speed"], est["stop_time"]):
+    if _stopped(in_window, est.stop_speed, est.stop_time):
         flags.append("stopped")
     c = spec.centre
     kw = dict(device=device, dtype=dtype)

@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 from scenarios import TRUTH, scenario
 
-from torchsoil.config import load_config
 from torchsoil.diagnosis import DiagnosisConfig, diagnose
 from torchsoil.diagnosis.report import KEYS, validate_summary, write_all
 from torchsoil.synth.scenario import make_terrain_pair
@@ -27,7 +26,7 @@ CFG = DiagnosisConfig(n_fit=2)
 
 def run(name, seed, cfg=CFG, **law):
     pair = TerrainPair.from_mapping(make_terrain_pair(scenario(name, **law), seed=seed))
-    return pair, diagnose(pair, load_config(), cfg)
+    return pair, diagnose(pair, cfg)
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +98,7 @@ def test_too_short_a_drive_is_refused():
     sc["trajectory"] = {"segments": [{"straight": 2.0, "speed": 1.0}]}
     pair = TerrainPair.from_mapping(make_terrain_pair(sc, seed=0))
     with pytest.raises(ValueError, match="too short"):
-        diagnose(pair, load_config(), CFG)
+        diagnose(pair, CFG)
 
 
 def test_profiles_hold_finite_floor_and_wall_statistics(speed_power):

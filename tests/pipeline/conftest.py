@@ -1,6 +1,6 @@
 import pytest
 
-from torchsoil.pipeline.toyscene import ToyScene
+from tests.pipeline.toyscene import ToyScene
 
 
 @pytest.fixture(scope="session")

@@ -5,9 +5,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from tests.pipeline.toyscene import ToyScene
 from torchsoil.pipeline import icp
-from torchsoil.pipeline.reregister import ReregisterConfig, interpolate_poses, register_sweep
-from torchsoil.pipeline.toyscene import ToyScene
+from torchsoil.pipeline.reregister import interpolate_poses, register_sweep
+from torchsoil.settings import ReregisterConfig
 
 
 def reference(scene, stamps, rng):
@@ -47,7 +48,7 @@ def test_wrong_seed_is_corrected_and_bad_fit_refused():
     assert np.linalg.norm(T[:3, 3] - truth[:3, 3]) < 0.005
     assert Rotation.from_matrix(T[:3, :3].T @ truth[:3, :3]).magnitude() < np.deg2rad(0.03)
     # re-registration off: the seed (T_ref at that time) is used as it is
-    cfg.enabled = False
+    cfg = cfg.replace(enabled=False)
     _, T_off, *_ = register_sweep(base, tns[ok] * 1e-9, 0.5, stamps, wrong, target, cfg)
     np.testing.assert_allclose(T_off, interpolate_poses(stamps, wrong, np.array([0.5]))[0])
     # a seed beyond the accepted correction is refused rather than used

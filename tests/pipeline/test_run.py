@@ -4,12 +4,13 @@ every kind of bad input flagged or refused with a message naming it."""
 import numpy as np
 import pytest
 
+from tests.pipeline.toyscene import ToyScene
 from torchsoil.io.bag import BagError
 from torchsoil.io.write import encode, write_bag
 from torchsoil.pipeline import mapping
-from torchsoil.pipeline.run import PipelineConfig, process_bag, rows_to_poses
-from torchsoil.pipeline.toyscene import ToyScene
+from torchsoil.pipeline.run import process_bag, rows_to_poses
 from torchsoil.robot import paper_platform
+from torchsoil.settings import PipelineConfig, SettingsError, load_settings
 
 
 def toy_bag(path, duration, **kw):
@@ -64,8 +65,7 @@ def test_terrain_pair_round_trips(moving_result, tmp_path):
 
 
 def test_missing_topic_stops_before_anything(moving_bag):
-    cfg = PipelineConfig()
-    cfg.read.back_topic = "/rear/points"
+    cfg = load_settings(overrides=["pipeline.read.back_topic=/rear/points"]).pipeline
     with pytest.raises(BagError, match="/rear/points"):
         process_bag(moving_bag[0], paper_platform(), cfg)
 
@@ -84,8 +84,7 @@ def test_missing_extrinsic_is_named_and_can_be_given(tmp_path):
         v = [*T[:3, 3], *Rotation.from_matrix(T[:3, :3]).as_euler("xyz")]
         lines.append(f"  {frame}: [{', '.join(repr(float(x)) for x in v)}]")
     (tmp_path / "robot.yaml").write_text("\n".join(lines) + "\n")
-    cfg = PipelineConfig()
-    cfg.read.extrinsics = extrinsics_from_robot_yaml(tmp_path / "robot.yaml")
+    cfg = PipelineConfig().replace(read={"extrinsics": extrinsics_from_robot_yaml(tmp_path / "robot.yaml")})
     res = process_bag(path, paper_platform(), cfg)
     assert np.isfinite(res.terrain.h_front).sum() > 100
     assert res.terrain.poses[-1, 1] == pytest.approx(3.9, abs=0.05)  # 1 m/s for 3.9 s
@@ -105,9 +104,8 @@ def test_standing_still_is_flagged(tmp_path):
 def test_landmark_free_stretch_is_flagged_and_tracked(tmp_path):
     poles = np.array([[x, s * 3.0, 0.15, 3.0] for x in (-4.0, -2.0) for s in (-1, 1)])
     scene = toy_bag(tmp_path / "flat", 6.0, relief=0.0, poles=poles, walls=np.zeros((0, 4)))
-    cfg = PipelineConfig()
-    cfg.mapping.max_range = 6.0  # the poles drop out of sight after a few metres
-    cfg.reregister.max_range = 6.0
+    # the poles drop out of sight after a few metres
+    cfg = load_settings(overrides=["pipeline.mapping.max_range=6", "pipeline.reregister.max_range=6"]).pipeline
     res = process_bag(tmp_path / "flat", paper_platform(), cfg)
     flags = res.terrain.extras["scan_flags"]
     assert not (flags[:15] & mapping.DEGENERATE).any()
@@ -143,27 +141,23 @@ def test_empty_and_nan_clouds_are_flagged(tmp_path):
 
 
 def test_failed_reregistration_drops_sweeps_and_refuses_empty_maps(moving_bag):
-    cfg = PipelineConfig()
-    cfg.reregister.min_fitness = 1.01  # no sweep can pass
+    cfg = PipelineConfig().replace(reregister={"min_fitness": 1.0, "max_rmse": 1e-9})  # no sweep can pass
     with pytest.raises(ValueError, match="heightmap is empty"):
         process_bag(moving_bag[0], paper_platform(), cfg)
 
 
 def test_config_rejects_unknown_keys():
-    with pytest.raises(ValueError, match="mapping.voxels"):
-        PipelineConfig.from_dict({"mapping": {"voxels": 0.1}})
-    assert PipelineConfig.from_dict({"raster": {"dx": 0.05}}).raster.dx == 0.05
+    with pytest.raises(SettingsError, match="pipeline.mapping.voxels"):
+        load_settings({"pipeline": {"mapping": {"voxels": 0.1}}})
+    assert load_settings({"pipeline": {"raster": {"dx": 0.05}}}).pipeline.raster.dx == 0.05
 
 
 def test_command_writes_outputs_and_nothing_on_error(moving_bag, tmp_path):
-    import runpy
-    from pathlib import Path
+    from torchsoil.cli import main
 
-    main = runpy.run_path(str(Path(__file__).parents[2] / "scripts/process_bag.py"),
-                          run_name="process_bag")["main"]
-    robot = Path(__file__).parents[2] / "configs/robot/paper_platform.yaml"
+    robot = "paper_platform"  # a shipped robot, by name
     out = tmp_path / "out"
-    assert main([str(moving_bag[0]), "--robot", str(robot), "--out", str(out)]) == 0
+    assert main(["process-bag", str(moving_bag[0]), "--robot", robot, "--out", str(out)]) == 0
     assert {p.name for p in out.iterdir()} == {"terrain.npz", "trajectory.csv", "h_front.png",
                                                "h_back.png", "h_delta.png"}
     rows = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1)
@@ -171,8 +165,7 @@ def test_command_writes_outputs_and_nothing_on_error(moving_bag, tmp_path):
     bad = tmp_path / "bad"
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("pipeline:\n  read:\n    front_topic: /nothing\n")
-    code = main([str(moving_bag[0]), "--robot", str(robot), "--out", str(bad), "--config",
-                 str(cfg)])
+    code = main(["process-bag", str(moving_bag[0]), "--robot", robot, "--out", str(bad), "--config", str(cfg)])
     assert code == 2 and not bad.exists()
 
 
@@ -197,8 +190,7 @@ def test_reregistration_cancels_a_drifting_trajectory(moving_bag, monkeypatch):
     path, scene = moving_bag
     off_rut = {}
     for enabled in (True, False):
-        cfg = PipelineConfig()
-        cfg.reregister.enabled = enabled
+        cfg = PipelineConfig().replace(reregister={"enabled": enabled})
         tp = process_bag(path, paper_platform(), cfg).terrain
         X, Y = np.meshgrid(*tp.grid.centers(), indexing="ij")
         both = np.isfinite(tp.h_delta)

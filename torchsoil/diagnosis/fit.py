@@ -20,20 +20,7 @@ from torchsoil.diagnosis.catalogue import Extension, ExtensionModel
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, paired_improvement
 from torchsoil.estimator import Estimator
-from torchsoil.sim import simulate
-
-
-class ExtendedEstimator(Estimator):
-    """The estimator with a fixed-coefficient extension in every simulation of a window."""
-
-    def __init__(self, pair, config: dict, model: ExtensionModel | None = None, **kw):
-        super().__init__(pair, config, **kw)
-        self.model = model
-
-    def simulate(self, free: torch.Tensor, wd):
-        theta = self.full_theta(free)
-        mods = self.model.modifiers(wd, theta) if self.model is not None else None
-        return simulate(wd.h_front, wd.geom, theta, self.sim, self.spec, modifiers=mods, h_ref=wd.h_ref)
+from torchsoil.settings import EstimatorConfig, SimConfig
 
 
 @dataclass
@@ -66,7 +53,8 @@ class Pass:
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
-def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: bool = False,
+def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
+             profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
              index=None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
@@ -76,16 +64,16 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
     recomputing it."""
-    est = ExtendedEstimator(pair, config, model, index=index)
+    estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index)
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
-        prof = Profiles.empty(r, pair.dx, config["estimator"]["weight_width"] * pair.robot.wheel_width)
-    stride = float(config["estimator"]["stride"])
+        prof = Profiles.empty(r, pair.dx, est.weight_width * pair.robot.wheel_width)
+    stride = est.stride
     rows, floor, backward = [], [], []
     wheels_y = pair.robot.wheels[:, 1]
     recent: dict[int, object] = {}
-    for k, o in enumerate(est.run(theta=theta0)):
+    for k, o in enumerate(estimator.run(theta=theta0)):
         rows.append(o.row)
         floor.append(o.reference["floor"])
         recent[k] = o.data
@@ -94,19 +82,20 @@ def run_pass(pair, config: dict, model: ExtensionModel | None = None, profiles: 
         for off in offsets:
             back = recent.get(k - off)
             ok = o.fit is not None and back is not None and "few_valid" not in back.flags
-            costs.append(est.predict(o.fit.theta, back)[1] if ok else np.nan)
+            costs.append(estimator.predict(o.fit.theta, back)[1] if ok else np.nan)
         backward.append(costs)
         if prof is not None and o.h_sim is not None:
             i0, i1, j0, j1 = o.data.crop
             c = o.row["s"]
-            prof.add(o.data, o.h_sim, est.index.s[i0:i1, j0:j1], c - stride / 2, c + stride / 2, wheels_y,
-                     (est.index.offset[i0:i1, j0:j1], est.index.wheel_dist[i0:i1, j0:j1]))
+            idx = estimator.index
+            prof.add(o.data, o.h_sim, idx.s[i0:i1, j0:j1], c - stride / 2, c + stride / 2, wheels_y,
+                     (idx.offset[i0:i1, j0:j1], idx.wheel_dist[i0:i1, j0:j1]))
         if on_window is not None:
-            on_window(k, o, est)
+            on_window(k, o, estimator)
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
     return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
-                np.array(backward, np.float64).reshape(len(rows), len(offsets)), est.index)
+                np.array(backward, np.float64).reshape(len(rows), len(offsets)), estimator.index)
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -157,7 +146,7 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
     return float(np.clip(-a[1] / (2 * a[0]), k[i - 1], k[i + 1]))
 
 
-def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base: Pass,
+def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, drive: DriveSignals, base: Pass,
                   block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
                   offsets: tuple[int, ...] = (2, 4, 6)) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
@@ -169,7 +158,7 @@ def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base:
         k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
-        passes[k] = run_pass(pair, config, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
+        passes[k] = run_pass(pair, est, sim, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
                              theta0=theta0, offsets=offsets, index=base.index)
         if progress is not None:
             progress.update(1)
@@ -183,8 +172,7 @@ def fit_extension(pair, config: dict, ext: Extension, drive: DriveSignals, base:
         if new is not None:
             run(new)
     ks = sorted(passes)
-    stride = float(config["estimator"]["stride"])
-    lab = folds(len(base.prediction), int(round(block_m / stride)))
+    lab = folds(len(base.prediction), int(round(block_m / est.stride)))
     pred = np.full(len(base.prediction), np.nan)
     held = np.full(len(base.prediction), np.nan)
     res = np.full(len(base.prediction), np.nan)

@@ -1,4 +1,4 @@
-"""The job behind scripts/diagnose.py: input (recording or terrain pair) in, DIR out."""
+"""The job behind `torchsoil diagnose`: input (recording or terrain pair) in, DIR out."""
 
 from __future__ import annotations
 
@@ -6,24 +6,35 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from torchsoil import provenance
 from torchsoil.diagnosis.report import write_all
-from torchsoil.diagnosis.run import DiagnosisConfig, diagnose, n_steps
+from torchsoil.diagnosis.run import diagnose, n_steps
 from torchsoil.robot import Robot
-from torchsoil.runner import load_input
+from torchsoil.runner import load_input, pipeline_settings, run_record, torch_threads
+from torchsoil.settings import Settings
+
+OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covariate.png", "cross_sections.png",
+           "prediction_costs.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline")
 
 
-def diagnose_input(input_path: str | Path, out_dir: str | Path, config: dict, robot: Robot | None = None,
-                   cfg: DiagnosisConfig | None = None, progress: bool = True, tensorboard: bool = True) -> dict:
+def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
+                   robot: Robot | None = None, progress: bool = True, tensorboard: bool = True,
+                   overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None) -> dict:
     """Diagnose a terrain pair (.npz) or a recording (bag, through the lidar pipeline).
 
-    Writes out_dir/diagnosis.json, report.md, figures and TensorBoard events; returns the
+    Writes out_dir/run.json (what made the folder; another run's folder is refused unless
+    `overwrite`), diagnosis.json, report.md, figures and TensorBoard events; returns the
     diagnosis.json dict."""
+    settings = settings or Settings()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    pair = load_input(input_path, out, robot, config)
-    cfg = cfg or DiagnosisConfig()
-    with tqdm(total=n_steps(cfg), unit="pass", desc="diagnosing", disable=not progress) as bar:
-        diag = diagnose(pair, config, cfg, progress=bar)
+    pipeline = pipeline_settings(settings, robot_yaml)
+    record = run_record("diagnose", input_path, settings, pipeline, robot, ("sim", "estimator", "diagnosis"))
+    provenance.claim(out, record, overwrite=overwrite, outputs=OUTPUTS)
+    pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))
+    cfg = settings.diagnosis
+    with torch_threads(threads), tqdm(total=n_steps(cfg), unit="pass", desc="diagnosing",
+                                      disable=not progress) as bar:
+        diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar)
         bar.update(bar.total - bar.n)
     write_all(diag, pair, out, Path(input_path).name, tb=tensorboard)
     return diag.summary

@@ -7,11 +7,9 @@ import json
 import math
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.image import imread
 
 KEYS = ("verdict", "missing_physics", "where", "explanation", "cost_before", "cost_after", "noise_floor",
         "extension_parameters", "candidates")
@@ -89,7 +87,8 @@ def write_json(summary: dict, path: Path) -> Path:
 # ------------------------------------------------------------------ figures
 def fig_residual_map(diag, pair, path: Path) -> Path:
     r = diag.residual_map
-    fig, ax = plt.subplots(figsize=(10, 3.5))
+    fig = Figure(figsize=(10, 3.5))
+    ax = fig.subplots()
     xs, ys = pair.grid.centers()
     lim = 3 * np.nanstd(r) if np.isfinite(r).any() else 1e-3
     im = ax.pcolormesh(xs, ys, r.T * 1e3, cmap="RdBu_r", vmin=-1e3 * lim, vmax=1e3 * lim, shading="nearest")
@@ -106,7 +105,6 @@ def fig_residual_map(diag, pair, path: Path) -> Path:
     ax.set_title(f"base-model residual; located region outlined ({diag.summary['verdict']})")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -116,7 +114,8 @@ def _mean_sinkage(rows: list[dict]) -> np.ndarray:
 
 
 def fig_covariate(diag, path: Path) -> Path:
-    fig, ax = plt.subplots(figsize=(5.5, 4))
+    fig = Figure(figsize=(5.5, 4))
+    ax = fig.subplots()
     w = diag.windows
     cov = diag.summary["where"]["covariate"]
     d = _mean_sinkage(diag.base.rows)
@@ -137,13 +136,13 @@ def fig_covariate(diag, path: Path) -> Path:
     ax.set_title(f"what the mismatch follows: {cov}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
 def fig_cross_sections(diag, path: Path) -> Path:
     p = diag.base.profiles
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    fig = Figure(figsize=(10, 4))
+    ax = fig.subplots(1, 2)
     mm = 1e3 * p.bins
     m, se, _ = p.profile("meas")
     ax[0].errorbar(mm, 1e3 * m, 1e3 * se, fmt="k.", label="measured")
@@ -166,13 +165,13 @@ def fig_cross_sections(diag, path: Path) -> Path:
     fig.suptitle("cross-sections averaged along the drive")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
 def fig_costs(diag, path: Path) -> Path:
     s = diag.windows["s"]
-    fig, ax = plt.subplots(figsize=(8, 3.5))
+    fig = Figure(figsize=(8, 3.5))
+    ax = fig.subplots()
     ax.plot(s, 1e3 * diag.base.prediction, ".-", label="base model")
     if diag.best is not None:
         ax.plot(s, 1e3 * diag.best.prediction, ".-", label=f"with {diag.best.ext.id} (cross-validated)")
@@ -182,7 +181,6 @@ def fig_costs(diag, path: Path) -> Path:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 
@@ -237,7 +235,7 @@ def tensorboard(diag, log_dir: Path, figures: dict[str, Path]) -> None:
                 w.add_scalar("prediction/extended_mm", 1e3 * diag.best.prediction[k], k)
             w.add_scalar("window/s_m", s, k)
         for name, p in figures.items():
-            img = plt.imread(str(p))
+            img = imread(str(p))
             w.add_image(f"diagnosis/{name}", img[..., :3], 0, dataformats="HWC")
     finally:
         w.close()

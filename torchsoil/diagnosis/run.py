@@ -4,7 +4,7 @@ accept one only on held-out evidence, and give the verdict (FORMATS.md section 4
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy import stats
@@ -14,43 +14,7 @@ from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, window_signals
 from torchsoil.diagnosis.fit import CandidateFit, Pass, accept, fit_extension, run_pass
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
 from torchsoil.estimator import Stitcher
-
-
-@dataclass(frozen=True)
-class DiagnosisConfig:
-    """Settings of the diagnosis (defaults used by scripts/diagnose.py).
-
-    n_fit: candidates fitted (the leading ones by the location evidence). alpha_accept:
-    family-wise one-sided level of the held-out test, spent over the fitted candidates in
-    their order by the fallback procedure: the leading candidate (or those tied for the
-    lead) gets lead_share of it, the others share the rest, and an accepted candidate passes
-    its level on to the next (`thresholds`). alpha_locate: family-wise level of the location
-    tests (rut-floor, rut-wall and outside profile, left/right asymmetry, along-track
-    spectral line), split over them. materiality: a located zone or asymmetry must also
-    exceed this fraction of the measured noise floor (with many cells a bias far below the
-    sensor noise becomes significant, but it is not a mismatch anyone could use). block_m:
-    length of the cross-validation blocks, m. min_spread: smallest spread (std over windows)
-    of a covariate for its term to be testable on this drive. offsets: windows back (in
-    strides) on whose ground each fit is also scored (held-out costs; see fit.run_pass)."""
-
-    n_fit: int = 4
-    alpha_accept: float = 0.05
-    lead_share: float = 0.6
-    alpha_locate: float = 0.01
-    materiality: float = 0.1
-    block_m: float = 2.4
-    refine_steps: int = 2
-    offsets: tuple = (2, 4, 6)
-    min_spread: dict = field(default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004,
-                                                      "passes": 0.05})
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> DiagnosisConfig:
-        d = dict(d or {})
-        known = set(cls.__dataclass_fields__)
-        if set(d) - known:
-            raise ValueError(f"unknown diagnosis settings {sorted(set(d) - known)}; known: {sorted(known)}")
-        return cls(**d)
+from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 
 
 @dataclass
@@ -171,14 +135,15 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
                                                    f"held-out cost vs change r = {c2.r:+.2f} (n_eff {c2.n_eff:.1f})"}
 
 
-def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=None) -> Diagnosis:
-    """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the estimator settings
-    of `config` (sections sim, estimator). progress: optional tqdm-like bar (update(n))."""
-    cfg = cfg or DiagnosisConfig()
+def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
+             sim: SimConfig | None = None, progress=None) -> Diagnosis:
+    """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
+    estimator and simulator settings (their sections; defaults when None). progress:
+    optional tqdm-like bar (update(n))."""
+    cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
-    est_cfg = config["estimator"]
-    window, stride = float(est_cfg["window"]), float(est_cfg["stride"])
+    window, stride = est.window, est.stride
     holder: dict = {}
 
     def keep(k, o, est):
@@ -190,7 +155,7 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
         if progress is not None and k % 5 == 0:
             progress.set_postfix_str(f"base window {k}")
 
-    base = run_pass(pair, config, profiles=True, on_window=keep, offsets=cfg.offsets)
+    base = run_pass(pair, est, sim, profiles=True, on_window=keep, offsets=cfg.offsets)
     if progress is not None:
         progress.update(1)
     rows = base.rows
@@ -216,7 +181,7 @@ def diagnose(pair, config: dict, cfg: DiagnosisConfig | None = None, progress=No
     theta0 = None
     fits: list[CandidateFit] = []
     for ext_id in ranked:
-        f = fit_extension(pair, config, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
+        f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets)
         fits.append(f)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,

@@ -7,13 +7,13 @@ import time
 from collections import Counter
 from pathlib import Path
 
-from torchsoil.config import load_config
-from torchsoil.diagnosis.run import DiagnosisConfig, diagnose
+from torchsoil.diagnosis.run import diagnose
+from torchsoil.settings import Settings
 from torchsoil.synth.scenario import make_terrain_pair
 from torchsoil.terrain import TerrainPair
 
 
-def run_study(cases, out: Path, config: dict | None = None, cfg: DiagnosisConfig | None = None) -> str:
+def run_study(cases, out: Path, settings: Settings | None = None) -> str:
     """Diagnose every (name, scenario, seed, verdict, id) case; append results to
     out/cases.jsonl (cases already there are skipped) and return the confusion table (markdown)."""
     from tqdm import tqdm
@@ -21,13 +21,13 @@ def run_study(cases, out: Path, config: dict | None = None, cfg: DiagnosisConfig
     out.mkdir(parents=True, exist_ok=True)
     log = out / "cases.jsonl"
     done = {json.loads(line)["case"]: json.loads(line) for line in log.read_text().splitlines()} if log.exists() else {}
-    config = config or load_config()
+    settings = settings or Settings()
     for name, scn, seed, want_verdict, want_id in tqdm(cases, desc="study", unit="case"):
         if name in done:
             continue
         t0 = time.perf_counter()
         pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=seed))
-        s = diagnose(pair, config, cfg).summary
+        s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
         rec = {"case": name, "seed": seed, "want": want_verdict, "want_id": want_id, "verdict": s["verdict"],
                "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
                "cost_before": s["cost_before"], "cost_after": s["cost_after"],

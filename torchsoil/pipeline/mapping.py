@@ -16,7 +16,6 @@ the prediction; near-zero speed is flagged STATIONARY.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -24,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from torchsoil.pipeline import icp
 from torchsoil.pipeline.deskew import deskew
+from torchsoil.settings import MappingConfig
 
 # per-sweep flags (bit mask), shared by all stages
 EMPTY = 1           # no usable points
@@ -41,42 +41,6 @@ FLAG_NAMES = {EMPTY: "empty", DEGENERATE: "degenerate", POOR_FIT: "poor_fit",
 
 def flag_names(flags: int) -> list[str]:
     return [name for bit, name in FLAG_NAMES.items() if flags & bit]
-
-
-@dataclass
-class MappingConfig:
-    """voxel: scan and map voxel edge, m. map_radius: local map kept around the robot, m.
-    normal_radius: normal estimation radius, m. max_dist: correspondence gate while
-    tracking, m. startup_dist: gate for the first registration, m. max_iter: ICP
-    iterations. degenerate_eigen: eigenvalue of the per-correspondence normal matrix below
-    which a direction counts as unconstrained. min_fitness: share of matched points below
-    which a registration fails. stationary_speed: m/s below which the robot stands still.
-    velocity_window: baseline of the constant-velocity estimate, s. max_range: points
-    farther from the robot are not used, m. startup_baseline: time between the two sweeps
-    that measure the initial velocity, s. source_voxel: voxel of the registered sweep, m.
-    max_points: at most this many of its voxels are registered (evenly thinned).
-    max_degenerate_share: above this share of degenerate sweeps the run stops.
-    workers: threads for nearest-neighbour queries. ground_z, one_sided: see icp.register
-    (ground_z None: off)."""
-
-    voxel: float = 0.2
-    map_radius: float = 30.0
-    normal_radius: float = 0.6
-    max_dist: float = 0.5
-    startup_dist: float = 1.5
-    max_iter: int = 30
-    degenerate_eigen: float = 2e-3
-    min_fitness: float = 0.3
-    stationary_speed: float = 0.02
-    max_range: float = 40.0
-    velocity_window: float = 0.3
-    startup_baseline: float = 0.5
-    source_voxel: float = 0.2
-    max_points: int = 3000
-    max_degenerate_share: float = 0.8
-    workers: int = 1
-    ground_z: float | None = 0.97
-    one_sided: bool = True
 
 
 class Sweep(NamedTuple):

@@ -9,7 +9,6 @@ NaN and invalid. Per-cell point count and variance are kept.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -17,21 +16,6 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
-
-
-@dataclass
-class RasterConfig:
-    """dx: cell edge, m. corridor_width: d_w, width of the kept corridor, m.
-    fill_radius: empty cells are filled from measured cells up to this many cells away.
-    max_range: points farther from their lidar are not used, m. wheel_margin: the front
-    stream keeps points ahead of the front wheels' footprint plus this margin, the back
-    stream points behind the rear wheels' footprint plus this margin, m."""
-
-    dx: float = 0.02
-    corridor_width: float = 3.0
-    fill_radius: int = 2
-    max_range: float = 12.0
-    wheel_margin: float = 0.1
 
 
 class Heightmap(NamedTuple):

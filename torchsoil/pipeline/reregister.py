@@ -10,38 +10,12 @@ is kept.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from torchsoil.pipeline import icp
 from torchsoil.pipeline.deskew import deskew
-
-
-@dataclass
-class ReregisterConfig:
-    """enabled: False uses T_ref itself (the ablation without drift cancellation).
-    voxel: source downsampling for ICP, m. max_dist: correspondence gate, m. max_iter: ICP
-    iterations. min_fitness: share of matched source points below which a sweep is dropped.
-    max_rmse: robust point-to-plane RMS above which it is dropped, m. max_shift: largest
-    accepted translation from the seed, m; max_turn: largest rotation, degrees.
-    degenerate_eigen: see MappingConfig. max_range: points used for ICP, m. max_points: at
-    most this many source voxels (evenly thinned). one_sided: see icp.register (needs P_ref
-    normals oriented to their viewpoints, as build_map gives them)."""
-
-    enabled: bool = True
-    voxel: float = 0.1
-    max_dist: float = 0.3
-    max_iter: int = 20
-    min_fitness: float = 0.5
-    max_rmse: float = 0.05
-    max_shift: float = 0.3
-    max_turn: float = 2.0
-    degenerate_eigen: float = 2e-3
-    max_range: float = 30.0
-    max_points: int = 2500
-    one_sided: bool = True
+from torchsoil.settings import ReregisterConfig
 
 
 def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:

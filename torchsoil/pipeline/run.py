@@ -1,6 +1,6 @@
 """The lidar pipeline as one call: a recording in, a terrain pair out (paper section III).
 
-    result = process_bag("run.bag", robot, PipelineConfig.from_yaml("configs/pipeline.yaml"))
+    result = process_bag("run.bag", robot, load_settings("my.yaml").pipeline)
     result.terrain.save("terrain.npz")
 
 Stages: read (torchsoil.io.bag) -> fuse front + back in base_link -> reference map and
@@ -13,7 +13,6 @@ sweep (`scan_flags` in the output, bit names in `mapping.FLAG_NAMES`) and summar
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import NamedTuple
 
@@ -23,59 +22,12 @@ from scipy.spatial.transform import Rotation
 
 from torchsoil.io.bag import Recording, count_messages, read_recording, xyzrpy_matrix
 from torchsoil.pipeline import icp, mapping
-from torchsoil.pipeline.mapping import MappingConfig, Sweep, build_map
-from torchsoil.pipeline.raster import Accumulator, RasterConfig, corridor
-from torchsoil.pipeline.reregister import ReregisterConfig, register_sweep
+from torchsoil.pipeline.mapping import Sweep, build_map
+from torchsoil.pipeline.raster import Accumulator, corridor
+from torchsoil.pipeline.reregister import register_sweep
 from torchsoil.robot import Robot
+from torchsoil.settings import PipelineConfig, ReadConfig
 from torchsoil.terrain import TerrainPair
-
-
-@dataclass
-class ReadConfig:
-    """Topics and frames. extrinsics: {frame: [x, y, z, roll, pitch, yaw]} in base_frame
-    (m, rad), overriding /tf_static for that frame."""
-
-    front_topic: str = "/lidar_front/points"
-    back_topic: str = "/lidar_back/points"
-    tf_topic: str = "/tf_static"
-    base_frame: str = "base_link"
-    extrinsics: dict[str, list[float]] = field(default_factory=dict)
-
-
-@dataclass
-class PipelineConfig:
-    read: ReadConfig = field(default_factory=ReadConfig)
-    mapping: MappingConfig = field(default_factory=MappingConfig)
-    reregister: ReregisterConfig = field(default_factory=ReregisterConfig)
-    raster: RasterConfig = field(default_factory=RasterConfig)
-
-    @classmethod
-    def from_dict(cls, doc: dict | None, source: str = "pipeline config") -> PipelineConfig:
-        """Defaults overridden by a nested mapping {stage: {key: value}}; unknown keys are
-        an error naming the stage and the key."""
-        cfg = cls()
-        for stage, values in (doc or {}).items():
-            if stage not in {f.name for f in fields(cls)}:
-                raise ValueError(f"{source}: unknown stage '{stage}' "
-                                 f"(known: {[f.name for f in fields(cls)]})")
-            sub = getattr(cfg, stage)
-            for key, value in (values or {}).items():
-                if key not in {f.name for f in fields(sub)}:
-                    raise ValueError(f"{source}: unknown key '{stage}.{key}' "
-                                     f"(known: {[f.name for f in fields(sub)]})")
-                setattr(sub, key, value)
-        return cfg
-
-    @classmethod
-    def from_yaml(cls, path: str | Path) -> PipelineConfig:
-        path = Path(path)
-        doc = yaml.safe_load(path.read_text())
-        return cls.from_dict(doc.get("pipeline", doc) if isinstance(doc, dict) else doc, str(path))
-
-    def to_dict(self) -> dict:
-        return {f.name: {g.name: getattr(getattr(self, f.name), g.name)
-                         for g in fields(getattr(self, f.name))}
-                for f in fields(self) if is_dataclass(getattr(self, f.name))}
 
 
 class PipelineResult(NamedTuple):
@@ -182,7 +134,7 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
         bag_path: ROS 2 bag directory or ROS 1 file (FORMATS.md section 1).
         robot: wheel layout (written into the terrain pair; also bounds the ground each
             lidar may measure: ahead of the front wheels, behind the rear wheels).
-        config: stage settings (defaults: configs/pipeline.yaml values).
+        config: the pipeline section of the settings (torchsoil.settings.PipelineConfig).
         progress: show tqdm progress bars.
     Raises:
         BagError / ValueError naming the bag, topic or frame when the input is unusable;

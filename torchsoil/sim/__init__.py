@@ -5,10 +5,11 @@ Stages: `sinkage` (wheels dig), `deposition` (a share chi goes beside the rut),
 `simulate` runs them in order.
 """
 
+from torchsoil.settings import SimConfig
 from torchsoil.sim.geometry import WheelGeometry, wheel_geometry
 from torchsoil.sim.params import ParamSpec
 from torchsoil.sim.relaxation import relax
-from torchsoil.sim.simulate import Modifiers, SimConfig, SimResult, simulate, simulate_path
+from torchsoil.sim.simulate import Modifiers, SimResult, simulate, simulate_path
 
 __all__ = ["Modifiers", "ParamSpec", "SimConfig", "SimResult", "WheelGeometry", "relax",
            "simulate", "simulate_path", "wheel_geometry"]

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
+from torchsoil.settings import SimConfig
 from torchsoil.sim.deposition import deposit
 from torchsoil.sim.geometry import WheelGeometry, footprint, wheel_geometry
 from torchsoil.sim.params import ParamSpec
@@ -17,27 +17,6 @@ from torchsoil.sim.relaxation import relax
 from torchsoil.sim.sinkage import reference_height, sink
 
 MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avoids tan overflow
-
-
-@dataclass(frozen=True)
-class SimConfig:
-    """Simulator settings (configs/default.yaml, section `sim`). Lengths in metres or cells."""
-
-    tau: float = 0.01
-    eps_scale: float = 4.0
-    max_iter: int = 2000
-    fixed_iter: int | None = None
-    ref_radius: float = 0.5
-    band_width: float = 1.0
-    relax_margin: float = 2.0
-    pose_spacing: float = 0.5
-    backend: str = "auto"
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> SimConfig:
-        from torchsoil.config import dataclass_from_dict
-
-        return dataclass_from_dict(cls, d, "sim")
 
 
 class Modifiers(NamedTuple):

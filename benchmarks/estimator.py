@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from torchsoil.config import load_config
 from torchsoil.estimator import Estimator
+from torchsoil.settings import load_settings
 from torchsoil.terrain import TerrainPair
 
 VARIANTS = {
@@ -31,7 +31,8 @@ def run(quick: bool = False) -> dict[str, float]:
     for suffix, overrides in VARIANTS.items():
         if quick and suffix not in ("", "_fd"):
             continue
-        est = Estimator(pair, load_config(overrides=overrides))
+        settings = load_settings(overrides=overrides)
+        est = Estimator(pair, settings.estimator, settings.sim)
         rows = []
         for k, o in enumerate(est.run()):
             rows.append(o.row)

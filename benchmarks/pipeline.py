@@ -1,7 +1,7 @@
 """Lidar pipeline benchmark: processing time per stage and against the recording length.
 
 Runs `process_bag` on the synthetic `road` recording (torchsoil.synth; 20 s, or 5 s when
-quick), falling back to the analytic test scene if the recorder is unavailable.
+quick).
 `pipeline_realtime_factor` = processing (wall) time / recording duration (< 1: faster than
 real time); `pipeline_cpu_realtime_factor` the same with the process's CPU time, which does
 not depend on what else shares the cores. Accuracy against the truth
@@ -17,19 +17,11 @@ from pathlib import Path
 
 
 def _recording(out: Path, duration: float | None, scenario: str = "road") -> tuple[Path, object]:
-    from torchsoil.robot import paper_platform
+    from torchsoil.robot import Robot
+    from torchsoil.synth.record import make_recording
 
-    try:
-        from torchsoil.robot import Robot
-        from torchsoil.synth.record import make_recording
-
-        make_recording(scenario, out, 0, 0.02, "mcap", True, duration, None, progress=False)
-        return out, Robot.from_yaml(out.parent / f"{out.name}.robot.yaml")
-    except ImportError:
-        from torchsoil.pipeline.toyscene import ToyScene
-
-        ToyScene(noise=0.01, columns=1024).write(out, duration)
-        return out, paper_platform()
+    make_recording(scenario, out, 0, 0.02, "mcap", True, duration, None, progress=False)
+    return out, Robot.from_yaml(out.parent / f"{out.name}.robot.yaml")
 
 
 def run(quick: bool = False) -> dict[str, float]:
@@ -52,14 +44,10 @@ def run(quick: bool = False) -> dict[str, float]:
 
 
 def _accuracy(name: str, bag: Path, res) -> dict[str, float]:
-    try:
-        from torchsoil.synth.evaluate import pipeline_errors
-        from torchsoil.synth.truthfile import load_truth
+    from torchsoil.synth.evaluate import pipeline_errors
+    from torchsoil.synth.truthfile import load_truth
 
-        truth = load_truth(bag)
-    except (ImportError, FileNotFoundError):
-        return {}
-    return {f"pipeline_{name}_{k}": v for k, v in pipeline_errors(res.terrain, truth).items()}
+    return {f"pipeline_{name}_{k}": v for k, v in pipeline_errors(res.terrain, load_truth(bag)).items()}
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -47,9 +48,10 @@ def steps_per_second(num_envs: int, steps: int, blocks: int, env_overrides: dict
 
 def _in_fresh_process(num_envs: int, steps: int, blocks: int, overrides: dict,
                       env: dict) -> tuple[float, float]:
-    code = ("from torchsoil.bench.env import steps_per_second; "
+    code = ("from benchmarks.env import steps_per_second; "
             f"print(*steps_per_second({num_envs}, {steps}, {blocks}, {overrides!r}, cpu=True))")
-    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, **env}, check=True,
+    root = str(Path(__file__).resolve().parents[1])
+    out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": root, **env}, check=True,
                          capture_output=True, text=True)
     wall, cpu = out.stdout.strip().splitlines()[-1].split()
     return float(wall), float(cpu)

@@ -7,8 +7,7 @@ import time
 
 
 def run(quick: bool = False) -> dict[str, float]:
-    from torchsoil.config import load_config
-    from torchsoil.diagnosis import DiagnosisConfig, diagnose
+    from torchsoil.diagnosis import diagnose
     from torchsoil.synth.scenario import load_scenario, make_terrain_pair
     from torchsoil.terrain import TerrainPair
 
@@ -18,7 +17,7 @@ def run(quick: bool = False) -> dict[str, float]:
         scn["trajectory"]["accel_limit"] = 1.0
     pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=0))
     t0 = time.perf_counter()
-    diag = diagnose(pair, load_config(), DiagnosisConfig())
+    diag = diagnose(pair)
     secs = time.perf_counter() - t0
     fit = {f.ext.id: f for f in diag.fits}.get("speed_dependent_sinkage")
     s = diag.summary

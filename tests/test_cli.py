@@ -1,0 +1,60 @@
+"""The `torchsoil` command and what importing the library leaves alone."""
+
+import subprocess
+import sys
+from importlib.metadata import entry_points
+
+from torchsoil.cli import main
+
+SUBCOMMANDS = ("estimate", "process-bag", "diagnose", "record", "rollout", "bench", "settings")
+
+
+def run(*args):
+    return subprocess.run([sys.executable, *map(str, args)], capture_output=True, text=True, timeout=300)
+
+
+def test_registered_command_lists_every_job():
+    (ep,) = [e for e in entry_points(group="console_scripts") if e.name == "torchsoil"]
+    assert ep.value == "torchsoil.cli:main"
+    r = run("-m", "torchsoil", "--help")
+    assert r.returncode == 0, r.stderr
+    for name in SUBCOMMANDS:
+        assert name in r.stdout
+
+
+def test_settings_command_prints_the_effective_tree(tmp_path, capsys):
+    user = tmp_path / "u.yaml"
+    user.write_text("estimator: {window: 1.2}\n")
+    assert main(["settings", "estimator", "sim", "--config", str(user), "--set", "sim.tau=0.003"]) == 0
+    text = capsys.readouterr().out
+    assert "window: 1.2  # window length along the path, m" in text and "tau: 0.003" in text
+    assert "pipeline:" not in text
+    assert main(["settings", "--set", "estimator.windw=1"]) == 2
+    assert "estimator.windw" in capsys.readouterr().err
+
+
+def test_robot_by_unknown_name_is_a_clear_error(tmp_path, capsys):
+    assert main(["diagnose", str(tmp_path), "--robot", "no_such_robot", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "no_such_robot" in err and "paper_platform" in err
+
+
+def test_importing_any_module_changes_nothing_process_wide():
+    code = """
+import importlib, os, pkgutil, sys
+import numba, torch
+env, threads, interop, nb = dict(os.environ), torch.get_num_threads(), torch.get_num_interop_threads(), \\
+    numba.get_num_threads()
+import torchsoil
+names = [m.name for m in pkgutil.walk_packages(torchsoil.__path__, "torchsoil.")]
+for name in names:
+    if name != "torchsoil.__main__":
+        importlib.import_module(name)
+assert len(names) > 30, names
+assert dict(os.environ) == env, set(os.environ.items()) ^ set(env.items())
+assert (torch.get_num_threads(), torch.get_num_interop_threads(), numba.get_num_threads()) == (threads, interop, nb)
+assert "gymnasium" not in sys.modules and "matplotlib.pyplot" not in sys.modules
+print("ok")
+"""
+    r = run("-c", code)
+    assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr

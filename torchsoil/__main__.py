@@ -1,0 +1,5 @@
+"""`python -m torchsoil` is the `torchsoil` command."""
+
+from torchsoil.cli import main
+
+raise SystemExit(main())

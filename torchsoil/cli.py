@@ -1,0 +1,330 @@
+"""The `torchsoil` command: one subcommand per job, each a thin layer over one library call.
+
+    torchsoil estimate [INPUT] [--robot NAME|PATH] [--out DIR] [--config YAML] [--set KEY=VALUE]
+    torchsoil process-bag BAG --robot NAME|PATH --out DIR
+    torchsoil diagnose INPUT --out DIR
+    torchsoil record --scenario NAME --out PATH
+    torchsoil rollout --out DIR
+    torchsoil bench [--only sim estimator] [--quick]
+    torchsoil settings [SECTION ...]          # the effective settings as YAML
+
+This entry, not the library, chooses process-wide things: the OpenMP wait policy (passive,
+so torch's and numba's thread pools do not starve each other on a busy robot computer) and
+torch's intra-op threads (`--threads`, default 1 for estimation: a window's tensors are
+small, and the relaxation kernel parallelises over the batch itself).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+DEMO = Path("data") / "demo"  # the bundled demo recording, in a source checkout
+
+
+def _settings_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", action="append", default=[], metavar="YAML",
+                   help="settings YAML overriding the defaults (repeatable; `torchsoil settings` lists them)")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one setting, e.g. estimator.window=1.0 (repeatable)")
+
+
+def _job_options(p: argparse.ArgumentParser, threads: int | None = 1) -> None:
+    p.add_argument("--threads", type=int, default=threads,
+                   help=f"torch intra-op threads for the run (default {threads})")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the outputs of another run in --out (otherwise refused)")
+    p.add_argument("--no-tensorboard", action="store_true")
+
+
+def _robot_option(p: argparse.ArgumentParser, required: bool = False, extra: str = "") -> None:
+    p.add_argument("--robot", required=required, metavar="NAME|PATH",
+                   help="robot description: a shipped name (paper_platform) or a YAML path" + extra)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="torchsoil", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("estimate", help="estimate soil parameters along a drive (sliding windows)",
+                       description="Estimate (d_1..d_T, chi, beta) window by window. Writes OUT/params.csv, "
+                                   "reference.csv, simulated.npz, summary.md, run.json, figures and TensorBoard "
+                                   "events.")
+    p.add_argument("input", nargs="?", help="rosbag (ROS 2 directory or ROS 1 .bag) or terrain-pair .npz "
+                                            "(default: the bundled demo recording of a source checkout)")
+    _robot_option(p, extra=" (default: the demo's, or the pair's own wheels)")
+    p.add_argument("--out", help="output directory (default: out/<input name>)")
+    _settings_options(p)
+    p.add_argument("--grad", choices=["autograd", "fd"], help="= --set estimator.grad=...")
+    p.add_argument("--merged-sinkage", action="store_true", help="ablation: one sinkage for all tracks")
+    p.add_argument("--capped", type=int, metavar="N", help="ablation: relaxation capped at N iterations")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
+    _job_options(p)
+
+    p = sub.add_parser("process-bag", help="lidar pipeline: a recording in, terrain pair and trajectory out")
+    p.add_argument("bag", type=Path, help="ROS 2 bag directory or ROS 1 .bag file")
+    _robot_option(p, required=True)
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    _settings_options(p)
+    p.add_argument("--no-reregister", action="store_true", help="ablation: rasterize with T_ref")
+    p.add_argument("--extrinsic", nargs=7, action="append", default=[],
+                   metavar=("FRAME", "X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                   help="a lidar's pose in base_link (m, rad), overriding the recording's")
+
+    p = sub.add_parser("diagnose", help="locate model mismatch, name the missing physics, show the fit improve")
+    p.add_argument("input", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag)")
+    p.add_argument("--out", required=True, help="output directory")
+    _robot_option(p, extra=" (needed for a recording; default for a pair: its own wheels)")
+    _settings_options(p)
+    p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
+    _job_options(p)
+
+    p = sub.add_parser("record", help="write a synthetic recording (bag + truth) or only its terrain pair")
+    p.add_argument("--scenario", required=True, help="shipped scenario name or YAML path (a synth section)")
+    p.add_argument("--out", required=True, type=Path, help="bag directory to create (or .npz with --pair-only)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--dx", type=float, default=0.02, help="terrain cell edge, m")
+    p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
+    p.add_argument("--no-compress", action="store_true", help="mcap without zstd chunk compression")
+    p.add_argument("--duration", type=float, default=None, help="record only the first seconds")
+    p.add_argument("--columns", type=int, choices=[512, 1024, 2048], default=None)
+    p.add_argument("--organized", action="store_true", help="organized clouds (beams x columns, NaN = no return)")
+    p.add_argument("--pair-only", action="store_true", help="write only the terrain pair .npz")
+
+    p = sub.add_parser("rollout", help="scripted policies on the soil-traverse environment (damage vs time)")
+    p.add_argument("--config", default=None, help="env settings YAML (the env section)")
+    p.add_argument("--out", default="out/rollout", help="output directory")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--speed", type=float, default=1.0, help="driving speed, m/s")
+    p.add_argument("--detour-y", type=float, default=8.4, help="y of the detour's straight part, m")
+
+    p = sub.add_parser("bench", help="benchmarks: print every figure and write OUT/bench.json")
+    p.add_argument("--out", default="out/bench", help="directory for bench.json")
+    p.add_argument("--only", nargs="*", help="benchmark modules to run (default: all)")
+    p.add_argument("--quick", action="store_true", help="fewer sizes and repeats")
+
+    p = sub.add_parser("ablation", help="the paper's ablation table (proposed, merged sinkage, capped relaxation)")
+    p.add_argument("input")
+    _robot_option(p)
+    p.add_argument("--out", required=True)
+    _settings_options(p)
+    p.add_argument("--threads", type=int, default=1)
+
+    p = sub.add_parser("study", help="confusion table of the diagnosis over seeded synthetic drives")
+    p.add_argument("--out", default="out/diagnosis_study", help="output directory")
+    p.add_argument("--quick", action="store_true", help="one case per kind")
+
+    p = sub.add_parser("settings", help="print the effective settings as YAML (defaults + --config + --set)")
+    p.add_argument("sections", nargs="*", help="only these sections (sim, estimator, pipeline, diagnosis, env, "
+                                               "synth)")
+    _settings_options(p)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    # before torch or numba start their OpenMP runtimes: threads that spin while waiting starve
+    # the other pool (3-10x slower on 2 busy cores)
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from torchsoil.provenance import OutputMismatch
+    from torchsoil.settings import SettingsError
+
+    try:
+        return COMMANDS[args.command](args)
+    except (SettingsError, OutputMismatch, FileNotFoundError, FileExistsError, ValueError, KeyError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+def _settings(args, extra: list[str] = ()):
+    from torchsoil.settings import load_settings
+
+    return load_settings(*args.config, overrides=[*args.set, *extra])
+
+
+def _robot(name_or_path):
+    from torchsoil.robot import load_robot
+
+    return load_robot(name_or_path) if name_or_path else None
+
+
+def _robot_yaml(name_or_path):
+    from torchsoil.robot import robot_path
+
+    return robot_path(name_or_path) if name_or_path else None
+
+
+def find_demo() -> Path | None:
+    """The bundled demo recording: under the current directory or the source checkout."""
+    import torchsoil
+
+    for root in (Path.cwd(), Path(torchsoil.__file__).resolve().parents[1]):
+        if (root / DEMO / "demo").exists():
+            return root / DEMO
+    return None
+
+
+def cmd_estimate(args) -> int:
+    from torchsoil.runner import estimate
+
+    extra = [f"estimator.grad={args.grad}"] if args.grad else []
+    extra += ["estimator.merged_sinkage=true"] if args.merged_sinkage else []
+    extra += [f"sim.fixed_iter={args.capped}"] if args.capped else []
+    settings = _settings(args, extra)
+    robot_arg = args.robot
+    if args.input:
+        source = Path(args.input)
+    else:
+        demo = find_demo()
+        if demo is None:
+            raise FileNotFoundError("no INPUT given and no bundled demo recording here (data/demo/demo of a "
+                                    "source checkout); give a bag or terrain-pair .npz")
+        source, robot_arg = demo / "demo", robot_arg or demo / "demo.robot.yaml"
+    if not source.exists():
+        raise FileNotFoundError(f"input not found: {source}")
+    out = Path(args.out) if args.out else Path("out") / (source.stem if args.input else "demo")
+    estimate(source, out, settings, robot=_robot(robot_arg), resume=args.resume, overwrite=args.overwrite,
+             tensorboard=not args.no_tensorboard, robot_yaml=_robot_yaml(robot_arg), threads=args.threads)
+    print(f"wrote {out}: params.csv, summary.md, fig4_parameters.png, fig6_difference_maps.png, tensorboard/")
+    print((out / "summary.md").read_text())
+    return 0
+
+
+def cmd_process_bag(args) -> int:
+    from torchsoil.pipeline.run import process_bag, write_outputs
+    from torchsoil.runner import pipeline_settings
+
+    extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
+    settings = _settings(args, extra)
+    cfg = pipeline_settings(settings, _robot_yaml(args.robot))
+    if args.extrinsic:
+        given = {frame: [float(v) for v in values] for frame, *values in args.extrinsic}
+        cfg = cfg.replace(read=cfg.read.replace(extrinsics={**cfg.read.extrinsics, **given}))
+    result = process_bag(args.bag, _robot(args.robot), cfg, progress=True)
+    for p in result.problems:
+        print(f"warning: {p}", file=sys.stderr)
+    paths = write_outputs(result, args.out)
+    t = sum(result.timings.values())
+    print(f"processed {result.duration:.1f} s of recording in {t:.1f} s "
+          f"({t / max(result.duration, 1e-9):.2f} x real time); wrote " + ", ".join(str(p) for p in paths.values()))
+    return 0
+
+
+def cmd_diagnose(args) -> int:
+    from torchsoil.diagnosis.job import diagnose_input
+
+    settings = _settings(args, [f"diagnosis.n_fit={args.n_fit}"] if args.n_fit is not None else [])
+    if not Path(args.input).exists():
+        raise FileNotFoundError(f"input not found: {args.input}")
+    summary = diagnose_input(args.input, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
+                             overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads)
+    print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
+    return 0
+
+
+def cmd_record(args) -> int:
+    if args.pair_only:
+        import numpy as np
+
+        from torchsoil.synth.scenario import make_terrain_pair
+
+        out = args.out if args.out.suffix == ".npz" else args.out.with_name(args.out.name + ".npz")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(out, **make_terrain_pair(args.scenario, args.seed, args.dx))
+        print(f"wrote {out}")
+        return 0
+    from torchsoil.synth.record import make_recording
+
+    stats = make_recording(args.scenario, args.out, args.seed, args.dx, args.storage, not args.no_compress,
+                           args.duration, args.columns, args.organized or None, progress=True)
+    print(json.dumps({k: round(v, 3) for k, v in stats.items()}))
+    return 0
+
+
+def cmd_rollout(args) -> int:
+    from envs.scripted import compare_detour
+
+    compare_detour(args.config, args.out, seed=args.seed, speed=args.speed, detour_y=args.detour_y)
+    return 0
+
+
+def cmd_bench(args) -> int:
+    import importlib
+    import pkgutil
+    import platform
+
+    benchmarks = _import_benchmarks()
+    import torch
+
+    names = [m.name for m in pkgutil.iter_modules(benchmarks.__path__)]
+    names = [n for n in names if not args.only or n in args.only]
+    results: dict[str, float] = {}
+    for name in names:
+        print(f"== {name}", flush=True)
+        figures = importlib.import_module(f"benchmarks.{name}").run(quick=args.quick)
+        for key, value in figures.items():
+            print(f"  {key:48s} {value:12.4g}")
+        results.update(figures)
+    results["torch_threads"] = torch.get_num_threads()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench.json").write_text(json.dumps(results, indent=1, sort_keys=True))
+    print(f"wrote {out / 'bench.json'} ({platform.processor() or platform.machine()}, "
+          f"python {sys.version.split()[0]}, torch {torch.__version__})")
+    return 0
+
+
+def _import_benchmarks():
+    """The benchmarks package of the source checkout (it is not part of the installed library)."""
+    import importlib
+
+    import torchsoil
+
+    for root in (Path.cwd(), Path(torchsoil.__file__).resolve().parents[1]):
+        if (root / "benchmarks" / "__init__.py").exists():
+            if str(root) not in sys.path:
+                sys.path.insert(0, str(root))
+            return importlib.import_module("benchmarks")
+    raise FileNotFoundError("the benchmarks live in the source checkout (benchmarks/): run `torchsoil bench` "
+                            "from a clone of the repository")
+
+
+def cmd_ablation(args) -> int:
+    from torchsoil.ablation import VARIANTS, ablation_table
+    from torchsoil.runner import estimate
+
+    runs = {}
+    for name, overrides in VARIANTS.items():
+        runs[name] = estimate(args.input, Path(args.out) / name, _settings(args, overrides), robot=_robot(args.robot),
+                              tensorboard=False, robot_yaml=_robot_yaml(args.robot), threads=args.threads,
+                              overwrite=False)
+    table = ablation_table(runs)
+    (Path(args.out) / "ablation.md").write_text(table + "\n")
+    print(table)
+    return 0
+
+
+def cmd_study(args) -> int:
+    from torchsoil.diagnosis.study import STUDY_CASES, run_study
+
+    cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
+    print(run_study(cases, Path(args.out)))
+    return 0
+
+
+def cmd_settings(args) -> int:
+    print(_settings(args).to_yaml(args.sections or None), end="")
+    return 0
+
+
+COMMANDS = {"estimate": cmd_estimate, "process-bag": cmd_process_bag, "diagnose": cmd_diagnose,
+            "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench, "ablation": cmd_ablation,
+            "study": cmd_study, "settings": cmd_settings}
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
