@@ -29,7 +29,7 @@ import torch
 
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.robot import Robot
-from torchsoil.sim import Modifiers
+from torchsoil.sim import Modifiers, ParamSpec
 
 MAX_TAN = math.tan(math.radians(89.0))
 
@@ -128,7 +128,7 @@ class ExtensionModel:
         if self.ext.kind == "radius":
             return Modifiers(radius_scale=torch.full((B,), 1.0 + self.k, **kw))
         if self.ext.kind == "wall":
-            T = wd.geom.n_tracks
-            tan_wall = (torch.tan(theta[:, T + 1]) * (1.0 + self.k)).clamp(max=MAX_TAN)
+            beta = theta[:, ParamSpec.base(wd.geom.n_tracks).index("beta")]
+            tan_wall = (torch.tan(beta) * (1.0 + self.k)).clamp(max=MAX_TAN)
             return Modifiers(tan_beta_wall=tan_wall)
         raise ValueError(f"unknown extension kind {self.ext.kind!r}")

@@ -88,7 +88,8 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     if h.shape[0] not in (1, B):
         raise ValueError(f"h_front batch {h.shape[0]} does not match theta batch {B}")
     T = geom.n_tracks
-    d, chi, beta = theta[:, :T], theta[:, T], theta[:, T + 1]
+    d = theta[:, [spec.index(f"d{k + 1}") for k in range(T)]]
+    chi, beta = theta[:, spec.index("chi")], theta[:, spec.index("beta")]
     dt = theta.dtype
     fp = geom.nominal if modifiers.radius_scale is None else footprint(geom, modifiers.radius_scale, dt)
     depth = d[:, geom.track[geom.wheel]]                                   # (B, E)
