@@ -12,12 +12,12 @@ import json
 import sys
 from pathlib import Path
 
-SCENARIOS = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
-
 
 def main(argv=None) -> int:
+    from torchsoil.synth.scenario import available
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    names = ", ".join(sorted(p.stem for p in SCENARIOS.glob("*.yaml")))
+    names = ", ".join(available())
     ap.add_argument("--scenario", required=True, help=f"name ({names}) or YAML path")
     ap.add_argument("--out", required=True, type=Path, help="bag directory to create (or .npz with --pair-only)")
     ap.add_argument("--seed", type=int, default=0)
