@@ -8,13 +8,15 @@ import time
 
 def run(quick: bool = False) -> dict[str, float]:
     from torchsoil.diagnosis import diagnose
+    from torchsoil.settings import merge
     from torchsoil.synth.scenario import load_scenario, make_terrain_pair
     from torchsoil.terrain import TerrainPair
 
     scn = load_scenario("speed_dependent_sinkage")
     if quick:
-        scn["trajectory"]["segments"] = [{"straight": 2.0, "speed": v} for v in (1.0, 0.5, 1.5, 0.6, 1.4)]
-        scn["trajectory"]["accel_limit"] = 1.0
+        scn = load_scenario(merge(scn.model_dump(), {"trajectory": {
+            "segments": [{"straight": 2.0, "speed": v} for v in (1.0, 0.5, 1.5, 0.6, 1.4)],
+            "accel_limit": 1.0}}))
     pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=0))
     t0 = time.perf_counter()
     diag = diagnose(pair)

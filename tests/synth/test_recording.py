@@ -8,10 +8,11 @@ from rosbags.highlevel import AnyReader
 from rosbags.typesys import Stores, get_typestore
 from scipy.spatial.transform import Rotation
 
+from torchsoil.settings import SettingsError
 from torchsoil.synth.bagwriter import POINT_DTYPE
 from torchsoil.synth.lidar import KIND_CYLINDER, KIND_GROUND, base_poses_at, scan
-from torchsoil.synth.record import T0_NS, iter_sweeps, lidars_for, make_recording, scene_for, sidecar
-from torchsoil.synth.scenario import build_truth
+from torchsoil.synth.record import T0_NS, iter_sweeps, lidars_for, make_recording, scene_for, sidecar, with_lidar
+from torchsoil.synth.scenario import build_truth, load_scenario
 
 SCN = {"name": "small", "trajectory": {"segments": [{"straight": 4.5, "speed": 1.0}]},
        "terrain": {"margin": 4.0},
@@ -204,6 +205,12 @@ def test_bad_lidar_and_bag_settings_are_refused(tmp_path):
         LidarSpec("lidar_top", (0, 0, 1), (0, 0, 0), rate_hz=0.0)
     with pytest.raises(ValueError, match="storage must be sqlite3 or mcap"):
         BagWriter(tmp_path / "b", storage="parquet")
+    with pytest.raises(SettingsError, match=r"`synth.lidar.columns` = 300"):
+        make_recording(SCN, tmp_path / "c", columns=300)
+    assert not (tmp_path / "c").exists()
+    scn = load_scenario(SCN)
+    assert with_lidar(scn) is scn
+    assert with_lidar(scn, columns=2048, organized=True).lidar == scn.lidar.replace(columns=2048, organized=True)
 
 
 def test_lidar_geometry_of_the_platform():
@@ -236,6 +243,7 @@ def test_truth_file_round_trip(rec):
     np.testing.assert_array_equal(tf["h_after"], w.h_after.astype(np.float32))
     np.testing.assert_array_equal(tf["n_visits"], w.n_visits)
     assert tf.grid == w.grid and tf.t0 == T0_NS / 1e9 and tf.meta["scenario"] == "small"
+    assert tf.scenario == load_scenario(SCN) and tf.scenario.lidar.columns == 512
     # resampling onto a shifted grid of the same cell size picks the same cells
     g = w.grid.crop(5, 50, 7, 60)
     np.testing.assert_array_equal(tf.on_grid("h_after", g), w.h_after[5:50, 7:60].astype(np.float32))
@@ -249,8 +257,7 @@ def test_organized_clouds_keep_the_beam_image(tmp_path):
     out = tmp_path / "org"
     make_recording(SCN, out, seed=5, duration=0.2, organized=True)
     msgs = read_bag(out)
-    truth = build_truth(SCN, 5)
-    truth.scenario["lidar"]["organized"] = True
+    truth = build_truth(with_lidar(load_scenario(SCN), organized=True), 5)
     expected = list(iter_sweeps(truth, 5, 0.2))
     got = msgs["/lidar_front/points"] + msgs["/lidar_back/points"]
     assert len(got) == len(expected) == 4

@@ -2,15 +2,18 @@
 
 import importlib.util
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
+from torchsoil.settings import LandmarkConfig, SettingsError, SynthConfig, TrajectorySegment, load_settings, validate
 from torchsoil.synth import effects as fx
-from torchsoil.synth.scenario import available, build_truth, load_scenario, make_terrain_pair
+from torchsoil.synth.scenario import SCENARIO_DIR, available, build_truth, load_scenario, make_terrain_pair
 from torchsoil.synth.terrain import Relief, micro_topography, soil_at
 from torchsoil.synth.trajectory import build_trajectory, planar_path
 
@@ -23,31 +26,141 @@ def test_named_scenarios_exist_and_load():
     assert REQUIRED <= set(available())
     for name in available():
         scn = load_scenario(name)
-        assert scn["name"] == name
-        fx.resolve(scn["effects"])                 # every effect section is valid
+        assert isinstance(scn, SynthConfig) and scn.name == name
+        fx.resolve(scn.effects)                    # every effect section is valid
     for name in fx.CATALOGUE + fx.OUT_OF_CATALOGUE:
-        assert list(fx.resolve(load_scenario(name)["effects"])) == [name]
-    assert load_scenario("road")["soil"]["base"]["d"] == 0.0
-    assert load_scenario("flat")["landmarks"] == {"poles": 0, "trunks": 0, "shed": False, "fence": False}
+        assert list(fx.resolve(load_scenario(name).effects)) == [name]
+    assert load_scenario("road").soil.base["d"] == 0.0
+    assert load_scenario("flat").landmarks == LandmarkConfig(poles=0, trunks=0, shed=False, fence=False)
+    assert load_scenario("demo").lidar.columns == 512
 
 
-def test_scenario_errors_name_the_problem():
+@pytest.mark.parametrize("name", available())
+def test_every_shipped_scenario_validates_as_a_synth_section(name):
+    """Each shipped YAML is a document of the settings' synth section, and holds only keys the
+    section knows (validated directly, without the loader's merging)."""
+    doc = yaml.safe_load((SCENARIO_DIR / f"{name}.yaml").read_text())
+    direct = validate(SynthConfig, {**doc, "name": name}, name, prefix="synth.")
+    assert load_scenario(name) == direct
+    assert load_scenario(direct) is direct
+    assert load_settings({"synth": {**doc, "name": name}}).synth == direct
+
+
+def test_defaults_are_the_settings_defaults_and_lists_replace():
+    assert load_scenario({}) == SynthConfig()
+    assert load_scenario({}).name == "custom"
+    # one arc replaces the default straight (merged element-wise it would be both and refused)
+    scn = load_scenario({"trajectory": {"segments": [{"arc": 2.0, "angle_deg": 90}]}})
+    assert scn.trajectory.segments == (TrajectorySegment(arc=2.0, angle_deg=90.0),)
+    assert scn.trajectory.accel_limit == SynthConfig().trajectory.accel_limit
+    # mappings merge key by key: the other soil base values keep their defaults
+    assert load_scenario({"soil": {"base": {"d": 0.05}}}).soil.base == {"d": 0.05, "chi": 0.2, "beta_deg": 30.0,
+                                                                          "moisture": 0.0}
+
+
+def test_scenario_files_name_and_settings_documents(tmp_path):
+    plain = tmp_path / "my_field.yaml"
+    plain.write_text(yaml.safe_dump({"terrain": {"margin": 2.5}}))
+    assert load_scenario(plain).name == "my_field" and load_scenario(str(plain)).terrain.margin == 2.5
+    named = tmp_path / "other.yaml"
+    named.write_text(yaml.safe_dump({"name": "kept", "terrain": {"margin": 2.5}}))
+    assert load_scenario(named).name == "kept"
+    # a full settings document: the synth section is the scenario, the rest is checked too
+    full = tmp_path / "settings.yaml"
+    full.write_text(yaml.safe_dump({"estimator": {"window": 1.0}, "synth": {"terrain": {"margin": 3.0}}}))
+    scn = load_scenario(full)
+    assert scn.terrain.margin == 3.0 and scn.name == "settings"
+    assert load_scenario({"synth": {"name": "x", "lidar": {"columns": 512}}}).lidar.columns == 512
+    full.write_text(yaml.safe_dump({"estimator": {"windw": 1.0}, "synth": {}}))
+    with pytest.raises(SettingsError, match=r"settings.yaml: unknown setting `estimator.windw`"):
+        load_scenario(full)
+    # errors name the file and the key
+    plain.write_text(yaml.safe_dump({"terrain": {"relief": {"amplitud": 0.1}}}))
+    with pytest.raises(SettingsError, match=r"my_field.yaml: unknown setting `synth.terrain.relief.amplitud` "
+                                            r"\(known here: amplitude, wavelength, slope_x, slope_y\)"):
+        load_scenario(plain)
+
+
+def test_unknown_scenario_keys_are_refused_naming_the_key():
     with pytest.raises(FileNotFoundError, match="available: .*watered"):
         load_scenario("no_such_field")
-    with pytest.raises(ValueError, match="unknown sections"):
+    with pytest.raises(SettingsError, match=r"unknown setting `synth.wheather`"):
         load_scenario({"trajectory": {}, "wheather": 1})
-    with pytest.raises(ValueError, match=r"`terrain.micro.rms` must be a number, got 'rough'"):
+    with pytest.raises(SettingsError, match=r"unknown setting `synth.terrain.relief.amplitud`"):
+        load_scenario({"terrain": {"relief": {"amplitud": 0.1}}})
+    with pytest.raises(SettingsError, match=r"unknown setting `synth.world.chunks`"):
+        load_scenario({"world": {"chunks": 0.1}})
+    with pytest.raises(SettingsError, match=r"unknown setting `synth.trajectory.segments.1.spiral`"):
+        load_scenario({"trajectory": {"segments": [{"straight": 1.0}, {"straight": 1.0, "spiral": 2.0}]}})
+    with pytest.raises(SettingsError, match=r"`synth.effects.wind`: unknown effect 'wind'"):
+        load_scenario({"effects": {"wind": {"k": 1.0}}})
+    with pytest.raises(SettingsError, match=r"`synth.effects.tread`: .*unknown parameters \['colour'\]"):
+        load_scenario({"effects": {"tread": {"colour": 2}}})
+    with pytest.raises(SettingsError, match=r"`synth.soil.base` = a mapping: .*unknown keys \['wetness'\]"):
+        load_scenario({"soil": {"base": {"wetness": 0.3}}})
+    with pytest.raises(SettingsError, match=r"`synth.soil.patches.1`: a band_x patch .*unknown \['sigm'\]"):
+        load_scenario({"soil": {"patches": [{"kind": "disc", "center": [0, 0], "sigma": 1.0},
+                                            {"kind": "band_x", "center": 1.0, "sigm": 1.0}]}})
+    with pytest.raises(SettingsError, match=r"`synth.soil.patches.0`: delta: unknown key 'wet'"):
+        load_scenario({"soil": {"patches": [{"kind": "band_x", "center": 1.0, "sigma": 1.0, "delta": {"wet": 1}}]}})
+    with pytest.raises(SettingsError, match=r"`synth.robot`: robot description 'no_robot' not found"):
+        load_scenario({"robot": "no_robot"})
+
+
+def test_wrong_types_are_refused_naming_the_key():
+    with pytest.raises(SettingsError, match=r"`synth.terrain.micro.rms` = 'rough'"):
         load_scenario({"terrain": {"micro": {"rms": "rough"}}})
-    with pytest.raises(ValueError, match=r"`landmarks.shed` must be true or false"):
-        load_scenario({"landmarks": {"shed": 1}})
-    with pytest.raises(ValueError, match=r"`trajectory.segments` must be a list of mappings"):
+    with pytest.raises(SettingsError, match=r"`synth.landmarks.shed` = 'maybe'"):
+        load_scenario({"landmarks": {"shed": "maybe"}})
+    with pytest.raises(SettingsError, match=r"`synth.landmarks.poles` = 2.5"):
+        load_scenario({"landmarks": {"poles": 2.5}})
+    with pytest.raises(SettingsError, match=r"`synth.trajectory.segments` = 20"):
         load_scenario({"trajectory": {"segments": 20}})
-    with pytest.raises(ValueError, match=r"segments\[1\]: needs `straight` or `arc`"):
+    with pytest.raises(SettingsError, match=r"`synth.world.chunk` = 'big'"):
+        load_scenario({"world": {"chunk": "big"}})
+    with pytest.raises(SettingsError, match=r"`synth.lidar.columns` = 300"):
+        load_scenario({"lidar": {"columns": 300}})
+    with pytest.raises(SettingsError, match=r"`synth.terrain.margin` = -1"):
+        load_scenario({"terrain": {"margin": -1}})
+    with pytest.raises(SettingsError, match=r"`synth.soil.track_scale` = \[1.0, 1.0, 1.0\]: .* 2 tracks"):
+        load_scenario({"soil": {"track_scale": [1, 1, 1]}})
+    with pytest.raises(SettingsError, match=r"`synth.soil.patches.0`: `x1` must be a number"):
+        load_scenario({"soil": {"patches": [{"kind": "lane", "x0": 0.0, "x1": "far"}]}})
+
+
+def test_a_segment_is_a_straight_or_an_arc():
+    both = {"trajectory": {"segments": [{"straight": 2.0}, {"straight": 1.0, "arc": 2.0, "angle_deg": 30}]}}
+    with pytest.raises(SettingsError, match=r"`synth.trajectory.segments.1` = a mapping: .*either \{straight"):
+        load_scenario(both)
+    with pytest.raises(SettingsError, match=r"`synth.trajectory.segments.0` .*either \{straight"):
+        load_scenario({"trajectory": {"segments": [{"speed": 1.0}]}})
+    with pytest.raises(SettingsError, match=r"`synth.trajectory.segments.0` .*an arc segment needs angle_deg"):
+        load_scenario({"trajectory": {"segments": [{"arc": 2.0}]}})
+
+
+def test_path_and_soil_errors_name_the_problem():
+    with pytest.raises(SettingsError, match=r"unknown setting `trajectory.segments\[1\].spiral`"):
         planar_path([{"straight": 1.0}, {"spiral": 2.0}])
     with pytest.raises(ValueError, match=r"segments\[0\]: speed must be > 0"):
         planar_path([{"straight": 1.0, "speed": 0.0}])
+    with pytest.raises(ValueError, match=r"segments\[1\]: arc radius must be > 0"):
+        planar_path([TrajectorySegment(straight=1.0), TrajectorySegment(arc=-1.0, angle_deg=10.0)])
     with pytest.raises(ValueError, match="soil.patches\\[0\\].delta: unknown key 'wetness'"):
         soil_at({"patches": [{"kind": "disc", "center": [0, 0], "sigma": 1, "delta": {"wetness": 1}}]}, 0.0, 0.0)
+    with pytest.raises(SettingsError, match=r"unknown setting `soil.bse`"):
+        soil_at({"bse": {"d": 0.1}}, 0.0, 0.0)
+
+
+def test_dict_scenarios_of_the_diagnosis_study_are_accepted():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "diagnosis"))
+    try:
+        from scenarios import STUDY_CASES
+    finally:
+        sys.path.pop(0)
+    for case, doc, *_ in STUDY_CASES:
+        scn = load_scenario(doc)
+        assert scn.name == doc["name"] and scn.world.chunk == 0.1, case
+        assert scn.effects == doc.get("effects", {}), case
 
 
 def test_terrain_pair_follows_formats_section_3():
@@ -127,7 +240,8 @@ def test_soil_fields_patch_weights():
 
 
 def _script_main():
-    spec = importlib.util.spec_from_file_location("make_recording", Path(__file__).resolve().parents[2] / "scripts/make_recording.py")
+    script = Path(__file__).resolve().parents[2] / "scripts/make_recording.py"
+    spec = importlib.util.spec_from_file_location("make_recording", script)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.main
@@ -148,9 +262,12 @@ def test_make_recording_script_pair_only(tmp_path, capsys):
 
 
 def test_make_recording_script_runs_as_a_command(tmp_path):
-    r = subprocess.run([sys.executable, str(Path(__file__).resolve().parents[2] / "scripts/make_recording.py"), "--help"],
-                       capture_output=True, text=True)
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    r = subprocess.run([sys.executable, str(root / "scripts/make_recording.py"), "--help"],
+                       capture_output=True, text=True, env=env)
     assert r.returncode == 0 and "--pair-only" in r.stdout
+    assert all(name in r.stdout for name in ("watered", "multi_pass_hardening", "road"))   # shipped names
 
 
 def test_every_effect_has_a_signature():

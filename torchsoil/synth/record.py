@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from torchsoil.settings import SynthConfig, merge, validate
 from torchsoil.synth import effects as fx
 from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
@@ -35,8 +36,8 @@ def sidecar(out: str | Path, suffix: str) -> Path:
 
 
 def lidars_for(truth: Truth) -> list[LidarSpec]:
-    lid = truth.scenario["lidar"]
-    return paper_lidars(int(lid["columns"]), float(lid["rate_hz"]))
+    lid = truth.scenario.lidar
+    return paper_lidars(lid.columns, lid.rate_hz)
 
 
 def scene_for(truth: Truth) -> Scene:
@@ -66,7 +67,7 @@ def sweep_points(sw: dict, organized: bool = False) -> np.ndarray:
 def sweep_starts(truth: Truth, duration: float | None = None) -> np.ndarray:
     """Start times [s] of the full sweeps within the drive (or its first `duration` s)."""
     end = truth.traj.duration if duration is None else min(duration, truth.traj.duration)
-    period = 1.0 / float(truth.scenario["lidar"]["rate_hz"])
+    period = 1.0 / truth.scenario.lidar.rate_hz
     return np.arange(0.0, end - period + 1e-9, period)
 
 
@@ -75,34 +76,42 @@ def iter_sweeps(truth: Truth, seed: int, duration: float | None = None):
     lidars in recording order; deterministic for (truth, seed)."""
     specs = lidars_for(truth)
     scene = scene_for(truth)
-    lid = truth.scenario["lidar"]
+    lid = truth.scenario.lidar
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
     for ts in sweep_starts(truth, duration):
         for s in specs:
-            sw = scan(scene, s, truth.traj.poses, float(ts), rng, float(lid["range_noise"]),
-                      float(lid["dropout"]))
-            yield float(ts), s, sweep_points(sw, bool(lid.get("organized", False)))
+            sw = scan(scene, s, truth.traj.poses, float(ts), rng, lid.range_noise, lid.dropout)
+            yield float(ts), s, sweep_points(sw, lid.organized)
 
 
-def make_recording(scenario, out: str | Path, seed: int = 0, dx: float = 0.02,
-                   storage: str = "mcap", compress: bool = True, duration: float | None = None,
-                   columns: int | None = None, organized: bool | None = None,
-                   progress: bool = False) -> dict:
+def with_lidar(scenario: SynthConfig, columns: int | None = None, organized: bool | None = None) -> SynthConfig:
+    """The scenario with its lidar columns and/or organized setting replaced (None: kept),
+    validated like the scenario (SettingsError naming `synth.lidar.columns`)."""
+    change = {k: v for k, v in (("columns", columns), ("organized", organized)) if v is not None}
+    if not change:
+        return scenario
+    return validate(SynthConfig, merge(scenario.model_dump(), {"lidar": change}), "recorder arguments",
+                    prefix="synth.")
+
+
+def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, seed: int = 0,
+                   dx: float = 0.02, storage: str = "mcap", compress: bool = True,
+                   duration: float | None = None, columns: int | None = None,
+                   organized: bool | None = None, progress: bool = False) -> dict:
     """Write the bag directory `out` and its sidecar files (module docstring).
 
+    scenario: a shipped name, a YAML path, a dict or a SynthConfig (see
+    `scenario.load_scenario`); seed: terrain, landmark and lidar noise seed; dx: terrain
+    cell edge, m; storage: mcap or sqlite3; compress: mcap zstd chunk compression;
     duration: record only the first `duration` s of the drive (default: all of it);
     columns, organized: override the scenario's lidar settings (organized: full (beams,
-    columns) clouds with NaN for no return instead of the returns only). Returns a dict of figures (timings [s],
-    bag size [MB], number of sweeps and points)."""
+    columns) clouds with NaN for no return instead of the returns only). Returns a dict of
+    figures (timings [s], bag size [MB], number of sweeps and points)."""
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"bag output {out} already exists; remove it or choose another path")
     t0 = time.perf_counter()
-    scn = load_scenario(scenario)
-    if columns is not None:
-        scn["lidar"]["columns"] = int(columns)
-    if organized is not None:
-        scn["lidar"]["organized"] = bool(organized)
+    scn = with_lidar(load_scenario(scenario), columns, organized)
     truth = build_truth(scn, seed, dx)
     t1 = time.perf_counter()
     specs = lidars_for(truth)
@@ -154,9 +163,9 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         soil_beta=w.soil["beta"].astype(np.float32), soil_moisture=w.soil["moisture"].astype(np.float32),
         cylinders=truth.landmarks.cylinders, boxes=truth.landmarks.boxes,
     )
-    eff = fx.resolve(truth.scenario.get("effects"))
+    eff = fx.resolve(truth.scenario.effects)
     meta = {
-        "scenario": truth.scenario.get("name"),
+        "scenario": truth.scenario.name,
         "seed": int(seed),
         "effects": eff,
         "catalogue_effects": [e for e in eff if e in fx.CATALOGUE],
@@ -164,7 +173,7 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "effect_signatures": {e: fx.SIGNATURES[e] for e in eff},
         "expected_verdict": ("adequate" if not eff else "unexplained" if all(e in fx.OUT_OF_CATALOGUE for e in eff)
                              else "missing_physics"),
-        "scenario_spec": truth.scenario,
+        "scenario_spec": truth.scenario.model_dump(mode="json"),
         "bag_time_of_t0_ns": T0_NS,
         "time_note": "truth and pair pose times t are seconds after bag_time_of_t0_ns",
         "extrinsics": {s.name: {"parent": "base_link", "xyz": list(s.xyz), "rpy": list(s.rpy),

@@ -13,6 +13,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from torchsoil.grid import Grid
+from torchsoil.settings import LandmarkConfig, WorldSoil, validate
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,42 @@ def micro_topography(grid: Grid, rng: np.random.Generator, rms: float = 0.007,
 SOIL_KEYS = ("d", "chi", "beta_deg", "moisture")
 
 
+PATCH_KEYS = {"band_x": ({"center", "sigma"}, set()), "disc": ({"center", "sigma"}, set()),
+              "lane": ({"x0", "x1"}, {"y0", "y1", "edge"})}   # kind: (required, optional) keys
+
+
+def check_patch(p) -> None:
+    """Refuse a soil patch with an unknown kind, missing or unknown keys, or unknown or
+    non-numeric delta keys (ValueError naming them); see `_patch_weight` for the kinds."""
+    if not isinstance(p, dict):
+        raise ValueError(f"a soil patch is a mapping {{kind, ..., delta}}, got {p!r}")
+    kind = p.get("kind")
+    if kind not in PATCH_KEYS:
+        raise ValueError(f"`kind` must be one of {', '.join(PATCH_KEYS)}, got {kind!r}")
+    required, optional = PATCH_KEYS[kind]
+    missing = required - set(p)
+    unknown = set(p) - required - optional - {"kind", "delta"}
+    if missing or unknown:
+        raise ValueError(f"a {kind} patch needs {sorted(required)}"
+                         + (f" and may have {sorted(optional)}" if optional else "")
+                         + (f"; missing {sorted(missing)}" if missing else "")
+                         + (f"; unknown {sorted(unknown)}" if unknown else ""))
+    delta = p.get("delta") or {}
+    if not isinstance(delta, dict):
+        raise ValueError(f"`delta` must be a mapping of {SOIL_KEYS}, got {delta!r}")
+    for k, v in delta.items():
+        if k not in SOIL_KEYS:
+            raise ValueError(f"delta: unknown key {k!r}; known: {SOIL_KEYS}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"delta.{k} must be a number, got {v!r}")
+    center = p.get("center")
+    if kind == "disc" and not (isinstance(center, (list, tuple)) and len(center) == 2):
+        raise ValueError(f"a disc patch's `center` is [x, y], got {center!r}")
+    for k in set(p) - {"kind", "delta"} - ({"center"} if kind == "disc" else set()):
+        if isinstance(p[k], bool) or not isinstance(p[k], (int, float)):
+            raise ValueError(f"`{k}` must be a number, got {p[k]!r}")
+
+
 def _patch_weight(p: dict, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Smooth 0..1 weight of one soil patch at world points.
 
@@ -107,20 +144,22 @@ def _patch_weight(p: dict, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     raise ValueError(f"soil patch kind must be band_x, disc or lane, got {kind!r} in {p}")
 
 
-def soil_at(soil: dict, x, y) -> dict[str, np.ndarray]:
+def as_world_soil(soil: WorldSoil | dict) -> WorldSoil:
+    """A soil section as WorldSoil (a dict is validated, errors naming `soil.KEY`)."""
+    return soil if isinstance(soil, WorldSoil) else validate(WorldSoil, soil, "soil", prefix="soil.")
+
+
+def soil_at(soil: WorldSoil | dict, x, y) -> dict[str, np.ndarray]:
     """Soil properties at world points: base values plus weighted patch deltas.
 
-    soil: {"base": {d [m], chi [-], beta_deg [deg], moisture [0..1]},
-           "patches": [{kind, ..., "delta": {key: value}}]}.
+    soil: the scenario's soil section (WorldSoil, or a dict of it): base {d [m], chi [-],
+    beta_deg [deg], moisture [0..1]}, patches [{kind, ..., "delta": {key: value}}].
     Returns {d, chi, beta (rad), moisture} arrays of the broadcast shape of x, y.
     """
+    soil = as_world_soil(soil)
     x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
-    base = {"d": 0.03, "chi": 0.2, "beta_deg": 30.0, "moisture": 0.0} | dict(soil.get("base", {}))
-    unknown = set(base) - set(SOIL_KEYS)
-    if unknown:
-        raise ValueError(f"soil.base: unknown keys {sorted(unknown)}; known: {SOIL_KEYS}")
-    out = {k: np.full(x.shape, float(v)) for k, v in base.items()}
-    for i, p in enumerate(soil.get("patches", []) or []):
+    out = {k: np.full(x.shape, float(v)) for k, v in soil.base.items()}
+    for i, p in enumerate(soil.patches):
         w = _patch_weight(p, x, y)
         for k, v in (p.get("delta") or {}).items():
             if k not in SOIL_KEYS:
@@ -151,12 +190,13 @@ class Landmarks:
         return cls(np.zeros((0, 5)), np.zeros((0, 8)))
 
 
-def farm_landmarks(spec: dict, relief: Relief, bounds: tuple[float, float, float, float],
+def farm_landmarks(spec: LandmarkConfig, relief: Relief, bounds: tuple[float, float, float, float],
                    rng: np.random.Generator, keep_out: np.ndarray) -> Landmarks:
     """A farm scene around the field: poles, tree trunks, a shed wall and a fence.
 
-    spec: {"poles": n, "trunks": n, "shed": bool, "fence": bool}; bounds: (xmin, ymin,
-    xmax, ymax) of the field, m; keep_out: (M, 2) path points, no landmark within 2.5 m.
+    spec: the scenario's landmarks section (poles: n, trunks: n, shed, fence); bounds:
+    (xmin, ymin, xmax, ymax) of the field, m; keep_out: (M, 2) path points, no landmark
+    within 2.5 m.
     """
     xmin, ymin, xmax, ymax = bounds
     cyl, box = [], []
@@ -181,15 +221,15 @@ def farm_landmarks(spec: dict, relief: Relief, bounds: tuple[float, float, float
             cyl.append([x, y, rng.uniform(r_lo, r_hi), z0, z0 + 0.2 + rng.uniform(z_lo, z_hi)])
             placed += 1
 
-    place(int(spec.get("poles", 0)), 0.04, 0.08, 1.5, 3.0)
-    place(int(spec.get("trunks", 0)), 0.12, 0.3, 3.0, 6.0)
-    if spec.get("shed", False):
+    place(spec.poles, 0.04, 0.08, 1.5, 3.0)
+    place(spec.trunks, 0.12, 0.3, 3.0, 6.0)
+    if spec.shed:
         # a wall along the field, on the +y side, 10 m long, 3 m high
         cx, cy = 0.5 * (xmin + xmax), ymax - 1.5
         z0 = float(relief.height(cx, cy)) - 0.3
         box.append([cx, cy, z0 + 1.65, 5.0, 0.1, 1.65, 0.02, 1])
         box.append([cx + 5.0, cy - 2.0, z0 + 1.65, 2.0, 0.1, 1.65, math.pi / 2 + 0.02, 1])
-    if spec.get("fence", False):
+    if spec.fence:
         # a fence along the -y side: posts every 2.5 m and two rails
         y = ymin + 1.5
         xs = np.arange(xmin + 1.0, xmax - 1.0, 2.5)

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from torchsoil.robot import Robot
+from torchsoil.settings import TrajectoryConfig, TrajectorySegment, validate
 from torchsoil.synth.terrain import Relief
 
 
@@ -43,30 +44,30 @@ class Trajectory:
         return out
 
 
-def planar_path(segments: list[dict], start=(0.0, 0.0, 0.0), ds: float = 0.01
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """Dense path from segments `{straight: L, speed: v}` or `{arc: R, angle_deg: a, speed: v}`
-    (a > 0 turns left). Returns (M, 4) [s, x, y, yaw] and (M,) commanded speed, m/s."""
+def planar_path(segments, start=(0.0, 0.0, 0.0), ds: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Dense path from segments (TrajectorySegment, or dicts `{straight: L, speed: v}` /
+    `{arc: R, angle_deg: a, speed: v}`; a > 0 turns left). Returns (M, 4) [s, x, y, yaw]
+    and (M,) commanded speed, m/s."""
     if not segments:
         raise ValueError("trajectory: at least one segment is needed")
     x, y, yaw = (float(v) for v in start)
     rows, speeds = [[0.0, x, y, yaw]], []
     s = 0.0
     for i, seg in enumerate(segments):
-        v = float(seg.get("speed", 1.0))
+        if not isinstance(seg, TrajectorySegment):
+            seg = validate(TrajectorySegment, seg, "trajectory", prefix=f"trajectory.segments[{i}].")
+        v = seg.speed
         if not v > 0:
             raise ValueError(f"trajectory.segments[{i}]: speed must be > 0 m/s, got {v}")
-        if "straight" in seg:
-            L = float(seg["straight"])
+        if seg.straight is not None:
+            L = seg.straight
             curv = 0.0
-        elif "arc" in seg:
-            R = float(seg["arc"])
-            a = math.radians(float(seg["angle_deg"]))
+        else:
+            R = seg.arc
+            a = math.radians(seg.angle_deg)
             if R <= 0:
                 raise ValueError(f"trajectory.segments[{i}]: arc radius must be > 0 m, got {R}")
             L, curv = abs(a) * R, math.copysign(1.0 / R, a)
-        else:
-            raise ValueError(f"trajectory.segments[{i}]: needs `straight` or `arc`, got {seg}")
         if L <= 0:
             raise ValueError(f"trajectory.segments[{i}]: length must be > 0 m")
         n = max(1, int(math.ceil(L / ds)))
@@ -87,20 +88,23 @@ def planar_path(segments: list[dict], start=(0.0, 0.0, 0.0), ds: float = 0.01
     return np.array(rows), speeds
 
 
-def build_trajectory(spec: dict, relief: Relief, robot: Robot, rate_hz: float = 100.0) -> Trajectory:
-    """Trajectory from a scenario's `trajectory` section.
+def build_trajectory(spec: TrajectoryConfig | dict, relief: Relief, robot: Robot, rate_hz: float = 100.0,
+                     start_speed: float | None = None) -> Trajectory:
+    """Trajectory from a scenario's `trajectory` section (TrajectoryConfig, or a dict of it).
 
-    spec: {start: [x, y, yaw_deg], segments: [...], accel_limit: m/s^2 (speed changes ramp
-    at this rate), start_speed: m/s (default: the first segment's speed, i.e. already moving)}.
+    spec: start [x, y, yaw_deg], segments, accel_limit m/s^2 (speed changes ramp at this
+    rate); start_speed: m/s (default: the first segment's speed, i.e. already moving).
     The chassis height and attitude follow the relief under the four wheel contacts.
     """
-    st = spec.get("start", [0.0, 0.0, 0.0])
-    path, v_cmd = planar_path(spec["segments"], (st[0], st[1], math.radians(st[2])))
-    a_lim = float(spec.get("accel_limit", 0.5))
+    if not isinstance(spec, TrajectoryConfig):
+        spec = validate(TrajectoryConfig, spec, "trajectory", prefix="trajectory.")
+    st = spec.start
+    path, v_cmd = planar_path(spec.segments, (st[0], st[1], math.radians(st[2])))
+    a_lim = spec.accel_limit
     s = path[:, 0]
     ds = np.diff(s)
     v = v_cmd.copy()
-    v[0] = float(spec.get("start_speed", v_cmd[0]))
+    v[0] = float(v_cmd[0] if start_speed is None else start_speed)
     # speed changes ramp at a_lim: forward pass (accelerate), backward pass (brake ahead)
     for i in range(1, len(v)):
         v[i] = min(v[i], math.sqrt(v[i - 1] ** 2 + 2 * a_lim * ds[i - 1]))

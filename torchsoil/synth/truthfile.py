@@ -32,6 +32,16 @@ class TruthFile:
         """Bag time [s] of truth time 0."""
         return self.meta["bag_time_of_t0_ns"] / 1e9
 
+    @property
+    def scenario(self):
+        """The recording's scenario (settings.SynthConfig) from the JSON's `scenario_spec`
+        (written with SynthConfig.model_dump(mode="json"); older files wrote `robot: null`
+        for the default robot)."""
+        from torchsoil.synth.scenario import load_scenario
+
+        spec = {k: v for k, v in self.meta["scenario_spec"].items() if not (k == "robot" and v is None)}
+        return load_scenario(spec)
+
     def on_grid(self, key: str, grid: Grid) -> np.ndarray:
         """A (X, Y) truth layer sampled at the cell centres of another grid (nearest cell;
         NaN outside the truth's corridor)."""

@@ -19,22 +19,14 @@ from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
+from torchsoil.settings import WorldConfig, WorldSoil
 from torchsoil.sim.relaxation import relax
-from torchsoil.sim.simulate import SimConfig
 from torchsoil.sim.sinkage import reference_height, taper
 from torchsoil.synth import effects as fx
-from torchsoil.synth.terrain import soil_at
+from torchsoil.synth.terrain import as_world_soil, soil_at
 from torchsoil.synth.trajectory import Trajectory
 
 MAX_VISITS = 6
-
-
-@dataclass(frozen=True)
-class WorldConfig(SimConfig):
-    """World model settings: the simulator's (SimConfig, the paper's values) and chunk, the
-    arc length [m] of trajectory dug and deposited per step (relaxation runs once a pass)."""
-
-    chunk: float = 0.4
 
 
 @dataclass
@@ -75,17 +67,19 @@ def _chunks(arc: np.ndarray, length: float) -> list[np.ndarray]:
     return out
 
 
-def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, soil: dict,
+def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, soil: WorldSoil | dict,
                    effects: dict | None = None, config: WorldConfig | None = None,
                    revisit_gap: float | None = None) -> WorldResult:
     """Drive the robot along `traj` over the surface h0 (X, Y) [m] on `grid`.
 
-    soil: scenario soil section (see `terrain.soil_at`), with optional `track_scale` (T,)
-    factors on d per track; effects: scenario effects section (see `effects.resolve`);
-    revisit_gap: base_link travel [m] after which a wheel near a cell starts a new visit
-    (default: twice the wheelbase plus a wheel width).
+    soil: scenario soil section (WorldSoil or a dict of it, see `terrain.soil_at`), with
+    optional `track_scale` (T,) factors on d per track; effects: scenario effects section
+    (see `effects.resolve`); config: the world's physics (settings.WorldConfig: the
+    simulator's settings and chunk); revisit_gap: base_link travel [m] after which a wheel
+    near a cell starts a new visit (default: twice the wheelbase plus a wheel width).
     """
     config = config or WorldConfig()
+    soil = as_world_soil(soil)
     eff = fx.resolve(effects)
     h0 = np.asarray(h0, dtype=np.float64)
     if h0.shape != grid.shape:
@@ -94,7 +88,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     xs, ys = grid.centers()
     X, Y = np.meshgrid(xs, ys, indexing="ij")
     sf = soil_at(soil, X, Y)
-    track_scale = np.asarray(soil.get("track_scale", [1.0] * robot.n_tracks), dtype=np.float64)
+    track_scale = np.asarray(soil.track_scale if soil.track_scale is not None else [1.0] * robot.n_tracks,
+                             dtype=np.float64)
     if track_scale.shape != (robot.n_tracks,):
         raise ValueError(f"soil.track_scale must have {robot.n_tracks} entries, got {track_scale.tolist()}")
     tan_beta = np.tan(sf["beta"])
