@@ -309,7 +309,8 @@ def cmd_ablation(args) -> int:
 
 
 def cmd_study(args) -> int:
-    from torchsoil.diagnosis.study import STUDY_CASES, run_study
+    from torchsoil.diagnosis.study import run_study
+    from torchsoil.diagnosis.study_cases import STUDY_CASES
 
     cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
     print(run_study(cases, Path(args.out)))

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scenarios import TRUTH, scenario
 
 from torchsoil.diagnosis import DiagnosisConfig, diagnose
 from torchsoil.diagnosis.report import KEYS, validate_summary, write_all
+from torchsoil.diagnosis.study_cases import TRUTH, scenario
 from torchsoil.synth.scenario import make_terrain_pair
 from torchsoil.terrain import TerrainPair
 

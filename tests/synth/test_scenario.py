@@ -152,11 +152,8 @@ def test_path_and_soil_errors_name_the_problem():
 
 
 def test_dict_scenarios_of_the_diagnosis_study_are_accepted():
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "diagnosis"))
-    try:
-        from scenarios import STUDY_CASES
-    finally:
-        sys.path.pop(0)
+    from torchsoil.diagnosis.study_cases import STUDY_CASES
+
     for case, doc, *_ in STUDY_CASES:
         scn = load_scenario(doc)
         assert scn.name == doc["name"] and scn.world.chunk == 0.1, case

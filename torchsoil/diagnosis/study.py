@@ -1,4 +1,5 @@
-"""Confusion-table study of the diagnosis on seeded synthetic drives with known truth."""
+"""Confusion-table study of the diagnosis on seeded synthetic drives with known truth
+(the cases: `study_cases.STUDY_CASES`)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Short synthetic drives (10-15 m) for the diagnosis tests: one per catalogue effect, a
+"""Short synthetic drives (10-15 m) for the diagnosis study and its tests: one per catalogue effect, a
 null case (base physics, soil varying along the path) and an out-of-catalogue effect.
 
 `world.chunk` is 0.1 m: the recorder's world relaxes chunk by chunk and its default 0.4 m
