@@ -8,13 +8,23 @@ capture time in seconds AFTER the header stamp, possibly negative).
 
 Layouts, from the drivers' sources (files named at each builder):
 
-| driver | fields (offset) | point_step | organized | no return | header stamp |
-| --- | --- | --- | --- | --- | --- |
-| ouster-ros | x0 y4 z8 f32, intensity16 f32, t20 u32, reflectivity24 u16, ring26 u16 (u8 before 0.10), ambient28 u16, range32 u32 | 48 | yes by default (H = beams) | NaN xyz | scan start; `t` = ns after it |
-| velodyne_pointcloud XYZIRT | x0 y4 z8 intensity12 f32, ring16 u16, time18 f32 | 22 | optional (W = lasers, H = firings) | skipped, or NaN xyz when organized | LAST packet; `time` = s relative to it (about -0.1 .. 0) |
-| HesaiLidar_ROS_2.0 | x0 y4 z8 intensity12 f32, ring16 u16, timestamp18 f64 | 26 | no | (not written here) | frame start; `timestamp` = absolute s |
-| rslidar_sdk XYZIRT | x0 y4 z8 intensity12 f32, ring16 u16, timestamp18 f64 | 26 | yes when dense_points false (W = rings, H = columns) | NaN xyz | first point (shipped config) or last point (driver default); `timestamp` = absolute s |
-| livox_ros_driver2 (PointCloud2, xfer_format 0) | x0 y4 z8 intensity12 f32, tag16 u8, line17 u8, timestamp18 f64 | 26 (packed) | no | all-zero xyz | first point (base_time); `timestamp` = absolute ns |
+- ouster-ros (default `original` point): x0 y4 z8 f32, intensity16 f32, t20 u32,
+  reflectivity24 u16, ring26 u16 (u8 before 0.10), ambient28 u16, range32 u32;
+  point_step 48. Organized by default (height = beams), no return = NaN xyz. Stamp: scan
+  start; `t` = uint32 ns after it.
+- velodyne_pointcloud XYZIRT: x0 y4 z8 intensity12 f32, ring16 u16, time18 f32;
+  point_step 22. Unorganized by default (no return skipped); organized: width = lasers,
+  height = firings, no return = NaN xyz. Stamp: LAST packet; `time` = float32 s relative
+  to it (about -0.1 .. 0).
+- HesaiLidar_ROS_2.0: x0 y4 z8 intensity12 f32, ring16 u16, timestamp18 f64;
+  point_step 26; unorganized. Stamp: frame start; `timestamp` = float64 absolute s.
+- rslidar_sdk XYZIRT: x0 y4 z8 intensity12 f32, ring16 u16, timestamp18 f64;
+  point_step 26. Organized when dense_points is false (width = rings, height = columns,
+  no return = NaN xyz). Stamp: first point (shipped config) or last point (driver
+  default); `timestamp` = float64 absolute s.
+- livox_ros_driver2 (PointCloud2, xfer_format 0): x0 y4 z8 intensity12 f32, tag16 u8,
+  line17 u8, timestamp18 f64; point_step 26 (packed); unorganized, no return = all-zero
+  xyz. Stamp: first point (base_time); `timestamp` = float64 absolute ns.
 
 No driver above pads the end of a row (row_step = width * point_step) or writes big-endian
 data; `ouster(row_pad=..., big_endian=True)` makes such variants to check that the decoder
@@ -267,8 +277,8 @@ def robosense(rings: int = 16, columns: int = 36, dense: bool = False, stamp_at:
     good = flat[valid]
     return DriverCloud(msg, flat, valid, np.stack([good["x"], good["y"], good["z"]], 1),
                        (good["timestamp"] - sec) - nanosec * 1e-9, stamp_of(sec, nanosec), "timestamp",
-                       f"{stamp_at} point ({'ts_first_point: true' if stamp_at == 'first' else 'ts_first_point: false'})"
-                       "; timestamp: float64 absolute s")
+                       f"{stamp_at} point (ts_first_point: {str(stamp_at == 'first').lower()}); "
+                       "timestamp: float64 absolute s")
 
 
 # ----------------------------------------------------------------------------------- Livox
