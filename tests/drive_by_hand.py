@@ -149,3 +149,30 @@ def catalogue() -> dict[str, Drive]:
         side_slope("side_slope_left_high_driving", cross_grade=0.10, heading=2.0, v=0.8),
     ]
     return {d.name: d for d in drives}
+
+
+def reversing_straight(name: str, heading: float, grade: float, v0: float, a: float, duration: float = 4.0) -> Drive:
+    """Driving BACKWARDS in a straight line: the body x axis points along `heading`, the robot
+    moves the other way with speed v0 + a t (a > 0: speeding up backwards), on a plane rising
+    `grade` along the direction of TRAVEL (grade > 0: reversing uphill, nose pointing down)."""
+    t = np.arange(0.0, duration + 1e-9, DT)
+    u = np.array([-math.cos(heading), -math.sin(heading), grade])
+    u = u / np.linalg.norm(u)                                    # unit direction of travel
+    s = v0 * t + 0.5 * a * t**2
+    up = np.array([grade * math.cos(heading), grade * math.sin(heading), 1.0])    # plane normal
+    return _drive(name, t, s[:, None] * u, np.broadcast_to(-u, (len(t), 3)), (a * np.ones_like(t))[:, None] * u,
+                  up, v0 + a * t, a * np.ones_like(t), np.zeros_like(t))
+
+
+def reversing_turn(name: str, v: float, yaw_rate: float, duration: float = 8.0) -> Drive:
+    """Driving BACKWARDS at speed v on flat ground while the heading turns at `yaw_rate`
+    (> 0: counter-clockwise). The velocity is -v x_body, so its rate of change is
+    yaw_rate z x (-v x_body) = -v yaw_rate y_body: for yaw_rate > 0 the turn centre is on the
+    robot's RIGHT and the outer wheels are the LEFT ones."""
+    t = np.arange(0.0, duration + 1e-9, DT)
+    w = yaw_rate
+    psi = w * t
+    p = np.column_stack([-(v / w) * np.sin(psi), -(v / w) * (1 - np.cos(psi)), 0 * t])
+    x_body = np.column_stack([np.cos(psi), np.sin(psi), 0 * t])
+    y_body = np.column_stack([-np.sin(psi), np.cos(psi), 0 * t])
+    return _drive(name, t, p, x_body, -v * w * y_body, [0.0, 0.0, 1.0], v + 0 * t, 0 * t, w + 0 * t)
