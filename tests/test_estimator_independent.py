@@ -29,8 +29,8 @@ import pytest
 
 from tests.reference_model import simulate as reference_simulate
 from tests.reference_model import straight_drive_pair
-from torchsoil.config import load_config
 from torchsoil.estimator import Estimator
+from torchsoil.settings import load_settings
 from torchsoil.terrain import TerrainPair
 
 TRUE = {"d": (0.03, 0.02), "chi": 0.5, "beta_deg": 30.0}
@@ -39,10 +39,9 @@ TOL = {"d": 0.002, "chi": 0.15, "beta_deg": 4.0}
 
 
 def make_estimator(pair: TerrainPair) -> Estimator:
-    """The one place that builds the Estimator from a pair (its constructor is changing to
-    Estimator(pair, settings.estimator, settings.sim)): paper defaults, started from INIT."""
-    config = load_config(overrides=[f"estimator.init.{k}={v}" for k, v in INIT.items()])
-    return Estimator(pair, config)
+    """The estimator on a pair: paper defaults, started from INIT."""
+    settings = load_settings(overrides=[f"estimator.init.{k}={v}" for k, v in INIT.items()])
+    return Estimator(pair, settings.estimator, settings.sim)
 
 
 def fit(tmp_path, d, seed=0):

@@ -84,7 +84,8 @@ def parser() -> argparse.ArgumentParser:
     _job_options(p)
 
     p = sub.add_parser("record", help="write a synthetic recording (bag + truth) or only its terrain pair")
-    p.add_argument("--scenario", required=True, help="shipped scenario name or YAML path (a synth section)")
+    shipped = ", ".join(sorted(f.stem for f in (Path(__file__).parent / "configs" / "scenarios").glob("*.yaml")))
+    p.add_argument("--scenario", required=True, help=f"shipped scenario ({shipped}) or YAML path (a synth section)")
     p.add_argument("--out", required=True, type=Path, help="bag directory to create (or .npz with --pair-only)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dx", type=float, default=0.02, help="terrain cell edge, m")

@@ -1,6 +1,5 @@
 """Scenarios, trajectories and the terrain pair straight from the truth."""
 
-import importlib.util
 import math
 import os
 import subprocess
@@ -237,11 +236,9 @@ def test_soil_fields_patch_weights():
 
 
 def _script_main():
-    script = Path(__file__).resolve().parents[2] / "scripts/make_recording.py"
-    spec = importlib.util.spec_from_file_location("make_recording", script)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.main
+    from torchsoil.cli import main
+
+    return lambda argv: main(["record", *argv])
 
 
 def test_make_recording_script_pair_only(tmp_path, capsys):

@@ -7,11 +7,11 @@ could follow:
 | name | unit | meaning |
 | --- | --- | --- |
 | arc_length | m | distance travelled by base_link |
-| speed | m/s | forward speed |
-| accel | m/s^2 | forward acceleration |
+| speed | m/s | ground speed (unsigned) |
+| accel | m/s^2 | acceleration along the body x axis (reversing and speeding up: < 0) |
 | pitch, roll | rad | chassis attitude |
 | yaw_rate | rad/s | turn rate |
-| lateral_accel | m/s^2 | speed * yaw_rate (towards the turn centre) |
+| lateral_accel | m/s^2 | signed forward speed * yaw_rate (along body y: left > 0) |
 | traction | - | traction demand accel / g + sin(-pitch) (climbing: pitch < 0) |
 | lateral_load | - | lateral_accel / g + sin(roll): load shift to the right wheels when > 0 |
 | passes | - | passes of the wheels over the ground under a wheel before the last one |
@@ -66,10 +66,14 @@ def pose_signals(poses, smooth_s: float = 0.2) -> dict[str, np.ndarray]:
 
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p[:, 1:3], axis=0), axis=1))])
     speed = smooth(np.gradient(arc, t))
-    accel = np.gradient(speed, t)
+    # the sign of the velocity along the heading: accelerations are along the body axes, so a
+    # robot speeding up in reverse pushes backwards, and a reversing turn loads the other side
+    along = smooth(np.gradient(p[:, 1], t) * np.cos(p[:, 6]) + np.gradient(p[:, 2], t) * np.sin(p[:, 6]))
+    forward = speed * np.where(along < 0, -1.0, 1.0)
+    accel = np.gradient(forward, t)
     yaw_rate = smooth(np.gradient(np.unwrap(p[:, 6]), t))
     pitch, roll = smooth(p[:, 5]), smooth(p[:, 4])
-    lat = speed * yaw_rate
+    lat = forward * yaw_rate
     return {"t": t, "arc_length": arc, "speed": speed, "accel": accel, "pitch": pitch, "roll": roll,
             "yaw_rate": yaw_rate, "lateral_accel": lat, "traction": accel / G + np.sin(-pitch),
             "lateral_load": lat / G + np.sin(roll)}
