@@ -320,10 +320,10 @@ class EnvConfig(Section):
 class TrajectorySegment(Section):
     """A straight (length, m) or an arc (radius m, angle_deg) at a speed, m/s."""
 
-    straight: float | None = None
-    arc: float | None = None
-    angle_deg: float | None = None
-    speed: float = Field(1.0, description="m/s")
+    straight: float | None = Field(None, gt=0, description="m")
+    arc: float | None = Field(None, gt=0, description="radius, m")
+    angle_deg: float | None = Field(None, description="deg, left > 0")
+    speed: float = Field(1.0, gt=0, description="m/s")
 
     @model_validator(mode="after")
     def _kind(self):
@@ -407,7 +407,8 @@ class SynthConfig(Section):
     trajectory: TrajectoryConfig = TrajectoryConfig()
     terrain: TerrainConfig = TerrainConfig()
     soil: WorldSoil = WorldSoil()
-    effects: dict[str, dict] = Field(default_factory=dict, description="{id: {form, k, ...}} (synth.effects)")
+    effects: dict[str, dict | bool] = Field(default_factory=dict, description="{id: {form, k, ...}} or {id: "
+                                                                             "true} (synth.effects)")
     landmarks: LandmarkConfig = LandmarkConfig()
     lidar: LidarConfig = LidarConfig()
     world: WorldConfig = WorldConfig()

@@ -140,10 +140,10 @@ def test_a_segment_is_a_straight_or_an_arc():
 def test_path_and_soil_errors_name_the_problem():
     with pytest.raises(SettingsError, match=r"unknown setting `trajectory.segments\[1\].spiral`"):
         planar_path([{"straight": 1.0}, {"spiral": 2.0}])
-    with pytest.raises(ValueError, match=r"segments\[0\]: speed must be > 0"):
+    with pytest.raises(SettingsError, match=r"segments\[0\]\.speed` = 0.0: Input should be greater than 0"):
         planar_path([{"straight": 1.0, "speed": 0.0}])
-    with pytest.raises(ValueError, match=r"segments\[1\]: arc radius must be > 0"):
-        planar_path([TrajectorySegment(straight=1.0), TrajectorySegment(arc=-1.0, angle_deg=10.0)])
+    with pytest.raises(SettingsError, match=r"segments\[1\]\.arc` = -1.0: Input should be greater than 0"):
+        planar_path([{"straight": 1.0}, {"arc": -1.0, "angle_deg": 10.0}])
     with pytest.raises(ValueError, match="soil.patches\\[0\\].delta: unknown key 'wetness'"):
         soil_at({"patches": [{"kind": "disc", "center": [0, 0], "sigma": 1, "delta": {"wetness": 1}}]}, 0.0, 0.0)
     with pytest.raises(SettingsError, match=r"unknown setting `soil.bse`"):
