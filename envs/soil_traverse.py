@@ -3,12 +3,12 @@
 ## Description
 A four-wheel dual-steering robot (the paper's platform, wheel layout from the robot YAML)
 crosses a field heightmap (default 20 m x 10 m at dx = 0.05 m) whose soil parameters vary
-in space: wet patches of deep sinkage and packed lanes, from `configs/env/soil_traverse.yaml`
-or from an estimator run's `params.csv` along a recorded path. Every step the wheels dig,
+in space: wet patches of deep sinkage and packed lanes (`env.field`), or an estimator run's
+`params.csv` along a recorded path (`env.params_csv`). Every step the wheels dig,
 deposit beside their ruts and the surface relaxes, with the simulator's own stages
 (`torchsoil.sim`: taper, reference height, sink, deposit, relax) on a square window around
-each wheel's segment of the step (no flux across the window edge). Relaxation is capped (a
-fixed number of updates per step) or run to convergence. A cell keeps the reference height
+each wheel's segment of the step (no flux across the window edge). Relaxation is capped
+(`env.sim.fixed_iter` updates per step) or run to convergence (`fixed_iter: null`). A cell keeps the reference height
 of the robot's ongoing visit, so rear wheels in the front wheels' ruts dig no deeper; a
 later visit (a loop, a return trip) digs again.
 
@@ -46,13 +46,33 @@ truncated after `max_steps` steps.
 
 ## Arguments
 `gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0", config=None, render_mode=None,
-device="cpu")`: config is a YAML path or dict with sections `env`, `field`, `robot`,
-`params_csv` (None: the default config). `render_mode="rgb_array"` returns a (Y, X, 3) top
-view of H_delta with the path (black) and the wheels (red).
+device="cpu")`, `gymnasium.make_vec(..., num_envs=N, config=...)` the same. config is the
+env section of the settings tree, `torchsoil.settings.EnvConfig` (every key, default and
+unit there; `torchsoil settings` prints them):
+
+- None: the defaults (the 20 m x 10 m field above, the paper's platform);
+- an `EnvConfig`;
+- a dict or a YAML path: a document of the env section, e.g. `{"max_steps": 200, "sim":
+  {"fixed_iter": null}, "field": {"size": [8, 5]}}`, or of the full settings tree (its
+  `env:` section). It is merged onto the defaults (mappings merge, lists replace); unknown
+  keys and bad values raise `torchsoil.settings.SettingsError` naming the key (`env.bogus`).
+
+Keys: `dt` [s], `speed` (min, max) [m/s], `curvature_max` [1/m], `start` (x, y, yaw_deg) and
+`start_jitter`, `goal`, `goal_jitter`, `goal_radius` [m], `max_steps`, `obs_size` [cells],
+`obs_dx` [m], `soil_noise` [-], `weights` (reward weights above), `field` (size, dx,
+roughness, seed, soil, patches, lanes), `robot` (a shipped robot name or a robot YAML path),
+`params_csv` (replay an estimator run's soil) and `sim`, the physics of a step with the
+simulator's meaning and units: `fixed_iter` (relaxation updates per step; null: until `tau`,
+at most `max_iter`), `relax_margin` (relaxation room around each wheel's rut and bands, in
+wheel widths; rounded up to whole cells), `band_width` [cells], `ref_radius`, `eps_scale`,
+`backend` (auto, numba, torch). `pose_spacing` is not used (one segment per wheel and step).
+
+`render_mode="rgb_array"` returns a (Y, X, 3) top view of H_delta with the path (black) and
+the wheels (red). device: where the state lives ("cpu", "cuda").
 
 The info dict holds this step's `displaced`, `compacted` [m^3], `rut_depth` [m],
-`repeat_cells`, `relax_iterations` and the episode sums `episode_displaced`,
-`episode_compacted` [m^3] and `episode_max_rut` [m].
+`repeat_cells`, `relax_iterations`, `reached_goal`, `off_field` and the episode sums
+`episode_displaced`, `episode_compacted` [m^3] and `episode_max_rut` [m].
 """
 
 from __future__ import annotations
@@ -61,7 +81,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from envs.core import TraverseBatch, build
+from envs.core import TraverseBatch
+from envs.params import make_params
 from envs.spaces import action_space, observation_space
 
 
@@ -74,11 +95,11 @@ class SoilTraverseEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        cfg, soil_field, robot = build(config)
-        self.batch = TraverseBatch(1, cfg, soil_field, robot, device)
+        self.params = params = make_params(config, device)
+        self.batch = TraverseBatch(1, params)
         self.render_mode = render_mode
-        self.action_space = action_space(cfg)
-        self.observation_space = observation_space(cfg, self.batch.soil_hi)
+        self.action_space = action_space(params)
+        self.observation_space = observation_space(params)
         self._ready = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

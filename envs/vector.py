@@ -13,7 +13,8 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from envs.core import TraverseBatch, build
+from envs.core import TraverseBatch
+from envs.params import make_params
 from envs.spaces import action_space, observation_space
 
 
@@ -28,12 +29,12 @@ class SoilTraverseVectorEnv(VectorEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        cfg, soil_field, robot = build(config)
-        self.batch = TraverseBatch(num_envs, cfg, soil_field, robot, device)
+        self.params = params = make_params(config, device)
+        self.batch = TraverseBatch(num_envs, params)
         self.num_envs = self.batch.n
         self.render_mode = render_mode
-        self.single_action_space = action_space(cfg)
-        self.single_observation_space = observation_space(cfg, self.batch.soil_hi)
+        self.single_action_space = action_space(params)
+        self.single_observation_space = observation_space(params)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self._rngs: list[np.random.Generator] | None = None

@@ -10,7 +10,8 @@ from envs.scripted import compare_detour
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--config", default=None, help="env YAML (default: configs/env/soil_traverse.yaml)")
+    ap.add_argument("--config", default=None, help="env settings YAML: the env section (dt, speed, field, sim, ...) "
+                    "or a full settings file with an env: section (default: the built-in defaults)")
     ap.add_argument("--out", default="out/rollout", help="output directory")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--speed", type=float, default=1.0, help="driving speed, m/s")
