@@ -48,7 +48,7 @@ truncated after `max_steps` steps.
 `gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0", config=None, render_mode=None,
 device="cpu")`, `gymnasium.make_vec(..., num_envs=N, config=...)` the same. config is the
 env section of the settings tree, `torchsoil.settings.EnvConfig` (every key, default and
-unit there; `torchsoil settings` prints them):
+unit there):
 
 - None: the defaults (the 20 m x 10 m field above, the paper's platform);
 - an `EnvConfig`;
@@ -81,13 +81,18 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from envs.core import TraverseBatch
+from envs import core
 from envs.params import make_params
 from envs.spaces import action_space, observation_space
 
 
 class SoilTraverseEnv(gym.Env):
-    """One episode of `envs.core.TraverseBatch` (N = 1); see the module docstring."""
+    """One soil-traverse episode over the pure functions of `envs.core`; see the module docstring.
+
+    Attributes:
+        params: `envs.params.TraverseParams`, the static parameters (`params.config`: settings).
+        state: `envs.core.TraverseState` with N = 1.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
 
@@ -95,16 +100,17 @@ class SoilTraverseEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        self.params = params = make_params(config, device)
-        self.batch = TraverseBatch(1, params)
+        self.params = make_params(config, device)
+        self.state = core.empty_state(self.params, 1)
         self.render_mode = render_mode
-        self.action_space = action_space(params)
-        self.observation_space = observation_space(params)
+        self.action_space = action_space(self.params)
+        self.observation_space = observation_space(self.params)
         self._ready = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        self.batch.reset([0], [self.np_random])
+        pose, goal = core.sample_starts(self.params, [self.np_random])
+        self.state = core.reset_episodes(self.params, self.state, [0], pose, goal)
         self._ready = True
         return self._obs(), {}
 
@@ -114,14 +120,19 @@ class SoilTraverseEnv(gym.Env):
         a = np.asarray(action, dtype=np.float32)
         if a.shape != (2,):
             raise ValueError(f"action must be (speed m/s, curvature 1/m) of shape (2,), got {a.shape}")
-        reward, term, trunc, info = self.batch.step(torch.from_numpy(a)[None])
-        info = {k: (bool(v[0]) if v.dtype == torch.bool else float(v[0])) for k, v in info.items()}
+        p = self.params
+        self.state, out = core.transition(p, self.state, torch.from_numpy(a)[None])
+        reward = core.reward(out, p.weights)
+        term = core.terminal(out)
+        trunc = core.truncated(p, self.state, term)
+        info = {k: (bool(v[0]) if v.dtype == torch.bool else float(v[0]))
+                for k, v in core.step_info(self.state, out).items()}
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), info
 
     def render(self):
         if self.render_mode == "rgb_array":
-            return self.batch.render(0)
+            return core.render(self.params, self.state, 0)
         return None
 
     def _obs(self):
-        return {k: v[0] for k, v in self.batch.observe([self.np_random]).items()}
+        return {k: v[0] for k, v in core.observation(self.params, self.state, [self.np_random]).items()}

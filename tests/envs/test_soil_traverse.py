@@ -108,7 +108,7 @@ def test_driving_a_loop_counts_second_passes():
     repeat = 0.0
     for _ in range(50):                                  # 10 m at curvature 0.8: 1.27 loops
         repeat += env.step(np.array([1.0, 0.8], np.float32))[4]["repeat_cells"]
-    passes = env.batch.passes[0]
+    passes = env.state.passes[0]
     assert int(passes.max()) == 2 and repeat > 0
     assert int((passes == 2).sum()) == pytest.approx(repeat, rel=0.05)
 
@@ -119,7 +119,7 @@ def test_render_shows_ruts_and_path(config):
     for _ in range(5):
         env.step(np.array([1.0, 0.0], np.float32))
     img = env.render()
-    X, Y = env.batch.grid.shape
+    X, Y = env.params.grid.shape
     assert img.shape == (Y, X, 3) and img.dtype == np.uint8
     assert (img == 0).all(-1).sum() >= 5                  # path pixels
     assert SoilTraverseEnv(config).render() is None
@@ -163,7 +163,7 @@ def test_relaxation_backends_agree_and_converged_mode_runs():
         env.reset(seed=0)
         for _ in range(6):
             env.step(np.array([1.0, 0.4], np.float32))
-        outs.append(env.batch.h[0].clone())
+        outs.append(env.state.h[0].clone())
     assert float((outs[0] - outs[1]).abs().max()) < 1e-6
 
 
@@ -177,11 +177,11 @@ def test_converged_relaxation_leaves_no_slope_above_repose(fixed_iter, settled):
     iters = 0
     for _ in range(14):
         iters += env.step(np.array([1.0, 0.0], np.float32))[4]["relax_iterations"]
-    b = env.batch
-    tan_beta = torch.tan(b.field.soil[-1])[None]
-    excess = float(max_slope_excess(b.h[0][None].double(), tan_beta.double(), b.grid.dx))
+    p = env.params
+    tan_beta = torch.tan(p.field.soil[-1])[None]
+    excess = float(max_slope_excess(env.state.h[0][None].double(), tan_beta.double(), p.grid.dx))
     if settled:
-        assert iters > 0 and excess < b.cfg.sim.tau + 1e-3
+        assert iters > 0 and excess < p.config.sim.tau + 1e-3
     else:
         assert iters == 0 and excess > 0.5
 
