@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 
 
-def steps_per_second(num_envs: int, steps: int, blocks: int, env_overrides: dict | None = None,
+def steps_per_second(num_envs: int, steps: int, blocks: int, sim: dict | None = None,
                      cpu: bool = False) -> float | tuple[float, float]:
     """Median over `blocks` of num_envs * steps / wall time, driving at 1 m/s on random arcs;
-    with cpu=True also per second of process CPU time (all threads)."""
+    with cpu=True also per second of process CPU time (all threads). sim: env.sim settings."""
     from envs.vector import SoilTraverseVectorEnv
 
-    env = SoilTraverseVectorEnv(num_envs, {"env": env_overrides or {}})
+    env = SoilTraverseVectorEnv(num_envs, {"sim": sim or {}})
     env.reset(seed=0)
     rng = np.random.default_rng(0)
     actions = np.stack([np.full((steps, num_envs), 1.0), rng.uniform(-0.3, 0.3, (steps, num_envs))],
@@ -68,6 +68,6 @@ def run(quick: bool = False) -> dict[str, float]:
     out["env_steps_per_s_n256_torch_relax"] = _in_fresh_process(
         256, steps, blocks, {"backend": "torch"}, passive)[0]
     out["env_steps_per_s_n256_converged"] = _in_fresh_process(
-        256, steps, blocks, {"backend": "numba", "relaxation": "converged"}, passive)[0]
+        256, steps, blocks, {"backend": "numba", "fixed_iter": None}, passive)[0]
     out["env_steps_per_s_n256_omp_spin"] = steps_per_second(256, steps, blocks, {"backend": "numba"})
     return out

@@ -1,378 +1,310 @@
-"""State of N soil-traverse episodes on one device, stepped as one tensor op.
+"""State and pure functions of N soil-traverse episodes on one device.
 
-`TraverseBatch` owns what really is state (N deformed fields, reference heights of the
-ongoing visits, pass counts, poses, step counters, paths); the physics lives in the pure
-functions of `envs.dynamics`. `SoilTraverseEnv` (N = 1) and `SoilTraverseVectorEnv` are thin
-Gymnasium classes over it.
+Gymnasium's functional pattern: static parameters (`envs.params.TraverseParams`), a state
+of named tensors (`TraverseState`) and functions of them,
+
+    state = empty_state(params, n)
+    state = reset_episodes(params, state, ids, *sample_starts(params, rngs))
+    state, outcome = transition(params, state, action)
+    r, term = reward(outcome, params.weights), terminal(outcome)
+    trunc = truncated(params, state, term)
+    obs = observation(params, state, rngs)
+
+with the physics in `envs.dynamics`. `SoilTraverseEnv` (N = 1) and `SoilTraverseVectorEnv`
+are thin Gymnasium classes over them.
+
+In place: the per-cell layers (h, ref, ref_odom, passes; N*X*Y each) are updated in place
+by `transition` and `reset_episodes` and shared with the state they return (copying them
+every step would cost more than the step). Every other tensor of the input state is left as
+it was. To keep a state, `clone_state` it first.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
-import yaml
 
 from envs import dynamics as dyn
-from envs.field import FieldConfig, SoilField, field_from_params_csv, make_field
-from torchsoil.config import dataclass_from_dict
-from torchsoil.robot import Robot, paper_platform
-from torchsoil.sim.params import BETA_BOUNDS, CHI_BOUNDS, D_BOUNDS
-from torchsoil.sim.simulate import MAX_TAN_BETA
-
-DEFAULT_CONFIG = Path(__file__).resolve().parent.parent / "torchsoil/configs/env/soil_traverse.yaml"
-
-DEFAULT_WEIGHTS = {"progress": 1.0, "displaced": 40.0, "compacted": 40.0, "rut_depth": 1.0,
-                   "repeat_cells": 0.001, "time": 0.01, "goal": 10.0, "off_field": 10.0}
+from envs.params import TraverseParams
 
 
-@dataclass(frozen=True)
-class TraverseConfig:
-    """Episode, platform, relaxation, observation and reward settings (section `env`).
+class Totals(NamedTuple):
+    """Episode sums, each (N,): displaced and compacted volume [m^3], deepest rut [m]."""
 
-    dt: control period, s. speed: (min, max) m/s. curvature_max: 1/m (symmetric dual
-    steering). start: (x, y, yaw_deg); start_jitter: (m, m, deg) uniform half-ranges.
-    goal: (x, y) m; goal_jitter: m; goal_radius: m. max_steps: truncation. relaxation:
-    "capped" (exactly `fixed_iter` updates per step) or "converged" (tau, max_iter).
-    obs_size: cells per side of the local patches; obs_dx: their spacing, m. soil_noise:
-    relative standard deviation of the observed soil parameters (0: true values).
-    relax_margin: cells of relaxation room around each wheel's footprint and bands. weights:
-    reward weights (see `envs.dynamics.reward`, plus goal bonus and off-field penalty).
-    """
-
-    dt: float = 0.2
-    speed: tuple[float, float] = (-0.5, 1.0)
-    curvature_max: float = 0.8
-    start: tuple[float, float, float] = (2.0, 5.0, 0.0)
-    start_jitter: tuple[float, float, float] = (0.2, 0.2, 5.0)
-    goal: tuple[float, float] = (18.0, 5.0)
-    goal_jitter: float = 0.0
-    goal_radius: float = 0.5
-    max_steps: int = 400
-    relaxation: str = "capped"
-    fixed_iter: int = 4
-    tau: float = 0.01
-    max_iter: int = 2000
-    eps_scale: float = 4.0
-    backend: str = "auto"
-    band_width: float = 1.0
-    ref_radius: float = 0.5
-    obs_size: int = 24
-    obs_dx: float = 0.1
-    soil_noise: float = 0.0
-    relax_margin: int = 2
-    weights: dict = field(default_factory=lambda: dict(DEFAULT_WEIGHTS))
-
-    def __post_init__(self):
-        if self.relaxation not in ("capped", "converged"):
-            raise ValueError(f"env.relaxation must be 'capped' or 'converged', got {self.relaxation!r}")
-        if not (self.dt > 0 and self.speed[0] <= self.speed[1] and self.curvature_max >= 0):
-            raise ValueError(f"need dt > 0, speed min <= max, curvature_max >= 0; got dt={self.dt}, "
-                             f"speed={self.speed}, curvature_max={self.curvature_max}")
-        unknown = set(self.weights) - set(DEFAULT_WEIGHTS)
-        if unknown:
-            raise ValueError(f"unknown reward weights {sorted(unknown)}; known: {sorted(DEFAULT_WEIGHTS)}")
-        object.__setattr__(self, "weights", {**DEFAULT_WEIGHTS, **self.weights})
-        if self.max_steps < 1 or self.obs_size < 1 or self.fixed_iter < 0 or self.relax_margin < 0:
-            raise ValueError(f"need max_steps, obs_size >= 1 and fixed_iter, relax_margin >= 0; got "
-                             f"{self.max_steps}, {self.obs_size}, {self.fixed_iter}, {self.relax_margin}")
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> TraverseConfig:
-        d = dict(d or {})
-        for key in ("speed", "start", "start_jitter", "goal"):
-            if key in d:
-                d[key] = tuple(float(v) for v in d[key])
-        return dataclass_from_dict(cls, d, "env")
+    displaced: torch.Tensor
+    compacted: torch.Tensor
+    max_rut: torch.Tensor
 
 
-def _merge(base: dict, over: dict) -> dict:
-    """Mappings merged key by key (recursively); lists and values in `over` replace."""
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
-def load_config(config: str | Path | dict | None) -> dict:
-    """The env config: configs/env/soil_traverse.yaml overridden by `config` (a YAML path or a
-    dict with sections `env`, `field`, `robot`, `params_csv`; lists replace, mappings merge)."""
-    base = yaml.safe_load(DEFAULT_CONFIG.read_text()) or {}
-    if config is None:
-        return base
-    if isinstance(config, (str, Path)):
-        path = Path(config)
-        if not path.exists():
-            raise FileNotFoundError(f"env config not found: {path}")
-        config = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(config, dict):
-        raise ValueError(f"env config must be a mapping, got {type(config).__name__}")
-    unknown = set(config) - {"env", "field", "robot", "params_csv"}
-    if unknown:
-        raise ValueError(f"unknown env config sections {sorted(unknown)}; use env, field, robot, params_csv")
-    return _merge(base, config)
-
-
-def build(config: str | Path | dict | None = None) -> tuple[TraverseConfig, SoilField, Robot]:
-    """Env settings, field and robot from a config (path, dict or None for the default)."""
-    cfg = load_config(config)
-    robot = Robot.from_yaml(cfg["robot"]) if cfg.get("robot") else paper_platform()
-    fcfg = FieldConfig.from_dict(cfg.get("field"))
-    if cfg.get("params_csv"):
-        soil_field = field_from_params_csv(cfg["params_csv"], fcfg)
-    else:
-        soil_field = make_field(FieldConfig(**{**fcfg.__dict__, "n_tracks": robot.n_tracks}))
-    if soil_field.n_tracks != robot.n_tracks:
-        raise ValueError(f"field has {soil_field.n_tracks} sinkage tracks, robot uses {robot.n_tracks}")
-    return TraverseConfig.from_dict(cfg.get("env")), soil_field, robot
-
-
-def visit_length(robot: Robot, curvature_max: float, step: float) -> float:
-    """Distance [m] base_link drives while one visit of a cell lasts: from the first wheel
-    touching it to the last wheel of the same track leaving it, straight or on the tightest
-    arc, plus one step. Within it the rear wheels reuse the front wheels' reference height."""
-    w, r = robot.wheels, robot.wheel_width / 2
-    longest = 0.0
-    for t in range(robot.n_tracks):
-        wx, wy = w[w[:, 2] == t, 0], w[w[:, 2] == t, 1]
-        longest = max(longest, wx.max() - wx.min() + 2 * r)
-        for k in (curvature_max, -curvature_max):
-            if k == 0:
-                continue
-            R = 1.0 / k
-            phi = np.arctan2(wx * np.sign(R), np.abs(R - wy))       # angle of each wheel about the ICR
-            rho = np.hypot(wx, R - wy).min()
-            longest = max(longest, abs(R) * (phi.max() - phi.min() + 2 * r / rho))
-    return float(longest + step + 0.1)
-
-
-class TraverseBatch:
-    """N episodes on one field: state tensors (N, X, Y) and one batched `step`.
+class TraverseState(NamedTuple):
+    """What changes during N episodes.
 
     Attributes:
-        state: (N*X*Y, 4) per episode and cell: surface h [m], reference height of the
-        cell's last visit [m], odometer when that visit began [m] (-inf: never), robot passes.
-        A visit lasts while the robot drives less than `visit_length` m (its length on its
-        tightest arc plus a step), so its rear wheels dig no deeper than its front wheels.
-        h, passes: (N, X, Y) views.  odom: (N,) distance driven, m.
-        pose: (N, 3) x, y [m], yaw [rad].  control: (N, 2) last speed [m/s], curvature [1/m].
-        steps: (N,) int64.  goal: (N, 2) m.  path: (max_steps + 1, N, 2) base_link positions.
-        totals: dict of (N,) episode sums of the damage measures.
+        h: (N, X, Y) current surface, m.
+        ref: (N, X, Y) reference height of the cell's ongoing (or last) visit, m. A visit
+            lasts while the robot drives less than `params.visit_length` m after it began,
+            so its rear wheels dig no deeper than its front wheels.
+        ref_odom: (N, X, Y) odometer when that visit began, m (-inf: never visited).
+        passes: (N, X, Y) robot passes over the cell (float).
+        pose: (N, 3) x, y [m], yaw [rad] of base_link.
+        control: (N, 2) last speed [m/s] and curvature [1/m].
+        odom: (N,) distance driven, m.
+        steps: (N,) int64 steps since reset.
+        goal: (N, 2) m.
+        path: (max_steps + 1, N, 2) base_link positions after each step (the start first).
+        totals: episode sums of the damage measures.
     """
 
-    def __init__(self, num_envs: int, config: TraverseConfig, soil_field: SoilField, robot: Robot,
-                 device: str | torch.device = "cpu"):
-        if num_envs < 1:
-            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
-        self.n, self.cfg, self.robot = int(num_envs), config, robot
-        self.device = torch.device(device)
-        self.field = soil_field.to(self.device)
-        g = self.grid = soil_field.grid
-        X, Y = g.shape
-        self.track = torch.as_tensor(robot.track, device=self.device)
-        self.wheels = torch.as_tensor(robot.wheels[:, :2], dtype=torch.float32, device=self.device)
-        self.radius = robot.wheel_width / 2
-        r = self.radius
-        step_max = max(abs(config.speed[0]), abs(config.speed[1])) * config.dt
-        S = config.obs_size
-        ar = (torch.arange(S, dtype=torch.float32) - (S - 1) / 2) * config.obs_dx
-        self.obs_offsets = torch.stack(torch.meshgrid(ar, ar, indexing="ij"), -1).reshape(-1, 2).to(self.device)
-        T = soil_field.n_tracks
-        tan_beta = torch.tan(self.field.soil[T + 1]).clamp(max=MAX_TAN_BETA)
-        # per field cell, one row: tan(beta), h0, d_1..d_T, chi, beta (one gather per use)
-        self.cell_table = torch.cat([tan_beta[None], self.field.h0[None], self.field.soil]
-                                    ).reshape(T + 4, -1).T.contiguous()
-        self.visit_length = visit_length(robot, config.curvature_max, step_max)
-        # one window size for every step, from the fastest wheel on the tightest arc, so an
-        # episode's result does not depend on the rest of the batch
-        reach = float(np.hypot(robot.wheels[:, 0], robot.wheels[:, 1]).max())
-        wheel_step = step_max * (1 + config.curvature_max * reach)
-        self.window = dyn.window_size(torch.zeros(1, 2), torch.tensor([[wheel_step, 0.0]]), self.radius,
-                                      config.band_width * g.dx, config.relax_margin, g.dx)
-        if self.window > min(X, Y):
-            raise ValueError(f"the field ({X} x {Y} cells) is smaller than a wheel window of "
-                             f"{self.window} cells")
-        self.lo = torch.tensor([g.origin[0] + r, g.origin[1] + r], device=self.device)
-        self.hi = torch.tensor([g.origin[0] + (X - 1) * g.dx - r, g.origin[1] + (Y - 1) * g.dx - r],
-                               device=self.device)
-        self.soil_lo = np.array([D_BOUNDS[0]] * T + [CHI_BOUNDS[0], BETA_BOUNDS[0]], np.float32)
-        self.soil_hi = np.array([D_BOUNDS[1]] * T + [CHI_BOUNDS[1], BETA_BOUNDS[1]], np.float32)
-        kw = dict(device=self.device)
-        # per episode and cell, one row: h, ref, ref_odom, passes (one gather, one write per step)
-        self.state = torch.zeros((self.n * X * Y, 4), **kw)
-        self.odom = torch.zeros(self.n, **kw)
-        self.pose = torch.zeros((self.n, 3), **kw)
-        self.control = torch.zeros((self.n, 2), **kw)
-        self.steps = torch.zeros(self.n, dtype=torch.int64, **kw)
-        self.goal = torch.zeros((self.n, 2), **kw)
-        self.path = torch.zeros((config.max_steps + 1, self.n, 2), **kw)
-        self.totals = {k: torch.zeros(self.n, **kw) for k in ("displaced", "compacted", "rut_depth")}
-
-    def _layer(self, k: int) -> torch.Tensor:
-        return self.state[:, k].view(self.n, *self.grid.shape)
+    h: torch.Tensor
+    ref: torch.Tensor
+    ref_odom: torch.Tensor
+    passes: torch.Tensor
+    pose: torch.Tensor
+    control: torch.Tensor
+    odom: torch.Tensor
+    steps: torch.Tensor
+    goal: torch.Tensor
+    path: torch.Tensor
+    totals: Totals
 
     @property
-    def h(self) -> torch.Tensor:
-        """(N, X, Y) current surface, m (a view)."""
-        return self._layer(0)
+    def num_envs(self) -> int:
+        return self.pose.shape[0]
 
-    @property
-    def passes(self) -> torch.Tensor:
-        """(N, X, Y) robot passes per cell (a float view)."""
-        return self._layer(3)
 
-    # ----------------------------------------------------------------- reset
-    def reset(self, ids: np.ndarray | list[int], rngs: list[np.random.Generator]) -> None:
-        """Reset episodes `ids`, drawing their start pose and goal from rngs (one per id)."""
-        c = self.cfg
-        ids_t = torch.as_tensor(np.asarray(ids, dtype=np.int64), device=self.device)
-        starts, goals = [], []
-        for rng in rngs:
-            j = rng.uniform(-1.0, 1.0, size=3) * np.asarray(c.start_jitter)
-            starts.append([c.start[0] + j[0], c.start[1] + j[1], math.radians(c.start[2] + j[2])])
-            ang = rng.uniform(0, 2 * math.pi)
-            rad = c.goal_jitter * math.sqrt(rng.uniform())
-            goals.append([c.goal[0] + rad * math.cos(ang), c.goal[1] + rad * math.sin(ang)])
-        rows = self.state.view(self.n, -1, 4)
-        rows[ids_t] = torch.stack([self.field.h0.reshape(-1), torch.zeros_like(self.field.h0.reshape(-1)),
-                                   torch.full_like(self.field.h0.reshape(-1), -math.inf),
-                                   torch.zeros_like(self.field.h0.reshape(-1))], 1)
-        self.pose[ids_t] = torch.tensor(starts, dtype=torch.float32, device=self.device)
-        self.goal[ids_t] = torch.tensor(goals, dtype=torch.float32, device=self.device)
-        self.control[ids_t] = 0.0
-        self.odom[ids_t] = 0.0
-        self.steps[ids_t] = 0
-        self.path[:, ids_t] = self.pose[ids_t, :2]
-        for v in self.totals.values():
-            v[ids_t] = 0.0
+class StepOutcome(NamedTuple):
+    """What one step did, each (N,): progress towards the goal [m], the soil damage
+    (`dynamics.Damage`), most relaxation updates over the robot's windows, goal reached
+    (bool), a wheel off the field (bool, also when the goal was reached)."""
 
-    # ------------------------------------------------------------------ step
-    def step(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict]:
-        """Advance all N episodes by one control period.
+    progress: torch.Tensor
+    damage: dyn.Damage
+    relax_iterations: torch.Tensor
+    reached: torch.Tensor
+    off_field: torch.Tensor
 
-        Args:
-            action: (N, 2) speed [m/s], curvature [1/m]; clipped to the platform's limits.
 
-        Returns:
-            reward (N,), terminated (N,) bool, truncated (N,) bool, info of (N,) tensors.
-        """
-        c, g = self.cfg, self.grid
-        N, (X, Y) = self.n, self.grid.shape
-        a = action.to(self.device, torch.float32).reshape(N, 2)
-        if not torch.isfinite(a).all():
-            bad = torch.nonzero(~torch.isfinite(a).all(1))[0].item()
-            raise ValueError(f"actions must be finite; row {bad} is {a[bad].tolist()}")
-        v = a[:, 0].clamp(*c.speed)
-        kappa = a[:, 1].clamp(-c.curvature_max, c.curvature_max)
-        pose0, pose1 = self.pose, dyn.step_pose(self.pose, v, kappa, c.dt)
-        start, end = dyn.to_world(pose0, self.wheels), dyn.to_world(pose1, self.wheels)
-        self.odom = self.odom + (v * c.dt).abs()
+def clone_state(state: TraverseState) -> TraverseState:
+    """A copy of every tensor of the state."""
+    return TraverseState(*(t.clone() for t in state[:-1]), Totals(*(t.clone() for t in state.totals)))
 
-        W = self.window
-        win = dyn.wheel_windows(start, end, pose0[:, 2], W, g)
-        gidx = win.robot * (X * Y) + win.field                                # (E,) state cell
-        shape = (N * len(self.track), W, W)
-        st = self.state.index_select(0, gidx)                                 # (E, 4)
-        h_e, ref_e, odom_e, pas_e = st.unbind(1)
-        odom_now = self.odom[win.robot]
-        visit = (odom_now - odom_e) <= self.visit_length
-        cells = self.cell_table.index_select(0, win.field)                   # (E, T + 4)
-        depth = cells.gather(1, 2 + self.track[win.wheel][:, None])[:, 0]
-        out = dyn.deform(h_e.view(shape), cells[:, 0].reshape(shape), win, ref_e, visit,
-                         depth, cells[:, -2], self.radius,
-                         self.robot.wheel_flat_fraction, g.dx, c.band_width * g.dx, c.ref_radius,
-                         c.fixed_iter if c.relaxation == "capped" else None, c.tau, c.max_iter,
-                         c.eps_scale, c.backend)
-        cov = out.covered
-        entered = cov & ~visit
-        h_new = out.h.reshape(-1)
-        self.state.index_copy_(0, gidx, torch.stack([
-            h_new, torch.where(cov, out.ref, ref_e), torch.where(entered, odom_now, odom_e),
-            pas_e + entered.to(pas_e.dtype)], 1))
-        repeat = (entered & (pas_e > 0)).view(N, -1).sum(1).to(torch.float32)
-        rut = torch.where(cov, cells[:, 1] - h_new, torch.zeros_like(h_new))
-        rut = rut.view(N, -1).amax(1).clamp_min(0)
 
-        d_before = torch.linalg.vector_norm(self.goal - pose0[:, :2], dim=1)
-        d_after = torch.linalg.vector_norm(self.goal - pose1[:, :2], dim=1)
-        self.pose = torch.cat([pose1[:, :2], torch.remainder(pose1[:, 2:] + math.pi, 2 * math.pi) - math.pi], 1)
-        self.control = torch.stack([v, kappa], 1)
-        self.steps += 1
-        self.path[self.steps.clamp(max=c.max_steps), torch.arange(N, device=self.device)] = pose1[:, :2]
+# ------------------------------------------------------------------------------- reset
+def empty_state(params: TraverseParams, num_envs: int) -> TraverseState:
+    """N episodes on the undeformed field at the origin; reset them before stepping."""
+    if num_envs < 1:
+        raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+    n, (X, Y) = int(num_envs), params.grid.shape
+    kw = dict(device=params.device)
+    h0 = params.field.h0
+    return TraverseState(
+        h=h0.repeat(n, 1, 1), ref=torch.zeros((n, X, Y), **kw),
+        ref_odom=torch.full((n, X, Y), -math.inf, **kw), passes=torch.zeros((n, X, Y), **kw),
+        pose=torch.zeros((n, 3), **kw), control=torch.zeros((n, 2), **kw), odom=torch.zeros(n, **kw),
+        steps=torch.zeros(n, dtype=torch.int64, **kw), goal=torch.zeros((n, 2), **kw),
+        path=torch.zeros((params.config.max_steps + 1, n, 2), **kw),
+        totals=Totals(*(torch.zeros(n, **kw) for _ in range(3))))
 
-        damage = dyn.Damage(out.removed, (out.removed - out.deposited).clamp_min(0), rut, repeat)
-        reward = dyn.reward(d_before - d_after, damage, c.weights)
-        reached = d_after <= c.goal_radius
-        off = ((end < self.lo) | (end > self.hi)).flatten(1).any(1)
-        reward = reward + c.weights["goal"] * reached - c.weights["off_field"] * (off & ~reached)
-        terminated = reached | off
-        truncated = (self.steps >= c.max_steps) & ~terminated
-        for k, val in (("displaced", damage.displaced), ("compacted", damage.compacted)):
-            self.totals[k] += val
-        self.totals["rut_depth"] = torch.maximum(self.totals["rut_depth"], rut)
-        info = {"displaced": damage.displaced, "compacted": damage.compacted, "rut_depth": rut,
-                "repeat_cells": damage.repeat_cells, "relax_iterations": out.iterations.to(self.device),
-                "reached_goal": reached, "off_field": off & ~reached,
-                "episode_displaced": self.totals["displaced"].clone(),
-                "episode_compacted": self.totals["compacted"].clone(),
-                "episode_max_rut": self.totals["rut_depth"].clone()}
-        return reward, terminated, truncated, info
 
-    # ----------------------------------------------------------- observation
-    def observe(self, rngs: list[np.random.Generator] | None = None) -> dict[str, np.ndarray]:
-        """Observations of all N episodes as float32 numpy arrays (see the env docstring).
+def sample_starts(params: TraverseParams, rngs: list[np.random.Generator]) -> tuple[np.ndarray, np.ndarray]:
+    """Start poses (M, 3) x, y [m], yaw [rad] and goals (M, 2) [m], one per generator: the
+    configured start plus uniform jitter, the goal plus a uniform disc of `goal_jitter`."""
+    c = params.config
+    starts, goals = [], []
+    for rng in rngs:
+        j = rng.uniform(-1.0, 1.0, size=3) * np.asarray(c.start_jitter)
+        starts.append([c.start[0] + j[0], c.start[1] + j[1], math.radians(c.start[2] + j[2])])
+        ang = rng.uniform(0, 2 * math.pi)
+        rad = c.goal_jitter * math.sqrt(rng.uniform())
+        goals.append([c.goal[0] + rad * math.cos(ang), c.goal[1] + rad * math.sin(ang)])
+    return np.array(starts, dtype=np.float64).reshape(-1, 3), np.array(goals, dtype=np.float64).reshape(-1, 2)
 
-        rngs: one generator per episode for the soil-parameter noise (needed if soil_noise > 0).
-        """
-        c, S, N = self.cfg, self.cfg.obs_size, self.n
-        pose = self.pose
-        flat, inside = dyn.body_grid_index(pose, self.obs_offsets, self.grid)   # (N, M)
-        XY = self.grid.shape[0] * self.grid.shape[1]
-        base = torch.arange(N, device=self.device)[:, None] * XY
-        h = self.state.index_select(0, (flat + base).reshape(-1))[:, 0].view(N, -1)
-        cells = self.cell_table.index_select(0, flat.reshape(-1)).view(N, -1, self.cell_table.shape[1])
-        h0 = cells[..., 1]
-        centre = dyn.body_grid_index(pose, self.obs_offsets[:1] * 0, self.grid)[0]
-        rel = h - self.state.index_select(0, (centre + base).reshape(-1))[:, 0].view(N, 1)
-        zero = torch.zeros_like(h)
-        height = torch.stack([torch.where(inside, rel, zero), torch.where(inside, h - h0, zero)], 1)
-        height = height.reshape(N, 2, S, S).clamp(-2.0, 2.0)
-        soil = torch.where(inside[..., None], cells[..., 2:], torch.zeros_like(cells[..., 2:]))
-        soil = soil.transpose(1, 2).reshape(N, -1, S, S)                       # (N, T + 2, S, S)
-        soil = soil.cpu().numpy()
-        if c.soil_noise > 0:
-            if rngs is None or len(rngs) != N:
-                raise ValueError("soil_noise > 0 needs one random generator per environment")
-            noise = np.stack([r.standard_normal(soil.shape[1:]) for r in rngs]).astype(np.float32)
-            soil = np.clip(soil * (1 + c.soil_noise * noise), 0.0, self.soil_hi[:, None, None])
-        state = torch.stack([self.control[:, 0], self.control[:, 1], pose[:, 0], pose[:, 1], pose[:, 2]], 1)
-        goal = dyn.goal_in_body(pose, self.goal)
-        return {"heightmap": height.cpu().numpy(),
-                "soil": soil.astype(np.float32, copy=False),
-                "state": state.clamp(-1e4, 1e4).cpu().numpy(),
-                "goal": goal.clamp(-1e4, 1e4).cpu().numpy()}
 
-    # ---------------------------------------------------------------- render
-    def render(self, i: int = 0, depth_range: float = 0.04) -> np.ndarray:
-        """(Y, X, 3) uint8 top view of H_delta = h - h0 of episode i (x right, y up), with
-        the path (black) and the wheels at the current pose (red)."""
-        from matplotlib import colormaps
+def reset_episodes(params: TraverseParams, state: TraverseState, ids, pose, goal) -> TraverseState:
+    """The state with episodes `ids` back on the undeformed field at `pose` (M, 3) with goal
+    (M, 2) (`sample_starts`). Their field layers are reset in place (see the module docstring)."""
+    dev = params.device
+    ids_t = torch.as_tensor(np.asarray(ids, dtype=np.int64), device=dev)
+    pose_t = torch.as_tensor(np.asarray(pose), dtype=torch.float32, device=dev).reshape(-1, 3)
+    goal_t = torch.as_tensor(np.asarray(goal), dtype=torch.float32, device=dev).reshape(-1, 2)
+    state.h[ids_t] = params.field.h0
+    state.ref[ids_t] = 0.0
+    state.ref_odom[ids_t] = -math.inf
+    state.passes[ids_t] = 0.0
 
-        g = self.grid
-        dh = (self.h[i] - self.field.h0).cpu().numpy()
-        img = colormaps["RdBu"](np.clip(0.5 + dh / (2 * depth_range), 0, 1))[..., :3]
-        img = (img * 255).astype(np.uint8).transpose(1, 0, 2).copy()        # (Y, X, 3)
-        n = int(self.steps[i].clamp(max=self.cfg.max_steps)) + 1
-        pts = self.path[:n, i].cpu().numpy()
-        ij = np.round((pts - np.asarray(g.origin)) / g.dx).astype(np.int64)
-        ok = (ij[:, 0] >= 0) & (ij[:, 0] < g.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < g.shape[1])
-        img[ij[ok, 1], ij[ok, 0]] = 0
-        w = dyn.to_world(self.pose[i:i + 1], self.wheels)[0].cpu().numpy()
-        rc = max(1, int(round(self.radius / g.dx)))
-        for wx, wy in w:
-            ci, cj = int(round((wx - g.origin[0]) / g.dx)), int(round((wy - g.origin[1]) / g.dx))
-            img[max(cj - rc, 0):cj + rc + 1, max(ci - rc, 0):ci + rc + 1] = (220, 30, 30)
-        return img[::-1].copy()
+    def put(t, v):
+        t = t.clone()
+        t[ids_t] = v
+        return t
+
+    path = state.path.clone()
+    path[:, ids_t] = pose_t[:, :2]
+    return state._replace(
+        pose=put(state.pose, pose_t), goal=put(state.goal, goal_t), control=put(state.control, 0.0),
+        odom=put(state.odom, 0.0), steps=put(state.steps, 0), path=path,
+        totals=Totals(*(put(t, 0.0) for t in state.totals)))
+
+
+# -------------------------------------------------------------------------- transition
+def transition(params: TraverseParams, state: TraverseState, action: torch.Tensor
+               ) -> tuple[TraverseState, StepOutcome]:
+    """Advance all N episodes by one control period.
+
+    Args:
+        action: (N, 2) speed [m/s], curvature [1/m]; clipped to the platform's limits.
+
+    Returns:
+        the new state (its field layers are the input's, updated in place) and the outcome.
+    """
+    c, N = params.config, state.num_envs
+    a = action.to(params.device, torch.float32).reshape(N, 2)
+    if not torch.isfinite(a).all():
+        bad = torch.nonzero(~torch.isfinite(a).all(1))[0].item()
+        raise ValueError(f"actions must be finite; row {bad} is {a[bad].tolist()}")
+    v = a[:, 0].clamp(*c.speed)
+    kappa = a[:, 1].clamp(-c.curvature_max, c.curvature_max)
+    pose0, pose1 = state.pose, dyn.step_pose(state.pose, v, kappa, c.dt)
+    start, end = dyn.to_world(pose0, params.wheels), dyn.to_world(pose1, params.wheels)
+    odom = state.odom + (v * c.dt).abs()
+    damage, iterations = soil_step(params, state, start, end, pose0[:, 2], odom)
+
+    d_before = torch.linalg.vector_norm(state.goal - pose0[:, :2], dim=1)
+    d_after = torch.linalg.vector_norm(state.goal - pose1[:, :2], dim=1)
+    steps = state.steps + 1
+    path = state.path.index_put((steps.clamp(max=c.max_steps), torch.arange(N, device=params.device)),
+                                pose1[:, :2])
+    t = state.totals
+    new = state._replace(
+        pose=torch.cat([pose1[:, :2], torch.remainder(pose1[:, 2:] + math.pi, 2 * math.pi) - math.pi], 1),
+        control=torch.stack([v, kappa], 1), odom=odom, steps=steps, path=path,
+        totals=Totals(t.displaced + damage.displaced, t.compacted + damage.compacted,
+                      torch.maximum(t.max_rut, damage.rut_depth)))
+    off = ((end < params.lo) | (end > params.hi)).flatten(1).any(1)
+    return new, StepOutcome(d_before - d_after, damage, iterations, d_after <= c.goal_radius, off)
+
+
+def soil_step(params: TraverseParams, state: TraverseState, start: torch.Tensor, end: torch.Tensor,
+              heading: torch.Tensor, odom: torch.Tensor) -> tuple[dyn.Damage, torch.Tensor]:
+    """The wheels dig, deposit and the surface relaxes in each wheel's window (`dynamics.deform`);
+    the field layers of `state` are updated in place (one gather and one write per layer).
+
+    Args:
+        start, end: (N, K, 2) wheel centres before and after the step, m.
+        heading: (N,) yaw before the step, rad.  odom: (N,) odometer after the step, m.
+
+    Returns:
+        the step's damage and (N,) relaxation updates (most over a robot's windows).
+    """
+    s, g = params.config.sim, params.grid
+    N, (X, Y), W = state.num_envs, g.shape, params.window
+    win = dyn.wheel_windows(start, end, heading, W, g)
+    gidx = win.robot * (X * Y) + win.field                                # (E,) cell of the state
+    layers = (state.h.view(-1), state.ref.view(-1), state.ref_odom.view(-1), state.passes.view(-1))
+    h_e, ref_e, odom_e, pas_e = (t.index_select(0, gidx) for t in layers)
+    odom_now = odom[win.robot]
+    visit = (odom_now - odom_e) <= params.visit_length
+    cells = params.cell_table.index_select(0, win.field)                  # (E, T + 4)
+    depth = cells.gather(1, 2 + params.track[win.wheel][:, None])[:, 0]
+    shape = (N * len(params.track), W, W)
+    out = dyn.deform(h_e.view(shape), cells[:, 0].reshape(shape), win, ref_e, visit, depth, cells[:, -2],
+                     params.radius, params.robot.wheel_flat_fraction, g.dx, s.band_width * g.dx,
+                     s.ref_radius, s.fixed_iter, s.tau, s.max_iter, s.eps_scale, s.backend)
+    cov = out.covered
+    entered = cov & ~visit
+    h_new = out.h.reshape(-1)
+    written = (h_new, torch.where(cov, out.ref, ref_e), torch.where(entered, odom_now, odom_e),
+               pas_e + entered.to(pas_e.dtype))
+    for layer, values in zip(layers, written, strict=True):
+        layer.index_copy_(0, gidx, values)
+    repeat = (entered & (pas_e > 0)).view(N, -1).sum(1).to(torch.float32)
+    rut = torch.where(cov, cells[:, 1] - h_new, torch.zeros_like(h_new))
+    rut = rut.view(N, -1).amax(1).clamp_min(0)
+    damage = dyn.Damage(out.removed, (out.removed - out.deposited).clamp_min(0), rut, repeat)
+    return damage, out.iterations.to(params.device)
+
+
+def reward(outcome: StepOutcome, weights: dict[str, float]) -> torch.Tensor:
+    """(N,) `dynamics.reward` of the step plus the goal bonus, minus the off-field penalty."""
+    r = dyn.reward(outcome.progress, outcome.damage, weights)
+    return r + weights["goal"] * outcome.reached - weights["off_field"] * (outcome.off_field & ~outcome.reached)
+
+
+def terminal(outcome: StepOutcome) -> torch.Tensor:
+    """(N,) bool: the goal is reached or a wheel left the field."""
+    return outcome.reached | outcome.off_field
+
+
+def truncated(params: TraverseParams, state: TraverseState, terminated: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the step limit is reached (and the episode did not end otherwise)."""
+    return (state.steps >= params.config.max_steps) & ~terminated
+
+
+def step_info(state: TraverseState, outcome: StepOutcome) -> dict[str, torch.Tensor]:
+    """The info dict of a step, (N,) tensors (see the env docstring)."""
+    d = outcome.damage
+    return {"displaced": d.displaced, "compacted": d.compacted, "rut_depth": d.rut_depth,
+            "repeat_cells": d.repeat_cells, "relax_iterations": outcome.relax_iterations,
+            "reached_goal": outcome.reached, "off_field": outcome.off_field & ~outcome.reached,
+            "episode_displaced": state.totals.displaced.clone(),
+            "episode_compacted": state.totals.compacted.clone(), "episode_max_rut": state.totals.max_rut.clone()}
+
+
+# ------------------------------------------------------------------------- observation
+def observation(params: TraverseParams, state: TraverseState,
+                rngs: list[np.random.Generator] | None = None) -> dict[str, np.ndarray]:
+    """Observations of all N episodes as float32 numpy arrays (see the env docstring).
+
+    rngs: one generator per episode for the soil-parameter noise (needed if soil_noise > 0).
+    """
+    c, S, N, g = params.config, params.config.obs_size, state.num_envs, params.grid
+    pose = state.pose
+    flat, inside = dyn.body_grid_index(pose, params.obs_offsets, g)          # (N, M)
+    base = torch.arange(N, device=params.device)[:, None] * (g.shape[0] * g.shape[1])
+    h_all = state.h.view(-1)
+    h = h_all.index_select(0, (flat + base).reshape(-1)).view(N, -1)
+    cells = params.cell_table.index_select(0, flat.reshape(-1)).view(N, -1, params.cell_table.shape[1])
+    h0 = cells[..., 1]
+    centre = dyn.body_grid_index(pose, params.obs_offsets[:1] * 0, g)[0]
+    rel = h - h_all.index_select(0, (centre + base).reshape(-1)).view(N, 1)
+    zero = torch.zeros_like(h)
+    height = torch.stack([torch.where(inside, rel, zero), torch.where(inside, h - h0, zero)], 1)
+    height = height.reshape(N, 2, S, S).clamp(-2.0, 2.0)
+    soil = torch.where(inside[..., None], cells[..., 2:], torch.zeros_like(cells[..., 2:]))
+    soil = soil.transpose(1, 2).reshape(N, -1, S, S).cpu().numpy()         # (N, T + 2, S, S)
+    if c.soil_noise > 0:
+        if rngs is None or len(rngs) != N:
+            raise ValueError("soil_noise > 0 needs one random generator per environment")
+        noise = np.stack([r.standard_normal(soil.shape[1:]) for r in rngs]).astype(np.float32)
+        soil = np.clip(soil * (1 + c.soil_noise * noise), 0.0, params.soil_hi[:, None, None])
+    st = torch.stack([state.control[:, 0], state.control[:, 1], pose[:, 0], pose[:, 1], pose[:, 2]], 1)
+    goal = dyn.goal_in_body(pose, state.goal)
+    return {"heightmap": height.cpu().numpy(),
+            "soil": soil.astype(np.float32, copy=False),
+            "state": st.clamp(-1e4, 1e4).cpu().numpy(),
+            "goal": goal.clamp(-1e4, 1e4).cpu().numpy()}
+
+
+# ------------------------------------------------------------------------------ render
+def render(params: TraverseParams, state: TraverseState, i: int = 0, depth_range: float = 0.04) -> np.ndarray:
+    """(Y, X, 3) uint8 top view of H_delta = h - h0 of episode i (x right, y up), with
+    the path (black) and the wheels at the current pose (red)."""
+    from matplotlib import colormaps
+
+    g = params.grid
+    dh = (state.h[i] - params.field.h0).cpu().numpy()
+    img = colormaps["RdBu"](np.clip(0.5 + dh / (2 * depth_range), 0, 1))[..., :3]
+    img = (img * 255).astype(np.uint8).transpose(1, 0, 2).copy()        # (Y, X, 3)
+    n = int(state.steps[i].clamp(max=params.config.max_steps)) + 1
+    pts = state.path[:n, i].cpu().numpy()
+    ij = np.round((pts - np.asarray(g.origin)) / g.dx).astype(np.int64)
+    ok = (ij[:, 0] >= 0) & (ij[:, 0] < g.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < g.shape[1])
+    img[ij[ok, 1], ij[ok, 0]] = 0
+    w = dyn.to_world(state.pose[i:i + 1], params.wheels)[0].cpu().numpy()
+    rc = max(1, int(round(params.radius / g.dx)))
+    for wx, wy in w:
+        ci, cj = int(round((wx - g.origin[0]) / g.dx)), int(round((wy - g.origin[1]) / g.dx))
+        img[max(cj - rc, 0):cj + rc + 1, max(ci - rc, 0):ci + rc + 1] = (220, 30, 30)
+    return img[::-1].copy()

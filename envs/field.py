@@ -1,16 +1,17 @@
 """The field: an initial heightmap and maps of the soil parameters that vary in space.
 
 Layers follow the simulator's theta: d_1..d_T sinkage per track [m], chi [-], beta [rad],
-stored as one (T + 2, X, Y) stack. A field comes from a config (uniform soil with wet
-patches of deep sinkage and packed lanes of shallow sinkage) or from an estimator run's
-`params.csv` along a recorded path (nearest estimate to each cell).
+stored as one (T + 2, X, Y) stack. A field comes from its settings (`env.field`, a
+`torchsoil.settings.FieldConfig`: uniform soil with wet patches of deep sinkage and packed
+lanes of shallow sinkage) or from an estimator run's `params.csv` along a recorded path
+(nearest estimate to each cell).
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from scipy.ndimage import gaussian_filter
 from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
+from torchsoil.settings import FieldConfig, SettingsError, SoilValues, merge, validate
 from torchsoil.sim.params import BETA_BOUNDS, CHI_BOUNDS, D_BOUNDS
 
 
@@ -67,59 +69,30 @@ def _check_range(name, t, bounds):
         raise ValueError(f"soil layer {name} spans [{lo:.4g}, {hi:.4g}], outside its bounds {bounds}")
 
 
-@dataclass(frozen=True)
-class FieldConfig:
-    """Field settings (configs/env/soil_traverse.yaml, section `field`).
-
-    size: (length along x, width along y), m; dx: cell edge, m; roughness: standard deviation
-    of the initial surface, m, smoothed over `roughness_length` m; seed: terrain noise seed;
-    soil: background {d: [m] or list per track, chi, beta_deg}; patches: list of
-    {center: [x, y], radius [m], d, chi, beta_deg} discs with a soft edge of `edge` m;
-    lanes: list of {y: [ymin, ymax], d, chi, beta_deg} bands along x (packed lanes).
-    """
-
-    size: tuple[float, float] = (20.0, 10.0)
-    dx: float = 0.05
-    roughness: float = 0.003
-    roughness_length: float = 0.3
-    seed: int = 0
-    n_tracks: int = 2
-    soil: dict = field(default_factory=lambda: {"d": 0.02, "chi": 0.6, "beta_deg": 30.0})
-    patches: tuple = ()
-    lanes: tuple = ()
-    edge: float = 0.5
-
-    @classmethod
-    def from_dict(cls, d: dict | None) -> FieldConfig:
-        d = dict(d or {})
-        known = set(cls.__dataclass_fields__)
-        unknown = set(d) - known
-        if unknown:
-            raise ValueError(f"unknown field settings {sorted(unknown)}; known: {sorted(known)}")
-        for key in ("size",):
-            if key in d:
-                d[key] = tuple(float(v) for v in d[key])
-        for key in ("patches", "lanes"):
-            if key in d:
-                d[key] = tuple(dict(p) for p in (d[key] or ()))
-        return cls(**d)
+def field_config(config: FieldConfig | dict | None = None) -> FieldConfig:
+    """A `torchsoil.settings.FieldConfig` from itself, None (the defaults) or a dict merged onto
+    the defaults (mappings merge, lists replace); unknown keys are refused with the key named."""
+    if isinstance(config, FieldConfig):
+        return config
+    if config is not None and not isinstance(config, dict):
+        raise SettingsError(f"field config must be a mapping, got {type(config).__name__}")
+    return validate(FieldConfig, merge(FieldConfig().model_dump(), config or {}), "field config",
+                    prefix="field.")
 
 
-def _layer_values(spec: dict, n_tracks: int, where: str, base: np.ndarray | None = None) -> np.ndarray:
-    """(T + 2,) d_1..d_T, chi, beta [rad] from a {d, chi, beta_deg} mapping (missing: from base)."""
-    unknown = set(spec) - {"d", "chi", "beta_deg", "center", "radius", "y"}
-    if unknown:
-        raise ValueError(f"{where}: unknown keys {sorted(unknown)}; use d, chi, beta_deg")
+def _layer_values(spec: SoilValues, n_tracks: int, where: str, base: np.ndarray | None = None
+                  ) -> np.ndarray:
+    """(T + 2,) d_1..d_T, chi, beta [rad] from soil values d, chi, beta_deg (None: from base)."""
     out = np.array(base, dtype=np.float64) if base is not None else np.full(n_tracks + 2, np.nan)
-    if "d" in spec:
-        d = np.atleast_1d(np.asarray(spec["d"], dtype=np.float64))
+    if spec.d is not None:
+        d = np.atleast_1d(np.asarray(spec.d, dtype=np.float64))
         if d.size not in (1, n_tracks):
             raise ValueError(f"{where}: d needs 1 or {n_tracks} values, got {d.size}")
         out[:n_tracks] = d
-    if "chi" in spec:
-        out[n_tracks] = float(spec["chi"])
-    if "beta_deg" in spec:
-        out[n_tracks + 1] = math.radians(float(spec["beta_deg"]))
+    if spec.chi is not None:
+        out[n_tracks] = float(spec.chi)
+    if spec.beta_deg is not None:
+        out[n_tracks + 1] = math.radians(float(spec.beta_deg))
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{where}: needs d, chi and beta_deg")
     return out
@@ -129,14 +102,17 @@ def layer_names(n_tracks: int) -> tuple[str, ...]:
     return tuple(f"d{k + 1}" for k in range(n_tracks)) + ("chi", "beta")
 
 
-def make_field(config: FieldConfig | dict | None = None) -> SoilField:
-    """Build a field from its config: rough initial surface, background soil, wet patches
-    (blended in over `edge` metres) and packed lanes. Same config, same field."""
-    cfg = config if isinstance(config, FieldConfig) else FieldConfig.from_dict(config)
+def make_field(config: FieldConfig | dict | None = None, n_tracks: int = 2) -> SoilField:
+    """Build a field from its config (`torchsoil.settings.FieldConfig`, or a dict of it):
+    rough initial surface, background soil, wet patches (blended in over `edge` metres) and
+    packed lanes, with one sinkage layer per wheel track. Same config, same field."""
+    cfg = field_config(config)
     if cfg.dx <= 0 or min(cfg.size) < 4 * cfg.dx:
         raise ValueError(f"field size {cfg.size} m must span several cells of dx = {cfg.dx} m")
     grid = Grid.covering(0.0, 0.0, cfg.size[0], cfg.size[1], cfg.dx)
-    T = cfg.n_tracks
+    T = int(n_tracks)
+    if T < 1:
+        raise ValueError(f"a field needs at least one sinkage track, got n_tracks = {n_tracks}")
     rng = np.random.default_rng(cfg.seed)
     noise = rng.standard_normal(grid.shape)
     if cfg.roughness > 0:
@@ -148,14 +124,14 @@ def make_field(config: FieldConfig | dict | None = None) -> SoilField:
     xs, ys = grid.centers()
     gx, gy = np.meshgrid(xs, ys, indexing="ij")
     for n, lane in enumerate(cfg.lanes):
-        y0, y1 = (float(v) for v in lane["y"])
+        y0, y1 = (float(v) for v in lane.y)
         vals = _layer_values(lane, T, f"field.lanes[{n}]", base)
         w = ((gy >= y0) & (gy <= y1)).astype(np.float64)
         soil = soil * (1 - w) + vals[:, None, None] * w
     for n, patch in enumerate(cfg.patches):
         vals = _layer_values(patch, T, f"field.patches[{n}]", base)
-        r = np.hypot(gx - float(patch["center"][0]), gy - float(patch["center"][1]))
-        w = np.clip((float(patch["radius"]) + cfg.edge / 2 - r) / max(cfg.edge, 1e-9), 0.0, 1.0)
+        r = np.hypot(gx - float(patch.center[0]), gy - float(patch.center[1]))
+        w = np.clip((float(patch.radius) + cfg.edge / 2 - r) / max(cfg.edge, 1e-9), 0.0, 1.0)
         soil = soil * (1 - w) + vals[:, None, None] * w
     return SoilField(grid, torch.as_tensor(h0, dtype=torch.float32),
                      torch.as_tensor(soil, dtype=torch.float32), layer_names(T))
@@ -199,10 +175,7 @@ def field_from_params_csv(path: str | Path, config: FieldConfig | dict | None = 
     keep the config's soil (patches and lanes). The field's tracks follow the csv's d columns.
     """
     xy, vals, names = read_params_csv(path)
-    cfg = config if isinstance(config, FieldConfig) else FieldConfig.from_dict(config)
-    if cfg.n_tracks != len(names) - 2:
-        cfg = FieldConfig(**{**cfg.__dict__, "n_tracks": len(names) - 2})
-    base = make_field(cfg)
+    base = make_field(config, len(names) - 2)
     xs, ys = base.grid.centers()
     cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
     d, i = cKDTree(xy).query(cells, distance_upper_bound=reach)

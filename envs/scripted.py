@@ -60,7 +60,7 @@ def run_episode(env, policy, seed: int = 0) -> dict:
     max rut [m], total reward, outcome and the final (Y, X, 3) top view if the env renders."""
     obs, _ = env.reset(seed=seed)
     policy.reset()
-    dt = env.unwrapped.batch.cfg.dt
+    dt = env.unwrapped.params.config.dt
     t, disp, comp, rut, total = [0.0], [0.0], [0.0], 0.0, 0.0
     info, term, trunc = {}, False, False
     while not (term or trunc):
@@ -76,9 +76,9 @@ def run_episode(env, policy, seed: int = 0) -> dict:
 
 
 def detour_waypoints(cfg, detour_y: float = 8.4) -> tuple[list, list]:
-    """Waypoints of the straight line start -> goal, and of a detour that leaves the line,
-    runs along y = detour_y [m] (default: the packed lane of the default field) and comes back;
-    ramps scale with the route length."""
+    """Waypoints of the straight line start -> goal (of the env settings `cfg`), and of a
+    detour that leaves the line, runs along y = detour_y [m] (default: the packed lane of the
+    default field) and comes back; ramps scale with the route length."""
     (sx, sy), (gx, gy) = cfg.start[:2], cfg.goal
     length = math.dist((sx, sy), (gx, gy))
     a, ramp = 0.15 * length, 0.22 * length
@@ -89,15 +89,16 @@ def detour_waypoints(cfg, detour_y: float = 8.4) -> tuple[list, list]:
 
 def compare_detour(config=None, out: str | Path | None = None, seed: int = 0, speed: float = 1.0,
                    detour_y: float = 8.4, progress: bool = True) -> dict[str, dict]:
-    """Drive the straight line through the wet patch and the detour on the same field; print
-    and return the soil damage vs time trade-off; with `out`, write rollout.json and
-    rollout.png (top views of H_delta and cumulative damage against time)."""
+    """Drive the straight line through the wet patch and the detour on the same field (config:
+    anything `SoilTraverseEnv` takes; None: the default env); print and return the soil
+    damage vs time trade-off; with `out`, write rollout.json and rollout.png (top views of
+    H_delta and cumulative damage against time)."""
     from tqdm import tqdm
 
     from envs.soil_traverse import SoilTraverseEnv
 
     env = SoilTraverseEnv(config, render_mode="rgb_array")
-    cfg = env.batch.cfg
+    cfg = env.params.config
     straight, detour = detour_waypoints(cfg, detour_y)
     results = {}
     for name, wps in tqdm([("straight", straight), ("detour", detour)], disable=not progress,
@@ -115,17 +116,15 @@ def compare_detour(config=None, out: str | Path | None = None, seed: int = 0, sp
 
 
 def _write(results: dict, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     out.mkdir(parents=True, exist_ok=True)
     summary = {k: {"time_s": v["time"][-1], "displaced_m3": v["displaced"][-1],
                    "compacted_m3": v["compacted"][-1], "max_rut_m": v["max_rut"],
                    "reward": v["reward"], "reached_goal": v["reached_goal"]} for k, v in results.items()}
     (out / "rollout.json").write_text(json.dumps(summary, indent=1))
-    fig, ax = plt.subplots(1, 3, figsize=(15, 3.6), gridspec_kw={"width_ratios": [2, 2, 1.3]})
+    fig = Figure(figsize=(15, 3.6))
+    ax = fig.subplots(1, 3, gridspec_kw={"width_ratios": [2, 2, 1.3]})
     for a, (name, r) in zip(ax[:2], results.items(), strict=True):
         a.imshow(r["frame"])
         a.set_title(f"{name}: H_delta (red: rut, blue: berm), path")
@@ -138,4 +137,3 @@ def _write(results: dict, out: Path) -> None:
     ax[2].legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "rollout.png", dpi=110)
-    plt.close(fig)

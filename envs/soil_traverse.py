@@ -3,12 +3,12 @@
 ## Description
 A four-wheel dual-steering robot (the paper's platform, wheel layout from the robot YAML)
 crosses a field heightmap (default 20 m x 10 m at dx = 0.05 m) whose soil parameters vary
-in space: wet patches of deep sinkage and packed lanes, from `configs/env/soil_traverse.yaml`
-or from an estimator run's `params.csv` along a recorded path. Every step the wheels dig,
+in space: wet patches of deep sinkage and packed lanes (`env.field`), or an estimator run's
+`params.csv` along a recorded path (`env.params_csv`). Every step the wheels dig,
 deposit beside their ruts and the surface relaxes, with the simulator's own stages
 (`torchsoil.sim`: taper, reference height, sink, deposit, relax) on a square window around
-each wheel's segment of the step (no flux across the window edge). Relaxation is capped (a
-fixed number of updates per step) or run to convergence. A cell keeps the reference height
+each wheel's segment of the step (no flux across the window edge). Relaxation is capped
+(`env.sim.fixed_iter` updates per step) or run to convergence (`fixed_iter: null`). A cell keeps the reference height
 of the robot's ongoing visit, so rear wheels in the front wheels' ruts dig no deeper; a
 later visit (a loop, a return trip) digs again.
 
@@ -46,13 +46,33 @@ truncated after `max_steps` steps.
 
 ## Arguments
 `gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0", config=None, render_mode=None,
-device="cpu")`: config is a YAML path or dict with sections `env`, `field`, `robot`,
-`params_csv` (None: the default config). `render_mode="rgb_array"` returns a (Y, X, 3) top
-view of H_delta with the path (black) and the wheels (red).
+device="cpu")`, `gymnasium.make_vec(..., num_envs=N, config=...)` the same. config is the
+env section of the settings tree, `torchsoil.settings.EnvConfig` (every key, default and
+unit there):
+
+- None: the defaults (the 20 m x 10 m field above, the paper's platform);
+- an `EnvConfig`;
+- a dict or a YAML path: a document of the env section, e.g. `{"max_steps": 200, "sim":
+  {"fixed_iter": null}, "field": {"size": [8, 5]}}`, or of the full settings tree (its
+  `env:` section). It is merged onto the defaults (mappings merge, lists replace); unknown
+  keys and bad values raise `torchsoil.settings.SettingsError` naming the key (`env.bogus`).
+
+Keys: `dt` [s], `speed` (min, max) [m/s], `curvature_max` [1/m], `start` (x, y, yaw_deg) and
+`start_jitter`, `goal`, `goal_jitter`, `goal_radius` [m], `max_steps`, `obs_size` [cells],
+`obs_dx` [m], `soil_noise` [-], `weights` (reward weights above), `field` (size, dx,
+roughness, seed, soil, patches, lanes), `robot` (a shipped robot name or a robot YAML path),
+`params_csv` (replay an estimator run's soil) and `sim`, the physics of a step with the
+simulator's meaning and units: `fixed_iter` (relaxation updates per step; null: until `tau`,
+at most `max_iter`), `relax_margin` (relaxation room around each wheel's rut and bands, in
+wheel widths; rounded up to whole cells), `band_width` [cells], `ref_radius`, `eps_scale`,
+`backend` (auto, numba, torch). `pose_spacing` is not used (one segment per wheel and step).
+
+`render_mode="rgb_array"` returns a (Y, X, 3) top view of H_delta with the path (black) and
+the wheels (red). device: where the state lives ("cpu", "cuda").
 
 The info dict holds this step's `displaced`, `compacted` [m^3], `rut_depth` [m],
-`repeat_cells`, `relax_iterations` and the episode sums `episode_displaced`,
-`episode_compacted` [m^3] and `episode_max_rut` [m].
+`repeat_cells`, `relax_iterations`, `reached_goal`, `off_field` and the episode sums
+`episode_displaced`, `episode_compacted` [m^3] and `episode_max_rut` [m].
 """
 
 from __future__ import annotations
@@ -61,12 +81,18 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from envs.core import TraverseBatch, build
+from envs import core
+from envs.params import make_params
 from envs.spaces import action_space, observation_space
 
 
 class SoilTraverseEnv(gym.Env):
-    """One episode of `envs.core.TraverseBatch` (N = 1); see the module docstring."""
+    """One soil-traverse episode over the pure functions of `envs.core`; see the module docstring.
+
+    Attributes:
+        params: `envs.params.TraverseParams`, the static parameters (`params.config`: settings).
+        state: `envs.core.TraverseState` with N = 1.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 5}
 
@@ -74,16 +100,17 @@ class SoilTraverseEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        cfg, soil_field, robot = build(config)
-        self.batch = TraverseBatch(1, cfg, soil_field, robot, device)
+        self.params = make_params(config, device)
+        self.state = core.empty_state(self.params, 1)
         self.render_mode = render_mode
-        self.action_space = action_space(cfg)
-        self.observation_space = observation_space(cfg, self.batch.soil_hi)
+        self.action_space = action_space(self.params)
+        self.observation_space = observation_space(self.params)
         self._ready = False
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        self.batch.reset([0], [self.np_random])
+        pose, goal = core.sample_starts(self.params, [self.np_random])
+        self.state = core.reset_episodes(self.params, self.state, [0], pose, goal)
         self._ready = True
         return self._obs(), {}
 
@@ -93,14 +120,19 @@ class SoilTraverseEnv(gym.Env):
         a = np.asarray(action, dtype=np.float32)
         if a.shape != (2,):
             raise ValueError(f"action must be (speed m/s, curvature 1/m) of shape (2,), got {a.shape}")
-        reward, term, trunc, info = self.batch.step(torch.from_numpy(a)[None])
-        info = {k: (bool(v[0]) if v.dtype == torch.bool else float(v[0])) for k, v in info.items()}
+        p = self.params
+        self.state, out = core.transition(p, self.state, torch.from_numpy(a)[None])
+        reward = core.reward(out, p.weights)
+        term = core.terminal(out)
+        trunc = core.truncated(p, self.state, term)
+        info = {k: (bool(v[0]) if v.dtype == torch.bool else float(v[0]))
+                for k, v in core.step_info(self.state, out).items()}
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), info
 
     def render(self):
         if self.render_mode == "rgb_array":
-            return self.batch.render(0)
+            return core.render(self.params, self.state, 0)
         return None
 
     def _obs(self):
-        return {k: v[0] for k, v in self.batch.observe([self.np_random]).items()}
+        return {k: v[0] for k, v in core.observation(self.params, self.state, [self.np_random]).items()}

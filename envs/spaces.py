@@ -5,18 +5,20 @@ from __future__ import annotations
 import numpy as np
 from gymnasium import spaces
 
-from envs.core import TraverseConfig
+from envs.params import TraverseParams
 
 
-def action_space(cfg: TraverseConfig) -> spaces.Box:
+def action_space(params: TraverseParams) -> spaces.Box:
     """Box of (speed [m/s], curvature [1/m]) within the platform's limits."""
-    return spaces.Box(np.array([cfg.speed[0], -cfg.curvature_max], np.float32),
-                      np.array([cfg.speed[1], cfg.curvature_max], np.float32), dtype=np.float32)
+    c = params.config
+    return spaces.Box(np.array([c.speed[0], -c.curvature_max], np.float32),
+                      np.array([c.speed[1], c.curvature_max], np.float32), dtype=np.float32)
 
 
-def observation_space(cfg: TraverseConfig, soil_hi: np.ndarray) -> spaces.Dict:
+def observation_space(params: TraverseParams) -> spaces.Dict:
     """Dict of the local heightmap (2, S, S), soil (T + 2, S, S), state (5,) and goal (3,)."""
-    S, C = cfg.obs_size, len(soil_hi)
+    S, soil_hi = params.config.obs_size, params.soil_hi
+    C = len(soil_hi)
     big = 1e4
     return spaces.Dict({
         "heightmap": spaces.Box(-2.0, 2.0, (2, S, S), np.float32),

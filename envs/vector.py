@@ -13,12 +13,18 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from envs.core import TraverseBatch, build
+from envs import core
+from envs.params import make_params
 from envs.spaces import action_space, observation_space
 
 
 class SoilTraverseVectorEnv(VectorEnv):
-    """N soil-traverse episodes on one device (CPU or CUDA); spaces as `SoilTraverseEnv`."""
+    """N soil-traverse episodes on one device (CPU or CUDA); config and spaces as `SoilTraverseEnv`.
+
+    Attributes:
+        params: `envs.params.TraverseParams`, the static parameters (`params.config`: settings).
+        state: `envs.core.TraverseState` of the N episodes.
+    """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 5,
                 "autoreset_mode": AutoresetMode.NEXT_STEP}
@@ -28,12 +34,14 @@ class SoilTraverseVectorEnv(VectorEnv):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        cfg, soil_field, robot = build(config)
-        self.batch = TraverseBatch(num_envs, cfg, soil_field, robot, device)
-        self.num_envs = self.batch.n
+        if num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.params = make_params(config, device)
+        self.state = core.empty_state(self.params, num_envs)
+        self.num_envs = int(num_envs)
         self.render_mode = render_mode
-        self.single_action_space = action_space(cfg)
-        self.single_observation_space = observation_space(cfg, self.batch.soil_hi)
+        self.single_action_space = action_space(self.params)
+        self.single_observation_space = observation_space(self.params)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self._rngs: list[np.random.Generator] | None = None
@@ -52,9 +60,10 @@ class SoilTraverseVectorEnv(VectorEnv):
                 raise ValueError(f"need {N} seeds, got {len(seeds)}")
         if seed is not None or self._rngs is None:
             self._rngs = [seeding.np_random(s)[0] for s in seeds]
-        self.batch.reset(np.arange(N), self._rngs)
+        self.state = core.reset_episodes(self.params, self.state, np.arange(N),
+                                         *core.sample_starts(self.params, self._rngs))
         self._autoreset[:] = False
-        return self.batch.observe(self._rngs), {}
+        return core.observation(self.params, self.state, self._rngs), {}
 
     def step(self, actions):
         if self._rngs is None:
@@ -63,17 +72,21 @@ class SoilTraverseVectorEnv(VectorEnv):
         if tuple(a.shape) != (self.num_envs, 2):
             raise ValueError(f"actions must be ({self.num_envs}, 2) speed m/s, curvature 1/m; "
                              f"got {tuple(a.shape)}")
-        reward, term, trunc, info = self.batch.step(a)
-        reward, term, trunc = reward.cpu().numpy(), term.cpu().numpy(), trunc.cpu().numpy()
-        info = {k: v.cpu().numpy() for k, v in info.items()}
+        p = self.params
+        self.state, out = core.transition(p, self.state, a)
+        term_t = core.terminal(out)
+        reward = core.reward(out, p.weights).cpu().numpy()
+        term, trunc = term_t.cpu().numpy(), core.truncated(p, self.state, term_t).cpu().numpy()
+        info = {k: v.cpu().numpy() for k, v in core.step_info(self.state, out).items()}
         done_before = np.flatnonzero(self._autoreset)
         if len(done_before):
-            self.batch.reset(done_before, [self._rngs[i] for i in done_before])
+            self.state = core.reset_episodes(p, self.state, done_before,
+                                             *core.sample_starts(p, [self._rngs[i] for i in done_before]))
             reward[done_before], term[done_before], trunc[done_before] = 0.0, False, False
         self._autoreset = term | trunc
-        return self.batch.observe(self._rngs), reward.astype(np.float32), term, trunc, info
+        return core.observation(p, self.state, self._rngs), reward.astype(np.float32), term, trunc, info
 
     def render(self):
         if self.render_mode == "rgb_array":
-            return tuple(self.batch.render(i) for i in range(self.num_envs))
+            return tuple(core.render(self.params, self.state, i) for i in range(self.num_envs))
         return None

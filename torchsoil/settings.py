@@ -304,7 +304,8 @@ class EnvConfig(Section):
     soil_noise: float = Field(0.0, ge=0, description="relative std of observed soil parameters (0: true)")
     weights: RewardWeights = RewardWeights()
     sim: SimConfig = Field(SimConfig(fixed_iter=4, relax_margin=0.7),
-                           description="the env's physics (same meaning as section sim; per step)")
+                           description="the env's physics, relaxed every step (same meaning as section sim; "
+                                       "pose_spacing unused: each wheel moves one segment a step)")
     field: FieldConfig = FieldConfig()
     robot: str = Field("paper_platform", description="robot name (shipped) or YAML path")
     params_csv: str | None = Field(None, description="replay the soil of an estimator run's params.csv")

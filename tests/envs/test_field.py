@@ -1,4 +1,4 @@
-"""Fields from configs and from an estimator run's params.csv."""
+"""Fields from their settings (torchsoil.settings.FieldConfig) and from an estimator run's params.csv."""
 
 import csv
 import math
@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from envs.field import FieldConfig, field_from_params_csv, make_field, read_params_csv
+from envs.field import field_config, field_from_params_csv, make_field, read_params_csv
+from torchsoil.settings import FieldConfig, Patch
 
 
 def _cfg(**kw):
@@ -43,15 +44,29 @@ def test_make_field_is_deterministic_per_seed():
 
 
 @pytest.mark.parametrize("bad, match", [
-    ({"colour": 1}, "unknown field settings"),
+    ({"colour": 1}, r"unknown setting `field.colour`"),
     ({"patches": [{"center": [1, 1], "radius": 1, "d": 0.5}]}, "soil layer d"),
-    ({"patches": [{"center": [1, 1], "radius": 1, "wetness": 2}]}, r"patches\[0\]: unknown keys"),
+    ({"patches": [{"center": [1, 1], "radius": 1, "wetness": 2}]}, r"unknown setting `field.patches.0.wetness`"),
+    ({"patches": [{"center": [1, 1], "radius": -1}]}, r"`field.patches.0.radius` = -1"),
     ({"soil": {"d": [0.1, 0.1, 0.1], "chi": 0.5, "beta_deg": 30}}, "d needs 1 or 2 values"),
     ({"size": [0.1, 4.0]}, "must span several cells"),
 ])
 def test_bad_field_config_names_the_problem(bad, match):
     with pytest.raises(ValueError, match=match):
         make_field(_cfg(**bad))
+
+
+def test_field_config_merges_onto_the_defaults_and_settings_models_work():
+    cfg = field_config({"soil": {"d": 0.03}, "size": [6.0, 4.0]})
+    assert cfg.soil.d == 0.03 and cfg.soil.chi == FieldConfig().soil.chi      # merged key by key
+    assert cfg.patches == FieldConfig().patches                                 # default patch kept
+    assert field_config(cfg) is cfg and field_config(None) == FieldConfig()
+    model = FieldConfig(size=(6.0, 4.0), roughness=0.0, patches=(Patch(center=(3.0, 2.0), radius=0.8, d=0.07),),
+                        lanes=())
+    f = make_field(model, n_tracks=3)
+    assert f.names == ("d1", "d2", "d3", "chi", "beta")
+    assert torch.allclose(_at(f, 3.0, 2.0)[:3], torch.full((3,), 0.07))
+    assert float(f.h0.abs().max()) == 0.0
 
 
 def _write_csv(path, rows, header=None):
@@ -71,7 +86,7 @@ def test_params_csv_replays_estimates_along_the_path(tmp_path):
     _write_csv(p, rows)
     xy, vals, names = read_params_csv(p)
     assert names == ("d1", "d2", "chi", "beta") and len(xy) == 5
-    f = field_from_params_csv(p, FieldConfig.from_dict(_cfg(patches=[])), reach=0.6)
+    f = field_from_params_csv(p, field_config(_cfg(patches=[])), reach=0.6)
     near = _at(f, 3.1, 2.2)                   # nearest estimate: x = 3
     assert torch.allclose(near, torch.tensor([0.03, 0.015, 0.5, math.radians(28.0)]), atol=1e-6)
     near5 = _at(f, 5.45, 2.0)                 # the nan row at 5.5 was dropped: x = 5 wins

@@ -87,7 +87,7 @@ def test_truncation_at_step_limit(config):
 
 def test_rut_depth_follows_the_soil_maps():
     """Flat field: the rut under the wheels is the configured sinkage, dry then wet."""
-    cfg = small_config(start_jitter=[0, 0, 0], max_steps=60, relaxation="capped", fixed_iter=0)
+    cfg = small_config(start_jitter=[0, 0, 0], max_steps=60, sim={"fixed_iter": 0})
     cfg["field"]["roughness"] = 0.0
     env = SoilTraverseEnv(cfg)
     env.reset(seed=0)
@@ -108,7 +108,7 @@ def test_driving_a_loop_counts_second_passes():
     repeat = 0.0
     for _ in range(50):                                  # 10 m at curvature 0.8: 1.27 loops
         repeat += env.step(np.array([1.0, 0.8], np.float32))[4]["repeat_cells"]
-    passes = env.batch.passes[0]
+    passes = env.state.passes[0]
     assert int(passes.max()) == 2 and repeat > 0
     assert int((passes == 2).sum()) == pytest.approx(repeat, rel=0.05)
 
@@ -119,7 +119,7 @@ def test_render_shows_ruts_and_path(config):
     for _ in range(5):
         env.step(np.array([1.0, 0.0], np.float32))
     img = env.render()
-    X, Y = env.batch.grid.shape
+    X, Y = env.params.grid.shape
     assert img.shape == (Y, X, 3) and img.dtype == np.uint8
     assert (img == 0).all(-1).sum() >= 5                  # path pixels
     assert SoilTraverseEnv(config).render() is None
@@ -134,8 +134,10 @@ def test_bad_actions_and_configs_raise_clear_errors(config):
         env.step(np.zeros(3, np.float32))
     with pytest.raises(ValueError, match="finite"):
         env.step(np.array([np.nan, 0.0], np.float32))
-    with pytest.raises(ValueError, match="unknown env settings"):
-        SoilTraverseEnv({"env": {"sped": 1}})
+    with pytest.raises(ValueError, match=r"unknown setting `env.sped`"):
+        SoilTraverseEnv({"sped": 1})
+    with pytest.raises(ValueError, match=r"`env.sim.fixed_iter` = -1"):
+        SoilTraverseEnv({"sim": {"fixed_iter": -1}})
     with pytest.raises(ValueError, match="render_mode"):
         SoilTraverseEnv(config, render_mode="human")
 
@@ -157,29 +159,29 @@ def test_soil_observation_true_or_noisy(config):
 def test_relaxation_backends_agree_and_converged_mode_runs():
     outs = []
     for backend in ("torch", "numba"):
-        env = SoilTraverseEnv(small_config(backend=backend, start_jitter=[0, 0, 0]))
+        env = SoilTraverseEnv(small_config(sim={"backend": backend}, start_jitter=[0, 0, 0]))
         env.reset(seed=0)
         for _ in range(6):
             env.step(np.array([1.0, 0.4], np.float32))
-        outs.append(env.batch.h[0].clone())
+        outs.append(env.state.h[0].clone())
     assert float((outs[0] - outs[1]).abs().max()) < 1e-6
 
 
-@pytest.mark.parametrize("mode, settled", [("converged", True), ("capped", False)])
-def test_converged_relaxation_leaves_no_slope_above_repose(mode, settled):
+@pytest.mark.parametrize("fixed_iter, settled", [(None, True), (0, False)])
+def test_converged_relaxation_leaves_no_slope_above_repose(fixed_iter, settled):
     """Through the wet patch (d = 0.08 m, beta = 20 deg) the rut walls must slump."""
-    cfg = small_config(relaxation=mode, fixed_iter=0, start_jitter=[0, 0, 0])
+    cfg = small_config(sim={"fixed_iter": fixed_iter}, start_jitter=[0, 0, 0])
     cfg["field"]["roughness"] = 0.0
     env = SoilTraverseEnv(cfg)
     env.reset(seed=0)
     iters = 0
     for _ in range(14):
         iters += env.step(np.array([1.0, 0.0], np.float32))[4]["relax_iterations"]
-    b = env.batch
-    tan_beta = torch.tan(b.field.soil[-1])[None]
-    excess = float(max_slope_excess(b.h[0][None].double(), tan_beta.double(), b.grid.dx))
+    p = env.params
+    tan_beta = torch.tan(p.field.soil[-1])[None]
+    excess = float(max_slope_excess(env.state.h[0][None].double(), tan_beta.double(), p.grid.dx))
     if settled:
-        assert iters > 0 and excess < b.cfg.tau + 1e-3
+        assert iters > 0 and excess < p.config.sim.tau + 1e-3
     else:
         assert iters == 0 and excess > 0.5
 
@@ -194,7 +196,7 @@ def test_field_from_params_csv_in_the_config(tmp_path):
                     "iterations", "seconds", "flags"])
         for x in np.arange(1.0, 7.5, 0.5):
             w.writerow([x, x, x, 2.5, 0.05, 0.01, 0.5, 30.0, 0, 0, 10, 0.1, ""])
-    cfg = small_config(start_jitter=[0, 0, 0], relaxation="capped", fixed_iter=0)
+    cfg = small_config(start_jitter=[0, 0, 0], sim={"fixed_iter": 0})
     cfg["params_csv"] = str(p)
     cfg["field"]["roughness"] = 0.0
     env = SoilTraverseEnv(cfg)
@@ -206,7 +208,7 @@ def test_field_from_params_csv_in_the_config(tmp_path):
 
 
 def test_visit_length_covers_the_wheelbase_straight_and_on_arcs():
-    from envs.core import visit_length
+    from envs.params import visit_length
     from torchsoil.robot import paper_platform
 
     robot = paper_platform()

@@ -41,12 +41,12 @@ def test_next_step_autoreset():
         if term[0]:
             break
     assert term[0] and info["off_field"][0] and not term[1]
-    moved = venv.batch.h[0].sum().item()
+    moved = venv.state.h[0].sum().item()
     obs, r, term, trunc, info = venv.step(acts)               # the autoreset step
     assert r[0] == 0.0 and not term[0] and not trunc[0]
     np.testing.assert_allclose(obs["state"][0], obs0["state"][0])
-    assert venv.batch.h[0].sum().item() != moved               # the field is undeformed again
-    assert np.array_equal(venv.batch.passes[0].numpy(), np.zeros_like(venv.batch.passes[0].numpy()))
+    assert venv.state.h[0].sum().item() != moved               # the field is undeformed again
+    assert np.array_equal(venv.state.passes[0].numpy(), np.zeros_like(venv.state.passes[0].numpy()))
     obs, r, term, trunc, info = venv.step(acts)               # and it drives again
     assert obs["state"][0][2:4] != pytest.approx(obs0["state"][0][2:4])
 
