@@ -58,3 +58,19 @@ print("ok")
 """
     r = run("-c", code)
     assert r.returncode == 0 and r.stdout.strip().endswith("ok"), r.stderr
+
+
+def test_the_package_data_pattern_ships_every_robot_and_scenario():
+    """A wheel carries what pyproject's package-data patterns match: every shipped YAML."""
+    import tomllib
+    from pathlib import Path
+
+    import torchsoil
+
+    root = Path(torchsoil.__file__).parent
+    patterns = tomllib.loads((root.parent / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-data"]["torchsoil"]
+    shipped = {p for pat in patterns for p in root.glob(pat)}
+    files = {p for p in (root / "configs").rglob("*") if p.is_file()}
+    assert files and files == shipped
+    assert (root / "configs" / "robot" / "paper_platform.yaml") in shipped
