@@ -62,9 +62,8 @@ print("ok")
 
 def test_the_package_data_pattern_ships_every_robot_and_scenario():
     """A wheel carries what pyproject's package-data patterns match: every shipped YAML."""
+    import re
     from pathlib import Path
-
-    import tomllib
 
     import torchsoil
 
