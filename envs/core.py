@@ -252,6 +252,15 @@ def step_info(state: TraverseState, outcome: StepOutcome) -> dict[str, torch.Ten
             "episode_compacted": state.totals.compacted.clone(), "episode_max_rut": state.totals.max_rut.clone()}
 
 
+def step(params: TraverseParams, state: TraverseState, action: torch.Tensor
+         ) -> tuple[TraverseState, torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    """One control period of all N episodes: `transition`, then reward, terminated, truncated
+    (all (N,)) and the info dict of (N,) tensors."""
+    state, out = transition(params, state, action)
+    term = terminal(out)
+    return state, reward(out, params.weights), term, truncated(params, state, term), step_info(state, out)
+
+
 # ------------------------------------------------------------------------- observation
 def observation(params: TraverseParams, state: TraverseState,
                 rngs: list[np.random.Generator] | None = None) -> dict[str, np.ndarray]:

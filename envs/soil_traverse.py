@@ -120,13 +120,8 @@ class SoilTraverseEnv(gym.Env):
         a = np.asarray(action, dtype=np.float32)
         if a.shape != (2,):
             raise ValueError(f"action must be (speed m/s, curvature 1/m) of shape (2,), got {a.shape}")
-        p = self.params
-        self.state, out = core.transition(p, self.state, torch.from_numpy(a)[None])
-        reward = core.reward(out, p.weights)
-        term = core.terminal(out)
-        trunc = core.truncated(p, self.state, term)
-        info = {k: (bool(v[0]) if v.dtype == torch.bool else float(v[0]))
-                for k, v in core.step_info(self.state, out).items()}
+        self.state, reward, term, trunc, info = core.step(self.params, self.state, torch.from_numpy(a)[None])
+        info = {k: (bool(v[0]) if v.dtype == torch.bool else float(v[0])) for k, v in info.items()}
         return self._obs(), float(reward[0]), bool(term[0]), bool(trunc[0]), info
 
     def render(self):

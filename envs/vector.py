@@ -73,11 +73,9 @@ class SoilTraverseVectorEnv(VectorEnv):
             raise ValueError(f"actions must be ({self.num_envs}, 2) speed m/s, curvature 1/m; "
                              f"got {tuple(a.shape)}")
         p = self.params
-        self.state, out = core.transition(p, self.state, a)
-        term_t = core.terminal(out)
-        reward = core.reward(out, p.weights).cpu().numpy()
-        term, trunc = term_t.cpu().numpy(), core.truncated(p, self.state, term_t).cpu().numpy()
-        info = {k: v.cpu().numpy() for k, v in core.step_info(self.state, out).items()}
+        self.state, reward, term, trunc, info = core.step(p, self.state, a)
+        reward, term, trunc = reward.cpu().numpy(), term.cpu().numpy(), trunc.cpu().numpy()
+        info = {k: v.cpu().numpy() for k, v in info.items()}
         done_before = np.flatnonzero(self._autoreset)
         if len(done_before):
             self.state = core.reset_episodes(p, self.state, done_before,

@@ -201,10 +201,8 @@ def cmd_process_bag(args) -> int:
 
     extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
     settings = _settings(args, extra)
-    cfg = pipeline_settings(settings, _robot_yaml(args.robot))
-    if args.extrinsic:
-        given = {frame: [float(v) for v in values] for frame, *values in args.extrinsic}
-        cfg = cfg.replace(read=cfg.read.replace(extrinsics={**cfg.read.extrinsics, **given}))
+    given = {frame: [float(v) for v in values] for frame, *values in args.extrinsic}
+    cfg = pipeline_settings(settings, _robot_yaml(args.robot), given)
     result = process_bag(args.bag, _robot(args.robot), cfg, progress=True)
     for p in result.problems:
         print(f"warning: {p}", file=sys.stderr)

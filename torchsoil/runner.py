@@ -27,17 +27,19 @@ OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_p
            "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline")
 
 
-def pipeline_settings(settings: Settings, robot_yaml: str | Path | None) -> PipelineConfig:
-    """The pipeline section with the robot YAML's `lidars:` extrinsics added (they override
-    the settings' read.extrinsics for the frames they name)."""
-    cfg = settings.pipeline
+def pipeline_settings(settings: Settings, robot_yaml: str | Path | None,
+                      extrinsics: dict[str, list[float]] | None = None) -> PipelineConfig:
+    """The pipeline section with the robot YAML's `lidars:` extrinsics added, then
+    `extrinsics` ({frame: [x, y, z, roll, pitch, yaw]}, m, rad); each overrides the ones
+    before it for the frames it names."""
+    extra = {}
     if robot_yaml:
         from torchsoil.pipeline.run import extrinsics_from_robot_yaml
 
         extra = extrinsics_from_robot_yaml(robot_yaml)
-        if extra:
-            cfg = cfg.replace(read=cfg.read.replace(extrinsics={**cfg.read.extrinsics, **extra}))
-    return cfg
+    extra.update(extrinsics or {})
+    cfg = settings.pipeline
+    return cfg.replace(read={"extrinsics": {**cfg.read.extrinsics, **extra}}) if extra else cfg
 
 
 def load_input(path: str | Path, out_dir: Path, robot: Robot | None, pipeline: PipelineConfig | None = None,
@@ -74,11 +76,13 @@ def load_input(path: str | Path, out_dir: Path, robot: Robot | None, pipeline: P
 
 def run_record(job: str, input_path: str | Path, settings: Settings, pipeline: PipelineConfig,
                robot: Robot | None, sections: tuple[str, ...]) -> dict:
-    """run.json of a job: the input's identity, the robot, the pipeline settings (with the
-    robot's extrinsics) and the other settings sections the job reads."""
+    """run.json of a job: the input's identity, the robot, the other settings sections the
+    job reads and, for a recording (not a terrain pair), the pipeline settings (with the
+    robot's extrinsics)."""
     used = {name: getattr(settings, name).model_dump(mode="json") for name in sections}
-    return provenance.run_record(input_path, {**used, "pipeline": pipeline.model_dump(mode="json")},
-                                 robot.to_dict() if robot is not None else None, job)
+    if Path(input_path).suffix != ".npz":
+        used["pipeline"] = pipeline.model_dump(mode="json")
+    return provenance.run_record(input_path, used, robot.to_dict() if robot is not None else None, job)
 
 
 @contextmanager
