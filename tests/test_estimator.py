@@ -78,8 +78,8 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
     pair.save(src)
     cfg = load_settings()
     out = estimate(src, tmp_path / "run", cfg, tensorboard=True, progress=False)
-    names = ["s", "t", "x", "y", "d1", "d2", "chi", "beta", "residual", "prediction", "iterations", "seconds",
-             "flags"]
+    names = ["s", "t", "x", "y", "d1", "d2", "chi", "beta", "map_offset", "residual", "prediction", "iterations",
+             "seconds", "flags"]
     with (out / "params.csv").open() as f:
         reader = csv.DictReader(f)
         assert reader.fieldnames == names
@@ -88,6 +88,7 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
         assert (out / name).stat().st_size > 0
     assert any((out / "tensorboard").iterdir())
     assert "noise floor" in (out / "summary.md").read_text()
+    assert "Removed from H_b before estimation: offset" in (out / "summary.md").read_text()
     # the stitched simulation is close to the noise-free truth near the wheel paths
     assert simulated_error(out, truth_hb, pair) < 1.5e-3
     # interrupt after 3 windows, then resume: the same windows, the same parameters

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from torchsoil.cost import weighted_l1
+from torchsoil.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import ParamSpec, simulate
@@ -60,6 +61,11 @@ class Estimator:
             speed), applied in every simulation of that window, fit and prediction alike.
         index: the pair's windows.PathIndex for these settings, when already computed (it
             depends on the poses, robot and corridor only; repeated runs over one pair share it).
+        nuisance: the pair's fitted map offset (`nuisance.MapNuisance`), when already computed
+            (default: fitted here when est.nuisance.offset).
+
+    H_b is used net of the map offset and tilt (`self.nuisance`, fitted on untouched ground;
+    `self.h_back`); each row reports the offset removed on the window's ground (`map_offset`, m).
 
     The optimizer's variables are named (`free_names`): the simulator's parameters
     (`spec.names`, d1..dT, chi, beta), or with `est.merged_sinkage` one sinkage `d` shared
@@ -68,7 +74,7 @@ class Estimator:
     """
 
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
-                 dtype=torch.float64, modifiers=None, index=None):
+                 dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None):
         self.pair = pair
         self.modifiers = modifiers
         self.est = est = est or EstimatorConfig()
@@ -80,6 +86,12 @@ class Estimator:
         reach = max(est.corridor / 2, est.floor_outer * robot.wheel_width + np.abs(
             robot.wheels[:, 1]).max()) + robot.wheel_width
         self.index = path_index(pair.grid, pair.poses, robot, reach) if index is None else index
+        self.nuisance = nuisance if nuisance is not None else fit_map_nuisance(
+            np.asarray(pair.h_front), np.asarray(pair.h_back), pair.grid, self.index, robot.wheel_width,
+            est.floor_inner, est.corridor, est.nuisance)
+        self.h_back = np.asarray(pair.h_back, np.float64)
+        if self.nuisance is not None:
+            self.h_back = self.h_back - self.nuisance.field
         self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), est.window, est.stride)
         ratio = est.window / est.stride
         self.ahead = int(round(ratio)) if abs(ratio - round(ratio)) < 1e-6 else None
@@ -182,7 +194,7 @@ class Estimator:
 
     def _prepare(self, spec: WindowSpec) -> WindowData | None:
         return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
-                              h_start=self.h_start, extra_flags=self._registration_flags(spec))
+                              h_start=self.h_start, h_back=self.h_back, extra_flags=self._registration_flags(spec))
 
     def _registration_flags(self, spec: WindowSpec) -> tuple[str, ...]:
         """("registration",) when a sweep the lidar pipeline flagged was taken while the robot
@@ -201,9 +213,20 @@ class Estimator:
         full = self.full_theta(free[None])[0].tolist() if free is not None else [math.nan] * len(self.names)
         for name, unit, value in zip(self.names, self.spec.units, full, strict=True):
             row[name] = math.degrees(value) if unit == "rad" else value
+        row["map_offset"] = self._offset_on(wd)
         row.update(residual=residual, prediction=prediction, iterations=iterations, seconds=seconds,
                    flags="|".join(flags))
         return row
+
+    def _offset_on(self, wd: WindowData | None) -> float:
+        """Mean map offset removed from H_b on the window's weighted cells, m (0: none fitted)."""
+        if self.nuisance is None:
+            return 0.0
+        if wd is None:
+            return math.nan
+        i0, i1, j0, j1 = wd.crop
+        w = wd.weight.cpu().numpy() > 0
+        return float(self.nuisance.field[i0:i1, j0:j1][w].mean()) if w.any() else math.nan
 
     def free_from_row(self, row: dict) -> torch.Tensor | None:
         """Warm start from a params.csv row (None when the row holds no fit)."""

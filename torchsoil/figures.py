@@ -70,10 +70,11 @@ def _heading(poses: np.ndarray, t: float) -> float:
 
 
 def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dict], path: Path,
-                    n_insets: int = 4) -> Path:
+                    n_insets: int = 4, h_back: np.ndarray | None = None) -> Path:
     """Fig. 6: measured (H_b - H_f) and simulated (h_sim - h_start, the surface the simulation
-    started from) height change over the drive, with cross-sections at windows A-D."""
-    measured = pair.h_back - pair.h_front
+    started from) height change over the drive, with cross-sections at windows A-D. h_back:
+    (X, Y) the after map the estimator used (net of the map offset; default pair.h_back)."""
+    measured = (pair.h_back if h_back is None else h_back) - pair.h_front
     simulated = np.where(np.isfinite(h_sim), h_sim - h_start, np.nan)
     fitted = [r for r in rows if not math.isnan(r["residual"])]
     clean = [r for r in fitted if not r["flags"]] or fitted
@@ -158,6 +159,7 @@ def write_summary(path: Path, rows: list[dict], reference: list[dict], meta: dic
             f"{len(rows)} windows ({len(fitted)} fitted, {len(flagged)} flagged) of "
             f"{meta.get('window', '?')} m every {meta.get('stride', '?')} m; gradients: {meta.get('grad', '?')}; "
             f"median {1e3 * np.nanmedian(secs):.0f} ms per window.", "",
+            f"Removed from H_b before estimation: {meta['removed']}." if "removed" in meta else "", "",
             "Costs: weighted mean L1 height difference, x 1e-3 m (paper Table I).", "",
             summary_table(rows, reference), "",
             f"Mean prediction cost / mean noise floor: {pred / floor:.3f}" if floor > 0 else "", ""]

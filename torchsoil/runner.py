@@ -123,7 +123,7 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
               progress: bool, name: str) -> None:
     est = Estimator(pair, settings.estimator, settings.sim)
     names = list(est.names)
-    params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "residual", "prediction",
+    params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "map_offset", "residual", "prediction",
                                          "iterations", "seconds", "flags"], resume)
     reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
     n_done = min(len(params.rows), len(reference.rows))
@@ -164,10 +164,12 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
         tb.close()
         _save_simulated(sim_path, pair, stitch.h_sim)
     figures.parameter_curves(params.rows, reference.rows, est.names, out / "fig4_parameters.png")
-    figures.difference_maps(pair, est.h_start, stitch.h_sim, params.rows, out / "fig6_difference_maps.png")
+    figures.difference_maps(pair, est.h_start, stitch.h_sim, params.rows, out / "fig6_difference_maps.png",
+                            h_back=est.h_back)
     e = settings.estimator
     figures.write_summary(out / "summary.md", params.rows, reference.rows,
-                          {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad})
+                          {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad,
+                           "removed": est.nuisance.describe() if est.nuisance is not None else "no map offset"})
 
 
 def _save_simulated(path: Path, pair: TerrainPair, h_sim: np.ndarray) -> None:

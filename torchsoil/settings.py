@@ -75,6 +75,18 @@ class InitialParams(Section):
     beta_deg: float = Field(30.0, gt=0, le=90, description="angle of repose, degrees")
 
 
+class NuisanceConfig(Section):
+    """Offset and tilt of H_b relative to H_f (torchsoil.nuisance), fitted on untouched ground
+    (estimator.floor_inner wheel widths or more from every wheel path) and removed from H_b."""
+
+    offset: bool = Field(True, description="fit and remove a vertical offset between the maps")
+    tilt: bool = Field(True, description="and a tilt (a plane over the world)")
+    knot_spacing: float = Field(5.0, ge=0, description="the offset may drift along the drive, "
+                                                       "piecewise linear with knots this far apart, m "
+                                                       "(0: constant)")
+    min_cells: int = Field(200, ge=1, description="fewest untouched cells to fit on")
+
+
 class EstimatorConfig(Section):
     """Sliding-window estimation (paper section IV-C)."""
 
@@ -112,6 +124,7 @@ class EstimatorConfig(Section):
     image_every: int = Field(5, ge=0, description="TensorBoard image of measured vs simulated H_delta "
                                                   "every N windows (0: none)")
     device: str = Field("auto", description="auto (cuda when present), cpu, cuda, cuda:N")
+    nuisance: NuisanceConfig = Field(NuisanceConfig(), description="map offset and tilt removed from H_b")
 
     @model_validator(mode="after")
     def _floor_zone(self):

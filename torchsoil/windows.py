@@ -160,10 +160,12 @@ def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
 
 def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfig, sim: SimConfig,
                    device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = (),
-                   h_start: np.ndarray | None = None) -> WindowData | None:
+                   h_start: np.ndarray | None = None, h_back: np.ndarray | None = None) -> WindowData | None:
     """Crop, fill and index one window. Returns None when the window holds no ground at all.
 
-    h_start: (X, Y) surface the simulation starts from (default: pair.h_front)."""
+    h_start: (X, Y) surface the simulation starts from (default: pair.h_front). h_back: (X, Y)
+    measured surface after the wheels (default: pair.h_back; the estimator passes it net of
+    the map offset)."""
     robot = pair.robot
     w = robot.wheel_width
     ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est.corridor / 2)
@@ -188,7 +190,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
 
     hf = np.asarray((pair.h_front if h_start is None else h_start)[sl], dtype=np.float64)
     raw = np.asarray(pair.h_front[sl], dtype=np.float64)
-    hb = np.asarray(pair.h_back[sl], dtype=np.float64)
+    hb = np.asarray((pair.h_back if h_back is None else h_back)[sl], dtype=np.float64)
     measured_f = np.isfinite(hf)
     flags = list(extra_flags)
     if not measured_f.any():

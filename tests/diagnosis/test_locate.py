@@ -47,6 +47,7 @@ def test_spectral_line_found_at_its_wavelength_and_absent_in_noise():
     s = np.arange(0, 10, dx)
     line = spectral_line(0.003 * np.cos(2 * np.pi * s / 0.25) + 0.003 * rng.standard_normal(len(s)), dx)
     assert line["p"] < 1e-4 and abs(line["wavelength"] - 0.25) < 0.01
+    assert abs(line["amplitude"] - 0.003) < 0.0006          # the cosine's amplitude, put in by hand
     false = sum(spectral_line(0.003 * rng.standard_normal(len(s)), dx)["p"] < 0.01 for _ in range(60))
     assert false <= 4
 
@@ -80,3 +81,20 @@ def test_paired_comparison_needs_the_same_windows():
 
     with pytest.raises(ValueError, match="same windows"):
         paired_improvement(np.zeros(10), np.zeros(9))
+
+
+def test_spectral_line_summed_over_ruts_out_of_phase():
+    """One tread on both ruts, half a period apart: averaging the ruts first cancels it, summing
+    their periodograms does not."""
+    rng = np.random.default_rng(5)
+    dx = 0.02
+    s = np.arange(0, 12, dx)
+    mark = 0.0015 * np.cos(2 * np.pi * s / 0.2)
+    left = mark + 0.004 * rng.standard_normal(len(s))
+    right = -mark + 0.004 * rng.standard_normal(len(s))
+    assert spectral_line(0.5 * (left + right), dx)["p"] > 0.01
+    both = spectral_line(np.stack([left, right]), dx)
+    assert both["p"] < 1e-3 and abs(both["wavelength"] - 0.2) < 0.01
+    assert abs(both["amplitude"] - 0.0015) < 0.0005
+    false = sum(spectral_line(0.004 * rng.standard_normal((2, len(s))), dx)["p"] < 0.01 for _ in range(60))
+    assert false <= 4

@@ -108,35 +108,49 @@ def paired_improvement(base, ext, block: int = 4) -> tuple[float, float, float]:
 
 def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(0.08, 2.0)) -> dict:
     """Strongest line in the periodogram of a series spaced dx [m] apart (NaN gaps filled by
-    linear interpolation, linear trend removed), against the local background (median of
-    the neighbouring +-half_width frequencies), among
-    wavelengths in the given range [m] (tread-like patterns; shorter ones are cell noise).
+    linear interpolation, linear trend removed), against the local background (mean of the
+    neighbouring +-half_width frequencies), among wavelengths in the given range [m]
+    (tread-like patterns; shorter ones are cell noise). series: (S,) or (M, S) several series
+    on one arc-length grid (e.g. the left and right ruts): their periodograms are summed, so a
+    line present in each adds up whatever its phase in each; rows with fewer than 32 values
+    are left out.
 
-    Returns {ratio, wavelength [m], p}: p bounds the chance of so strong a line anywhere in
-    the spectrum of a line-free series (F test per frequency, Bonferroni over them)."""
-    y = np.asarray(series, np.float64)
-    idx = np.arange(len(y))
-    ok = np.isfinite(y)
-    if ok.sum() < 32:
-        return {"ratio": 0.0, "wavelength": math.nan, "p": 1.0}
-    y = np.interp(idx, idx[ok], y[ok])
-    y = y - np.polyval(np.polyfit(idx, y, 1), idx)
-    P = np.abs(np.fft.rfft(y * np.hanning(len(y)))) ** 2
-    f = np.fft.rfftfreq(len(y), dx)
-    lo = max(3, int(len(y) * dx / wavelengths[1]))
-    hi = min(len(P), int(len(y) * dx / wavelengths[0]) + 1)
-    best = (0.0, math.nan, 1.0)
+    Returns {ratio, wavelength [m], amplitude [m], p}: amplitude of the sinusoid that would
+    give that line (Hann window: |X| = A N / 4, averaged over the series); p bounds the chance
+    of so strong a line anywhere in the spectrum of line-free series (F test per frequency,
+    Bonferroni over them)."""
+    rows = np.atleast_2d(np.asarray(series, np.float64))
+    P, n = None, 0
+    for y in rows:
+        idx = np.arange(len(y))
+        ok = np.isfinite(y)
+        if ok.sum() < 32:
+            continue
+        y = np.interp(idx, idx[ok], y[ok])
+        y = y - np.polyval(np.polyfit(idx, y, 1), idx)
+        p_row = np.abs(np.fft.rfft(y * np.hanning(len(y)))) ** 2
+        P = p_row if P is None else P + p_row
+        n += 1
+    if P is None:
+        return {"ratio": 0.0, "wavelength": math.nan, "amplitude": 0.0, "p": 1.0}
+    N = rows.shape[1]
+    f = np.fft.rfftfreq(N, dx)
+    lo = max(3, int(N * dx / wavelengths[1]))
+    hi = min(len(P), int(N * dx / wavelengths[0]) + 1)
+    best = (0.0, math.nan, 1.0, 0.0)
     for i in range(lo, hi):
         nb = np.r_[P[max(lo, i - half_width):max(lo, i - 2)], P[i + 3:i + half_width + 1]]
         if len(nb) < 4:
             continue
         ratio = float(P[i] / nb.mean())
         if ratio > best[0]:
-            # white noise: P_i / mean(neighbours) ~ F(2, 2 n); the Hann window halves n
-            best = (ratio, 1.0 / f[i], float(stats.f.sf(ratio, 2, max(len(nb), 2))))
+            # white noise: P_i / mean(neighbours) ~ F(2 n, 2 n m) over n summed series; the Hann
+            # window halves the independent neighbours
+            best = (ratio, 1.0 / f[i], float(stats.f.sf(ratio, 2 * n, max(n * len(nb), 2))),
+                    4 * math.sqrt(P[i] / n) / N)
     m = max(hi - lo, 1)
     p = min(1.0, m * best[2])
-    return {"ratio": best[0], "wavelength": float(best[1]), "p": float(min(1.0, p))}
+    return {"ratio": best[0], "wavelength": float(best[1]), "amplitude": float(best[3]), "p": float(min(1.0, p))}
 
 
 # ------------------------------------------------------------------ profiles
@@ -160,6 +174,7 @@ class Profiles:
     count: list = field(default_factory=list)
     floor_s: list = field(default_factory=list)
     floor_r: list = field(default_factory=list)
+    floor_side: list = field(default_factory=list)
 
     @classmethod
     def empty(cls, radius: float, dx: float, reach: float) -> Profiles:
@@ -211,6 +226,7 @@ class Profiles:
         fl = (zone_of(lat, self.radius, self.dx) == 0) & (w_side == 1)
         self.floor_s.append(s[fl])
         self.floor_r.append((hs - hb)[fl])
+        self.floor_side.append(side[fl])
 
     # -------------------------------------------------------------- summaries
     def _stack(self, name: str) -> np.ndarray:
@@ -268,15 +284,23 @@ class Profiles:
         m = float(d[ok].mean())
         return {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "series": d}
 
-    def floor_series(self) -> tuple[np.ndarray, np.ndarray]:
-        """Rut-floor residual per arc-length cell: (S,) arc length [m] and mean residual [m]."""
+    def floor_series(self, by_side: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """Rut-floor residual per arc-length cell: (S,) arc length [m] and mean residual [m],
+        (S,) over both sides, or (2, S) left and right wheels' ruts with by_side (a tread's
+        marks need not line up from one side to the other)."""
         if not self.floor_s:
-            return np.zeros(0), np.zeros(0)
+            return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
+        side = np.concatenate(self.floor_side) if by_side else np.zeros(len(s), int)
         if len(s) == 0:
-            return np.zeros(0), np.zeros(0)
+            return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         i = np.floor((s - s.min()) / self.dx).astype(int)
         n = i.max() + 1
-        num, den = np.bincount(i, r, n), np.bincount(i, None, n)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return s.min() + (np.arange(n) + 0.5) * self.dx, np.where(den > 0, num / den, np.nan)
+        rows = []
+        for k in ((0, 1) if by_side else (0,)):
+            m = side == k
+            num, den = np.bincount(i[m], r[m], n), np.bincount(i[m], None, n)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rows.append(np.where(den > 0, num / den, np.nan))
+        grid = s.min() + (np.arange(n) + 0.5) * self.dx
+        return grid, (np.array(rows) if by_side else rows[0])

@@ -22,7 +22,15 @@ def _mm(x: float) -> str:
 
 
 def explain(diag) -> str:
-    """One paragraph, plain language, from a Diagnosis."""
+    """One paragraph, plain language, from a Diagnosis; ends with what was removed from the
+    maps as measurement nuisance (offset, tilt) before anything was fitted."""
+    removed = diag.evidence.get("map_nuisance_text")
+    note = (f" Removed from H_b before fitting, as measurement rather than physics: {removed}."
+            if removed else " No map offset was removed (estimator.nuisance.offset is off).")
+    return _explain(diag) + note
+
+
+def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
     where = s["where"]
@@ -40,8 +48,9 @@ def explain(diag) -> str:
                 f"Noise floor {_mm(s['noise_floor'])}.")
     if s["verdict"] == "unexplained":
         line = ev["spectral_line"]
-        what = (f"a periodic pattern of wavelength {line['wavelength']:.2f} m along the rut floor "
-                f"({line['ratio']:.0f} x the spectral background)"
+        what = (f"a periodic pattern of wavelength {line['wavelength']:.3f} m and amplitude "
+                f"{_mm(line['amplitude'])} along the rut floor ({line.get('ruts', 'both')} ruts; "
+                f"{line['ratio']:.0f} x the spectral background)"
                 if line["p"] < 1 and where["covariate"] == "arc_length" else
                 f"a systematic residual on the {where['cross_track'].replace('_', ' ')}")
         tried = ", ".join(f"{c['id']}" for c in s["candidates"]) or "none testable"

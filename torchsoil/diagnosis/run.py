@@ -67,6 +67,17 @@ def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead
     return used
 
 
+def strongest_line(by_side: np.ndarray, dx: float) -> dict:
+    """The most significant spectral line on the rut floors (2, S): left, right, or both
+    summed (a tread marks both ruts, not necessarily in phase nor at one wavelength when the
+    wheels slip differently); its p is Bonferroni-corrected for the three looks, and `ruts`
+    says which."""
+    looks = {"left": by_side[0], "right": by_side[1], "both": by_side}
+    lines = {k: spectral_line(v, dx) for k, v in looks.items()}
+    ruts, best = min(lines.items(), key=lambda kv: kv[1]["p"])
+    return {**best, "p": min(1.0, len(lines) * best["p"]), "ruts": ruts}
+
+
 def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float]]:
     """Merge the [s0, s1) spans of flagged windows into intervals, m."""
     out: list[list[float]] = []
@@ -150,6 +161,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         if "stitch" not in holder:
             holder["stitch"] = Stitcher(pair.h_front.shape, est.index.s)
             holder["s"] = est.index.s
+            holder["h_back"] = est.h_back
         if o.h_sim is not None:
             holder["stitch"].add(o.data, o.h_sim)
         if progress is not None and k % 5 == 0:
@@ -167,8 +179,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     prof = base.profiles
     zones = prof.zone_stats()
     asym = prof.asymmetry()
-    fs, fr = prof.floor_series()
-    line = spectral_line(fr, pair.dx)
+    fs, fr = prof.floor_series(by_side=True)
+    line = strongest_line(fr, pair.dx)
     n_tracks = robot.n_tracks
 
     # ---- rank candidates by the location evidence, fit the leading testable ones
@@ -240,6 +252,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "z_locate": z_loc, "z_accept": z_crit, "candidates": ev,
                 "pairwise": pairwise,
+                "map_nuisance": base.nuisance.summary() if base.nuisance is not None else None,
+                "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
@@ -256,8 +270,9 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     }
     from torchsoil.diagnosis.report import explain
 
+    nan_map = np.full(pair.h_back.shape, np.nan)
     diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov},
-                     holder["stitch"].h_sim - pair.h_back if "stitch" in holder else np.full(pair.h_back.shape, np.nan),
+                     holder["stitch"].h_sim - holder["h_back"] if "stitch" in holder else nan_map,
                      holder.get("s", np.full(pair.h_back.shape, np.nan)))
     summary["explanation"] = explain(diag)
     return diag

@@ -1,0 +1,136 @@
+"""Map nuisance: the vertical offset and tilt between the after map H_b and the before map H_f.
+
+Real pipelines leave them (lidar extrinsic errors, re-registration residuals): H_b sits a
+millimetre or two above or below H_f and leans by a few hundredths of a degree. Neither is
+physics, yet the forward model would have to explain them. They are fitted on ground the
+wheels did not touch (the estimator's noise-floor distance from every wheel path, or farther),
+where H_b - H_f is measurement alone, and removed from H_b before anything is estimated:
+
+    H_b - H_f = c(s) + a (x - x0) + b (y - y0) + noise    on untouched cells,
+
+with c(s) piecewise linear in the drive's arc length s (knots every `knot_spacing` m: an offset
+that drifts along the drive) and (a, b) a plane over the world (the tilt). The fit is robust
+(Huber weights, iterated), so a berm reaching into that ground or a blob of bad cells does
+not move it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from torchsoil.settings import NuisanceConfig
+
+
+class MapNuisance(NamedTuple):
+    """Fitted offset of H_b relative to H_f.
+
+    field: (X, Y) offset to subtract from H_b, m (0 outside the drive's reach). offset: its
+    median over the untouched cells, m. drift: (max - min) of the along-drive term c(s), m.
+    slope: (2,) dz/dx, dz/dy of the tilt [-]; tilt_deg: its steepest angle, degrees. n_cells:
+    untouched cells used. sigma: robust std of H_b - H_f there after the fit, m. knots: (K,)
+    arc lengths of the knots of c(s), m; along: (K,) c at the knots, m.
+    """
+
+    field: np.ndarray
+    offset: float
+    drift: float
+    slope: tuple[float, float]
+    tilt_deg: float
+    n_cells: int
+    sigma: float
+    knots: np.ndarray
+    along: np.ndarray
+
+    def describe(self) -> str:
+        """One line for reports: what was removed."""
+        s = f"offset {1e3 * self.offset:+.2f} mm"
+        if len(self.knots) > 1:
+            s += f" (drifting by {1e3 * self.drift:.2f} mm along the drive)"
+        if self.slope != (0.0, 0.0):
+            s += f", tilt {self.tilt_deg:.3f} deg"
+        return s + f" between H_b and H_f, fitted on {self.n_cells} untouched cells"
+
+    def summary(self) -> dict:
+        return {"offset_mm": round(1e3 * self.offset, 3), "drift_mm": round(1e3 * self.drift, 3),
+                "tilt_deg": round(self.tilt_deg, 4), "slope": [float(v) for v in self.slope],
+                "cells": int(self.n_cells), "sigma_mm": round(1e3 * self.sigma, 3)}
+
+
+def _hats(s: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(N, K) piecewise-linear basis ("hat" functions) on knots (K,) at positions s (N,)."""
+    if len(knots) == 1:
+        return np.ones((len(s), 1))
+    k = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
+    u = np.clip((s - knots[k]) / (knots[k + 1] - knots[k]), 0.0, 1.0)
+    out = np.zeros((len(s), len(knots)))
+    out[np.arange(len(s)), k] = 1 - u
+    out[np.arange(len(s)), k + 1] = u
+    return out
+
+
+def _huber_lstsq(A: np.ndarray, y: np.ndarray, iters: int = 8, c: float = 1.345) -> tuple[np.ndarray, float]:
+    """Robust least squares (Huber weights, IRLS): coefficients (P,) and the robust std of the
+    residuals (MAD)."""
+    w = np.ones(len(y))
+    coef = np.zeros(A.shape[1])
+    sigma = float(np.std(y)) or 1.0
+    for _ in range(iters):
+        sw = np.sqrt(w)
+        coef = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+        r = y - A @ coef
+        sigma = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1e-12
+        a = np.abs(r) / (c * sigma)
+        w = np.where(a <= 1, 1.0, 1.0 / np.maximum(a, 1e-12))
+    return coef, sigma
+
+
+def fit_map_nuisance(h_front: np.ndarray, h_back: np.ndarray, grid, index, wheel_width: float,
+                     untouched: float, corridor: float, cfg: NuisanceConfig) -> MapNuisance | None:
+    """Fit the offset (and tilt) of H_b relative to H_f; None when disabled.
+
+    h_front, h_back: (X, Y) maps, m (NaN where unmeasured). grid: their Grid. index: the
+    drive's windows.PathIndex. untouched: distance from every wheel path beyond which the
+    ground counts as untouched, in wheel widths. corridor: width of the ground the estimator
+    uses, m. Raises ValueError when fewer than cfg.min_cells untouched cells are measured in
+    both maps (nothing to fit the nuisance on: switch it off, or widen the corridor).
+    """
+    if not cfg.offset:
+        return None
+    cells = (np.isfinite(h_front) & np.isfinite(h_back) & np.isfinite(index.s)
+             & (index.wheel_dist >= untouched * wheel_width) & (index.offset <= corridor / 2))
+    n = int(cells.sum())
+    if n < cfg.min_cells:
+        raise ValueError(f"map offset: only {n} untouched cells measured in both maps (need {cfg.min_cells}); "
+                         "set estimator.nuisance.offset=false or widen estimator.corridor")
+    ii, jj = np.nonzero(cells)
+    xs, ys = grid.centers()
+    s = index.s[cells]
+    length = float(index.arc[-1])
+    if cfg.knot_spacing > 0 and length > cfg.knot_spacing:
+        knots = np.linspace(0.0, length, int(math.ceil(length / cfg.knot_spacing)) + 1)
+    else:
+        knots = np.array([0.0])
+    x0, y0 = float(xs[ii].mean()), float(ys[jj].mean())
+    y = (h_back[cells] - h_front[cells]).astype(np.float64)
+    # first the offset and the plane, then what drifts along the drive on top of them (the
+    # along-drive term alone would also absorb the tilt's component along a straight drive)
+    A = np.ones((n, 1))
+    if cfg.tilt:
+        A = np.concatenate([A, np.stack([xs[ii] - x0, ys[jj] - y0], axis=1)], axis=1)
+    coef, sigma = _huber_lstsq(A, y)
+    slope = (float(coef[1]), float(coef[2])) if cfg.tilt else (0.0, 0.0)
+    along = np.zeros(len(knots))
+    if len(knots) > 1:
+        along, sigma = _huber_lstsq(_hats(s, knots), y - A @ coef)
+    reach = np.isfinite(index.s)
+    X, Y = np.nonzero(reach)
+    field = np.zeros(h_back.shape, np.float64)
+    field[reach] = (coef[0] + _hats(index.s[reach], knots) @ along
+                    + slope[0] * (xs[X] - x0) + slope[1] * (ys[Y] - y0))
+    return MapNuisance(field=field, offset=float(coef[0] + np.median(_hats(s, knots) @ along)),
+                       drift=float(along.max() - along.min()), slope=slope,
+                       tilt_deg=math.degrees(math.atan(math.hypot(*slope))), n_cells=n, sigma=sigma,
+                       knots=knots, along=along)
