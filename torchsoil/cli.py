@@ -95,6 +95,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--columns", type=int, choices=[512, 1024, 2048], default=None)
     p.add_argument("--organized", action="store_true", help="organized clouds (beams x columns, NaN = no return)")
     p.add_argument("--pair-only", action="store_true", help="write only the terrain pair .npz")
+    p.add_argument("--realistic", action="store_true", help="with --pair-only: the measurement nuisances and "
+                                                            "tyre draws of real data (settings.REALISTIC)")
 
     p = sub.add_parser("rollout", help="scripted policies on the soil-traverse environment (damage vs time)")
     p.add_argument("--config", default=None, help="env settings YAML (the env section)")
@@ -226,14 +228,17 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_record(args) -> int:
+    if args.realistic and not args.pair_only:
+        raise ValueError("--realistic applies to --pair-only (the recorder's lidars have their own noise model)")
     if args.pair_only:
         import numpy as np
 
-        from torchsoil.synth.scenario import make_terrain_pair
+        from torchsoil.synth.scenario import load_scenario, make_terrain_pair
 
         out = args.out if args.out.suffix == ".npz" else args.out.with_name(args.out.name + ".npz")
         out.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out, **make_terrain_pair(args.scenario, args.seed, args.dx))
+        scn = load_scenario(args.scenario)
+        np.savez_compressed(out, **make_terrain_pair(scn.realistic() if args.realistic else scn, args.seed, args.dx))
         print(f"wrote {out}")
         return 0
     from torchsoil.synth.record import make_recording
