@@ -3,7 +3,8 @@
     torchsoil estimate [INPUT] [--robot NAME|PATH] [--out DIR] [--config YAML] [--set KEY=VALUE]
     torchsoil process-bag BAG --robot NAME|PATH --out DIR
     torchsoil diagnose INPUT --out DIR
-    torchsoil record --scenario NAME --out PATH
+    torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]]
+    torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR]
     torchsoil rollout --out DIR
     torchsoil bench [--only sim estimator] [--quick]
     torchsoil settings [SECTION ...]          # the effective settings as YAML
@@ -117,9 +118,24 @@ def parser() -> argparse.ArgumentParser:
     _settings_options(p)
     p.add_argument("--threads", type=int, default=1)
 
-    p = sub.add_parser("study", help="confusion table of the diagnosis over seeded synthetic drives")
-    p.add_argument("--out", default="out/diagnosis_study", help="output directory")
-    p.add_argument("--quick", action="store_true", help="one case per kind")
+    p = sub.add_parser("study", help="confusion table of the diagnosis over drives with known truth (long: "
+                                     "minutes per drive)",
+                       description="Diagnose drives with known truth and print the confusion table (OUT/confusion.md; "
+                                   "OUT/cases.jsonl grows one line per drive, and a rerun resumes). Default: the "
+                                   "fixed synthetic cases. --randomized N --null M: N drives with a random effect, "
+                                   "law and drive shape plus M null drives, all with realistic measurement nuisances. "
+                                   "--foreign DIR: the terrain pairs of another simulator (NAME.npz, "
+                                   "NAME_truth.json, NAME_surfaces.npz, robot.yaml), with the estimator's model "
+                                   "error against the noise-free surfaces.")
+    p.add_argument("--out", help="output directory (default: out/diagnosis_study[_randomized|_foreign])")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true", help="fixed cases: one case per kind")
+    mode.add_argument("--randomized", type=int, metavar="N", help="N randomized drives with an effect")
+    mode.add_argument("--foreign", type=Path, metavar="DIR", help="directory of foreign terrain pairs")
+    p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
+    _settings_options(p)
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
 
     p = sub.add_parser("settings", help="print the effective settings as YAML (defaults + --config + --set)")
     p.add_argument("sections", nargs="*", help="only these sections (sim, estimator, pipeline, diagnosis, env, "
@@ -313,11 +329,20 @@ def cmd_ablation(args) -> int:
 
 
 def cmd_study(args) -> int:
-    from torchsoil.diagnosis.study import run_study
-    from torchsoil.diagnosis.study_cases import STUDY_CASES
+    from torchsoil.diagnosis.study import run_foreign, run_study
+    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases
+    from torchsoil.runner import torch_threads
 
-    cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
-    print(run_study(cases, Path(args.out)))
+    settings = _settings(args)
+    with torch_threads(args.threads):
+        if args.foreign is not None:
+            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings))
+        elif args.randomized is not None:
+            cases = randomized_cases(args.randomized, args.null, args.seed)
+            print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings))
+        else:
+            cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
+            print(run_study(cases, Path(args.out or "out/diagnosis_study"), settings))
     return 0
 
 
