@@ -161,7 +161,7 @@ def random_law(rng: np.random.Generator, eid: str) -> dict:
 def random_path(rng: np.random.Generator, kind: str) -> dict:
     """`trajectory` and `terrain.relief` of a random drive of one kind (lengths in m, speeds
     m/s, angles deg): speed_steps, slope_speed (climbing with speed changes), s_turns (on a
-    side slope), the revisits out_and_back (bulb turn back onto the same ruts), loop (round
+    side slope), the revisits out_and_back (light-bulb turn back onto the same ruts), loop (round
     and over the start again), lane_changes (back along the first leg, on and off its ruts),
     or plain (straight or a gentle curve at one speed)."""
     u = rng.uniform
@@ -174,15 +174,17 @@ def random_path(rng: np.random.Generator, kind: str) -> dict:
         segs, accel = [{"straight": 2.5, "speed": v} for v in speeds], 0.4
         relief["slope_x"] = float(rng.choice([-1, 1]) * u(0.04, 0.08))
     elif kind == "s_turns":
-        r, a = float(u(2.5, 4.0)), float(u(30.0, 45.0)) * rng.choice([-1, 1])
+        r, a = float(u(2.5, 4.0)), float(u(30.0, 45.0) * rng.choice([-1, 1]))
         segs = [{"straight": 1.0}, {"arc": r, "angle_deg": a}, {"arc": r, "angle_deg": -2 * a},
                 {"arc": r, "angle_deg": 2 * a}, {"arc": r, "angle_deg": -a}, {"straight": 1.0}]
         segs, accel = [{**s, "speed": 1.0} for s in segs], 0.5
         relief["slope_y"] = float(rng.choice([-1, 1]) * u(0.05, 0.1))
     elif kind == "out_and_back":
-        r, a, side, leg = float(u(1.5, 2.0)), float(u(40.0, 60.0)), rng.choice([-1, 1]), float(u(6.0, 8.0))
-        segs = [{"straight": leg}, {"arc": r, "angle_deg": -side * a}, {"arc": r, "angle_deg": side * (180 + 2 * a)},
-                {"arc": r, "angle_deg": -side * a}, {"straight": leg}]
+        # a light-bulb turn (60 deg one way, 300 deg the other, 60 deg, one radius) ends on the
+        # line it left, heading back: both tracks return on the ruts (left and right swapped)
+        r, side, leg = float(u(1.5, 2.0)), int(rng.choice([-1, 1])), float(u(6.0, 8.0))
+        segs = [{"straight": leg}, {"arc": r, "angle_deg": -60 * side}, {"arc": r, "angle_deg": 300 * side},
+                {"arc": r, "angle_deg": -60 * side}, {"straight": leg}]
         segs, accel = [{**s, "speed": float(u(0.8, 1.0))} for s in segs], 0.5
     elif kind == "loop":
         r, leg = float(u(1.5, 2.5)), float(u(5.0, 7.0))

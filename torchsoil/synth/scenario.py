@@ -35,7 +35,7 @@ import numpy as np
 
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot, load_robot
-from torchsoil.settings import Settings, SettingsError, SynthConfig, merge, read_yaml, validate
+from torchsoil.settings import Settings, SettingsError, SynthConfig, TyreConfig, merge, read_yaml, validate
 from torchsoil.synth import effects as fx
 from torchsoil.synth.measurement import apply_measurement
 from torchsoil.synth.terrain import Landmarks, Relief, check_patch, farm_landmarks, micro_topography
@@ -180,13 +180,19 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
     t1 = time.perf_counter()
     X, Y = corridor_grid.shape
     h0 = h_field[nx0:nx0 + X, ny0:ny0 + Y]
-    r_tyre = np.random.default_rng(np.random.SeedSequence([int(seed), 17]))
-    tyre = {"section": str(scn.tyre.sections[r_tyre.integers(len(scn.tyre.sections))]),
-            "width_scale": float(r_tyre.uniform(*scn.tyre.width_scale))}
+    tyre = draw_tyre(scn.tyre, seed)
     world = simulate_world(corridor_grid, h0, traj, robot, scn.soil, scn.effects, scn.world, **tyre)
     t2 = time.perf_counter()
     return Truth(scn, int(seed), robot, relief, landmarks, traj, field, h_field, (nx0, ny0), world,
                  {"terrain_s": t1 - t0, "world_s": t2 - t1}, tyre)
+
+
+def draw_tyre(cfg: TyreConfig, seed: int) -> dict:
+    """The world's tyre for a seed: {section: one of cfg.sections, width_scale: uniform in
+    cfg.width_scale} (synth.world.simulate_world's keywords)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 17]))
+    return {"section": str(cfg.sections[rng.integers(len(cfg.sections))]),
+            "width_scale": float(rng.uniform(*cfg.width_scale))}
 
 
 def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None) -> dict:
