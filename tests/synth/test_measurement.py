@@ -163,3 +163,22 @@ def test_world_digs_the_drawn_tyre_section_and_width():
     near = np.abs(gy - 0.5) < 0.3                    # the left rut only
     wide = np.abs(gy - 0.5)[near & (depth > 0.005)].max()   # reaches 0.08 m out (nominal tyre: 0.06)
     assert 0.075 < wide <= r
+
+
+def test_record_pair_only_realistic(tmp_path, capsys):
+    import yaml
+
+    from torchsoil.cli import main
+
+    scn = tmp_path / "small.yaml"
+    scn.write_text(yaml.safe_dump({"trajectory": {"segments": [{"straight": 3.0, "speed": 1.0}]},
+                                   "terrain": {"margin": 1.0}, "landmarks": {"poles": 0, "trunks": 0}}))
+    out = tmp_path / "p.npz"
+    assert main(["record", "--scenario", str(scn), "--out", str(out), "--pair-only", "--realistic", "--seed", "2"]) == 0
+    with np.load(out) as d:
+        drawn = json.loads(str(d["nuisances"]))
+        assert np.isnan(d["h_back"]).any()
+    assert 3 <= drawn["measurement"]["noise_dof"] <= 5 and 0 < abs(drawn["measurement"]["offset"]) <= 0.002
+    assert drawn["tyre"]["section"] in {"taper", "flat", "rounded", "crowned"}
+    assert main(["record", "--scenario", str(scn), "--out", str(tmp_path / "bag"), "--realistic"]) == 2
+    assert "--pair-only" in capsys.readouterr().err

@@ -119,7 +119,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
 
     h = h0.copy()
     # the reference height of a first visit comes from the surface before the robot
-    h_ref = reference_height(torch.from_numpy(h0)[None], config.ref_radius * robot.wheel_width / 2, dx)[0].numpy()
+    h_ref = reference_height(torch.from_numpy(h0)[None], config.ref_radius * robot.wheel_width * width_scale / 2,
+                             dx)[0].numpy()
     # relaxation waits until the pass is over (or a revisit needs the settled surface): the
     # base model digs and deposits for every pose first, then relaxes once
     pending = np.zeros(grid.shape, dtype=bool)
