@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Confusion table of the diagnosis over seeded synthetic drives.
+"""Confusion table of the diagnosis over drives with known truth (fixed or randomized synthetic
+drives, or foreign terrain pairs: --randomized N --null M, --foreign DIR).
 
 Same as `torchsoil study` (see `torchsoil study --help`).
 """

@@ -3,7 +3,8 @@
     torchsoil estimate [INPUT] [--robot NAME|PATH] [--out DIR] [--config YAML] [--set KEY=VALUE]
     torchsoil process-bag BAG --robot NAME|PATH --out DIR
     torchsoil diagnose INPUT --out DIR
-    torchsoil record --scenario NAME --out PATH
+    torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]]
+    torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR]
     torchsoil rollout --out DIR
     torchsoil bench [--only sim estimator] [--quick]
     torchsoil settings [SECTION ...]          # the effective settings as YAML
@@ -95,6 +96,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--columns", type=int, choices=[512, 1024, 2048], default=None)
     p.add_argument("--organized", action="store_true", help="organized clouds (beams x columns, NaN = no return)")
     p.add_argument("--pair-only", action="store_true", help="write only the terrain pair .npz")
+    p.add_argument("--realistic", action="store_true", help="with --pair-only: the measurement nuisances and "
+                                                            "tyre draws of real data (settings.REALISTIC)")
 
     p = sub.add_parser("rollout", help="scripted policies on the soil-traverse environment (damage vs time)")
     p.add_argument("--config", default=None, help="env settings YAML (the env section)")
@@ -115,9 +118,24 @@ def parser() -> argparse.ArgumentParser:
     _settings_options(p)
     p.add_argument("--threads", type=int, default=1)
 
-    p = sub.add_parser("study", help="confusion table of the diagnosis over seeded synthetic drives")
-    p.add_argument("--out", default="out/diagnosis_study", help="output directory")
-    p.add_argument("--quick", action="store_true", help="one case per kind")
+    p = sub.add_parser("study", help="confusion table of the diagnosis over drives with known truth (long: "
+                                     "minutes per drive)",
+                       description="Diagnose drives with known truth and print the confusion table (OUT/confusion.md; "
+                                   "OUT/cases.jsonl grows one line per drive, and a rerun resumes). Default: the "
+                                   "fixed synthetic cases. --randomized N --null M: N drives with a random effect, "
+                                   "law and drive shape plus M null drives, all with realistic measurement nuisances. "
+                                   "--foreign DIR: the terrain pairs of another simulator (NAME.npz, "
+                                   "NAME_truth.json, NAME_surfaces.npz, robot.yaml), with the estimator's model "
+                                   "error against the noise-free surfaces.")
+    p.add_argument("--out", help="output directory (default: out/diagnosis_study[_randomized|_foreign])")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--quick", action="store_true", help="fixed cases: one case per kind")
+    mode.add_argument("--randomized", type=int, metavar="N", help="N randomized drives with an effect")
+    mode.add_argument("--foreign", type=Path, metavar="DIR", help="directory of foreign terrain pairs")
+    p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
+    p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
+    _settings_options(p)
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
 
     p = sub.add_parser("settings", help="print the effective settings as YAML (defaults + --config + --set)")
     p.add_argument("sections", nargs="*", help="only these sections (sim, estimator, pipeline, diagnosis, env, "
@@ -226,14 +244,17 @@ def cmd_diagnose(args) -> int:
 
 
 def cmd_record(args) -> int:
+    if args.realistic and not args.pair_only:
+        raise ValueError("--realistic applies to --pair-only (the recorder's lidars have their own noise model)")
     if args.pair_only:
         import numpy as np
 
-        from torchsoil.synth.scenario import make_terrain_pair
+        from torchsoil.synth.scenario import load_scenario, make_terrain_pair
 
         out = args.out if args.out.suffix == ".npz" else args.out.with_name(args.out.name + ".npz")
         out.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out, **make_terrain_pair(args.scenario, args.seed, args.dx))
+        scn = load_scenario(args.scenario)
+        np.savez_compressed(out, **make_terrain_pair(scn.realistic() if args.realistic else scn, args.seed, args.dx))
         print(f"wrote {out}")
         return 0
     from torchsoil.synth.record import make_recording
@@ -308,11 +329,20 @@ def cmd_ablation(args) -> int:
 
 
 def cmd_study(args) -> int:
-    from torchsoil.diagnosis.study import run_study
-    from torchsoil.diagnosis.study_cases import STUDY_CASES
+    from torchsoil.diagnosis.study import run_foreign, run_study
+    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases
+    from torchsoil.runner import torch_threads
 
-    cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
-    print(run_study(cases, Path(args.out)))
+    settings = _settings(args)
+    with torch_threads(args.threads):
+        if args.foreign is not None:
+            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings))
+        elif args.randomized is not None:
+            cases = randomized_cases(args.randomized, args.null, args.seed)
+            print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings))
+        else:
+            cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
+            print(run_study(cases, Path(args.out or "out/diagnosis_study"), settings))
     return 0
 
 

@@ -413,8 +413,76 @@ class WorldConfig(SimConfig):
     chunk: float = Field(0.4, gt=0, description="m")
 
 
+SECTIONS = ("taper", "flat", "rounded", "crowned")
+
+
+class TyreConfig(Section):
+    """The world's tyre, drawn per drive from the seed (the terrain pair and the estimator keep
+    the robot's nominal width and taper): one section of `sections` and a footprint width
+    of the robot's wheel_width times a factor drawn uniformly in `width_scale`."""
+
+    sections: tuple[Literal["taper", "flat", "rounded", "crowned"], ...] = Field(
+        ("taper",), min_length=1, description="cross-sections to draw from: taper (the robot's), flat, rounded "
+                                              "(elliptic), crowned (parabolic) (synth.world.section_profile)")
+    width_scale: tuple[float, float] = Field((1.0, 1.0), description="range of footprint width / robot "
+                                                                     "wheel_width, -")
+
+    @field_validator("width_scale")
+    @classmethod
+    def _positive(cls, v):
+        if not 0 < v[0] <= v[1]:
+            raise ValueError(f"need 0 < low <= high, got {list(v)}")
+        return v
+
+
+class MeasurementConfig(Section):
+    """Nuisances of the terrain pair's maps, drawn per drive from the seed within these
+    ranges (synth.measurement.apply_measurement). Defaults: Gaussian noise only (all others off)."""
+
+    noise: float = Field(0.003, ge=0, description="per-cell noise standard deviation, m")
+    noise_dof: tuple[float, float] | None = Field(None, description="Student-t degrees of freedom drawn in "
+                                                                    "this range (> 2; scaled to `noise` std); "
+                                                                    "null: Gaussian")
+    offset: float = Field(0.0, ge=0, description="H_b - H_f vertical offset drawn uniformly in +-offset, m")
+    tilt_deg: float = Field(0.0, ge=0, description="H_b tilt about x and about y, each drawn uniformly in "
+                                                   "+-tilt_deg (pivot: grid centre), deg")
+    dropout: tuple[float, float] = Field((0.0, 0.0), description="range of the fraction of single cells "
+                                                                 "lost in each map, -")
+    blobs: float = Field(0.0, ge=0, description="lost discs per m^2 of grid in each map, 1/m^2")
+    blob_radius: tuple[float, float] = Field((0.02, 0.06), description="range of the blob radius, m")
+    streaks: float = Field(0.0, ge=0, description="occlusion streaks (thin lost lines along the heading, "
+                                                  "behind the robot) per m of path in each map, 1/m")
+    streak_length: tuple[float, float] = Field((0.2, 0.8), description="range of the streak length, m")
+
+    @field_validator("dropout", "blob_radius", "streak_length")
+    @classmethod
+    def _range(cls, v):
+        if not 0 <= v[0] <= v[1]:
+            raise ValueError(f"need a range 0 <= low <= high, got {list(v)}")
+        return v
+
+    @field_validator("noise_dof")
+    @classmethod
+    def _dof(cls, v):
+        if v is not None and not 2 < v[0] <= v[1]:
+            raise ValueError(f"need 2 < low <= high (finite variance), got {list(v)}")
+        return v
+
+
+# what real before/after maps have (issue 12): lidar extrinsic and re-registration residuals
+# (offset, tilt), occlusions, blobs, dropouts, heavy-tailed noise, tyres unlike the model's
+REALISTIC = {
+    "measurement": {"noise_dof": (3.0, 5.0), "offset": 0.002, "tilt_deg": 0.05, "dropout": (0.005, 0.015),
+                    "blobs": 1.0, "streaks": 2.0},
+    "tyre": {"sections": SECTIONS, "width_scale": (0.85, 1.25)},
+}
+
+
 class SynthConfig(Section):
-    """A synthetic scenario (configs/scenarios/NAME.yaml are documents of this section)."""
+    """A synthetic scenario (configs/scenarios/NAME.yaml are documents of this section).
+
+    `realistic()`: the same scenario with the measurement nuisances and tyre draws of real
+    data on (settings.REALISTIC)."""
 
     name: str = "custom"
     description: str = ""
@@ -427,6 +495,12 @@ class SynthConfig(Section):
     lidar: LidarConfig = LidarConfig()
     world: WorldConfig = WorldConfig()
     robot: str = Field("paper_platform", description="robot name (shipped) or YAML path")
+    tyre: TyreConfig = TyreConfig()
+    measurement: MeasurementConfig = MeasurementConfig()
+
+    def realistic(self) -> SynthConfig:
+        """A copy with settings.REALISTIC's measurement nuisances and tyre draws."""
+        return self.replace(**REALISTIC)
 
 
 # ---------------------------------------------------------------------------- the tree

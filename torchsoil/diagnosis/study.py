@@ -1,63 +1,247 @@
-"""Confusion-table study of the diagnosis on seeded synthetic drives with known truth
-(the cases: `study_cases.STUDY_CASES`)."""
+"""Confusion-table studies of the diagnosis on drives with known truth.
+
+- `run_study`: seeded synthetic drives (the cases: `study_cases.STUDY_CASES`, or the
+  randomized `study_cases.randomized_cases` with measurement nuisances and null drives);
+- `run_foreign`: terrain pairs from another simulator (`NAME.npz`, `NAME_truth.json`,
+  `NAME_surfaces.npz` and `robot.yaml` in one directory, /work/shared/foreign/README.md),
+  with the estimator's model error against the noise-free surfaces.
+
+Both append one JSON line per drive to OUT/cases.jsonl (drives already there are skipped:
+an interrupted study resumes) and write OUT/confusion.md.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 import time
 from collections import Counter
 from pathlib import Path
+
+import numpy as np
 
 from torchsoil.diagnosis.run import diagnose
 from torchsoil.settings import Settings
 from torchsoil.synth.scenario import make_terrain_pair
 from torchsoil.terrain import TerrainPair
 
+CHANGED = 1e-3  # m: a cell's ground changed where the noise-free |H_b - H_f| exceeds this (model error zone)
+
+
+def _resume(out: Path) -> dict[str, dict]:
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "cases.jsonl"
+    return {json.loads(line)["case"]: json.loads(line) for line in log.read_text().splitlines()} if log.exists() else {}
+
+
+def _append(out: Path, rec: dict) -> None:
+    with (out / "cases.jsonl").open("a") as f:
+        f.write(json.dumps(rec) + "\n")
+
+
+def _record(name: str, summary: dict, want_verdict: str, want_id: str | None, seconds: float, **extra) -> dict:
+    s = summary
+    return {"case": name, "want": want_verdict, "want_id": want_id, "verdict": s["verdict"],
+            "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
+            "cost_before": s["cost_before"], "cost_after": s["cost_after"], "noise_floor": s.get("noise_floor"),
+            "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds, **extra}
+
 
 def run_study(cases, out: Path, settings: Settings | None = None) -> str:
     """Diagnose every (name, scenario, seed, verdict, id) case; append results to
-    out/cases.jsonl (cases already there are skipped) and return the confusion table (markdown)."""
+    out/cases.jsonl (cases already there are skipped) and return the confusion table (markdown).
+    Each record also holds the world's effect law, the tyre and measurement draws and the
+    drive's length [m]."""
     from tqdm import tqdm
 
-    out.mkdir(parents=True, exist_ok=True)
-    log = out / "cases.jsonl"
-    done = {json.loads(line)["case"]: json.loads(line) for line in log.read_text().splitlines()} if log.exists() else {}
+    out = Path(out)
+    done = _resume(out)
     settings = settings or Settings()
     for name, scn, seed, want_verdict, want_id in tqdm(cases, desc="study", unit="case"):
         if name in done:
             continue
         t0 = time.perf_counter()
-        pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=seed))
+        data = make_terrain_pair(scn, seed=seed)
+        pair = TerrainPair.from_mapping(data)
         s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
-        rec = {"case": name, "seed": seed, "want": want_verdict, "want_id": want_id, "verdict": s["verdict"],
-               "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
-               "cost_before": s["cost_before"], "cost_after": s["cost_after"],
-               "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id,
-               "seconds": time.perf_counter() - t0}
+        xy = pair.poses[:, 1:3]
+        rec = _record(name, s, want_verdict, want_id, time.perf_counter() - t0, seed=seed,
+                      law=scn.get("effects", {}) if isinstance(scn, dict) else {},
+                      nuisances=json.loads(str(data["nuisances"])),
+                      length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
         done[name] = rec
-        with log.open("a") as f:
-            f.write(json.dumps(rec) + "\n")
+        _append(out, rec)
     table = confusion(list(done.values()))
     (out / "confusion.md").write_text(table)
     return table
 
 
-def confusion(records: list[dict]) -> str:
-    """Markdown: per expected answer, how often each verdict came out, and the case list."""
-    def label(verdict, eid):
-        return eid if verdict == "missing_physics" else verdict
+def _label(verdict, eid):
+    return eid if verdict == "missing_physics" else verdict
 
+
+def error_rates(records: list[dict]) -> dict:
+    """false_alarms / nulls: drives without missing physics (expected `adequate`) given
+    another verdict; wrong_id: drives where a catalogue id was named that is not the true one
+    (nulls and out-of-catalogue effects included); seconds_per_case: mean wall time."""
+    nulls = [r for r in records if r["want"] == "adequate"]
+    return {"nulls": len(nulls), "false_alarms": sum(r["verdict"] != "adequate" for r in nulls),
+            "wrong_id": sum(r["verdict"] == "missing_physics" and r["id"] != r["want_id"] for r in records),
+            "seconds_per_case": float(np.mean([r["seconds"] for r in records])) if records else math.nan}
+
+
+def confusion(records: list[dict]) -> str:
+    """Markdown: per expected answer, how often each verdict came out; the false-alarm rate on
+    null drives and the count of wrong ids named; and the case list."""
     counts: dict[str, Counter] = {}
     for r in records:
-        counts.setdefault(label(r["want"], r["want_id"]), Counter())[label(r["verdict"], r["id"])] += 1
+        counts.setdefault(_label(r["want"], r["want_id"]), Counter())[_label(r["verdict"], r["id"])] += 1
     cols = sorted({c for v in counts.values() for c in v})
     lines = ["| truth \\ verdict | " + " | ".join(cols) + " | right |", "|" + " --- |" * (len(cols) + 2)]
     for t, c in sorted(counts.items()):
         lines.append(f"| {t} | " + " | ".join(str(c.get(k, 0)) for k in cols) + f" | {c.get(t, 0)}/{sum(c.values())} |")
     right = sum(r["correct"] for r in records)
-    lines += ["", f"right: {right}/{len(records)}", "",
+    e = error_rates(records)
+    rate = f"{e['false_alarms'] / e['nulls']:.2f}" if e["nulls"] else "n/a"
+    lines += ["", f"right: {right}/{len(records)}",
+              f"false alarms on null drives: {e['false_alarms']}/{e['nulls']} (rate {rate})",
+              f"wrong id named: {e['wrong_id']}", f"time per case: {e['seconds_per_case']:.0f} s", "",
               "| case | verdict | parameters | prediction before -> after [mm] |", "| --- | --- | --- | --- |"]
     for r in records:
-        lines.append(f"| {r['case']} | {label(r['verdict'], r['id'])} | {r['parameters']} | "
+        lines.append(f"| {r['case']} | {_label(r['verdict'], r['id'])} | {r['parameters']} | "
                      f"{1e3 * r['cost_before']['prediction']:.3f} -> {1e3 * r['cost_after']['prediction']:.3f} |")
+    return "\n".join(lines) + "\n"
+
+
+# ---------------------------------------------------------------------------- foreign pairs
+def foreign_names(directory: Path) -> list[str]:
+    """Drive names in a directory of foreign pairs: each NAME.npz with NAME_truth.json."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"foreign pairs directory not found: {directory}")
+    names = sorted(p.stem for p in directory.glob("*.npz")
+                   if not p.stem.endswith("_surfaces") and (directory / f"{p.stem}_truth.json").is_file())
+    if not names:
+        raise FileNotFoundError(f"{directory}: no NAME.npz with NAME_truth.json")
+    return names
+
+
+def load_foreign(directory: Path, name: str) -> tuple[TerrainPair, TerrainPair | None, dict]:
+    """The pair NAME.npz with the robot of directory/robot.yaml (when present), the same pair
+    on the noise-free surfaces of NAME_surfaces.npz (None without it), and NAME_truth.json."""
+    from torchsoil.robot import Robot
+
+    directory = Path(directory)
+    pair = TerrainPair.load(directory / f"{name}.npz")
+    if (directory / "robot.yaml").is_file():
+        robot = Robot.from_yaml(directory / "robot.yaml")
+        pair.wheels, pair.wheel_width, pair.wheel_flat_fraction = robot.wheels, robot.wheel_width, \
+            robot.wheel_flat_fraction
+    truth = json.loads((directory / f"{name}_truth.json").read_text())
+    clean = None
+    surfaces = directory / f"{name}_surfaces.npz"
+    if surfaces.is_file():
+        with np.load(surfaces) as f:
+            hf, hb = f["h_front_clean"], f["h_back_clean"]
+        if hf.shape != pair.h_front.shape or hb.shape != pair.h_front.shape:
+            raise ValueError(f"{surfaces}: surfaces of shape {hf.shape}, {hb.shape}; the pair's is "
+                             f"{pair.h_front.shape}")
+        clean = TerrainPair(pair.dx, pair.origin, hf.astype(np.float32), hb.astype(np.float32), pair.poses,
+                            pair.wheels, pair.wheel_width, pair.wheel_flat_fraction)
+    return pair, clean, truth
+
+
+def simulated_back(pair: TerrainPair, settings: Settings) -> np.ndarray:
+    """(X, Y) the estimator's simulated H_b over the drive [m]: every window fitted in turn,
+    each cell from the window whose centre is nearest (NaN off the windows' ground)."""
+    from torchsoil.estimator import Estimator, Stitcher
+
+    est = Estimator(pair, settings.estimator, settings.sim)
+    stitch = Stitcher(pair.h_front.shape, est.index.s)
+    for o in est.run():
+        if o.h_sim is not None:
+            stitch.add(o.data, o.h_sim)
+    return stitch.h_sim.astype(np.float64)
+
+
+def model_error(h_sim: np.ndarray, clean: TerrainPair, changed: float = CHANGED) -> float:
+    """Mean |h_sim - noise-free H_b| [m] over cells whose noise-free ground changed
+    (|H_b - H_f| > `changed` m) and that h_sim covers (NaN when there are none)."""
+    cf, cb = clean.h_front.astype(np.float64), clean.h_back.astype(np.float64)
+    zone = (np.abs(cb - cf) > changed) & np.isfinite(h_sim) & np.isfinite(cb)
+    return float(np.mean(np.abs(h_sim[zone] - cb[zone]))) if zone.any() else math.nan
+
+
+def truth_coefficients(truth: dict) -> dict[str, float]:
+    """The catalogue coefficient (torchsoil.diagnosis.catalogue) that matches the truth's
+    per-window values, where they carry it: k_speed from a line of sinkage against speed
+    (reference: the mean speed), k_lateral from (d_right - d_left) / (d_right + d_left) against
+    the lateral load v^2 curvature / g + sin(roll) (track 1 on the right), k_pass = g - 1 for
+    sinkage d g^pass (one earlier pass), k_wall = tan(beta) / tan(beta_loose) - 1 (median)."""
+    w = truth.get("windows") or []
+    effect = (truth.get("expected") or {}).get("missing_physics")
+    if not w:
+        return {}
+    d = np.array([(x["d1"] + x["d2"]) / 2 for x in w])
+    if effect == "speed_dependent_sinkage":
+        v = np.array([x["speed"] for x in w])
+        b, a = np.polyfit(v, d, 1)
+        return {"k_speed": float(b * v.mean() / (a + b * v.mean()))}
+    if effect == "lateral_load_transfer":
+        lat = np.array([x["speed"] ** 2 * x["curvature"] / 9.81 + math.sin(math.radians(x["roll_deg"])) for x in w])
+        y = np.array([(x["d2"] - x["d1"]) / (x["d1"] + x["d2"]) for x in w])
+        return {"k_lateral": float(np.sum(lat * y) / np.sum(lat * lat))}
+    if effect == "multi_pass_hardening" and "g" in w[0]:
+        return {"k_pass": float(np.median([x["g"] for x in w])) - 1.0}
+    if effect == "cohesive_walls" and "beta_loose_deg" in w[0]:
+        return {"k_wall": float(np.median([math.tan(math.radians(x["beta_deg"])) / math.tan(math.radians(
+            x["beta_loose_deg"])) for x in w])) - 1.0}
+    return {}
+
+
+def run_foreign(directory: Path, out: Path, settings: Settings | None = None, names: list[str] | None = None) -> str:
+    """Diagnose every foreign pair in `directory` and measure the estimator's model error:
+    the mean |simulated H_b - noise-free H_b| [mm] where the ground changed (CHANGED), fitted
+    to the pair and fitted to the noise-free surfaces themselves; plus prediction cost over
+    noise floor and the fitted coefficients against the truth's. Appends to out/cases.jsonl
+    (drives already there are skipped), writes out/confusion.md and returns it."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    done = _resume(out)
+    settings = settings or Settings()
+    for name in tqdm(names or foreign_names(directory), desc="foreign", unit="drive"):
+        if name in done:
+            continue
+        t0 = time.perf_counter()
+        pair, clean, truth = load_foreign(directory, name)
+        exp = truth["expected"]
+        s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
+        extra = {"truth_parameters": truth_coefficients(truth)}
+        if clean is not None:
+            extra["model_error_mm"] = 1e3 * model_error(simulated_back(pair, settings), clean)
+            extra["model_error_clean_mm"] = 1e3 * model_error(simulated_back(clean, settings), clean)
+        rec = _record(name, s, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0, **extra)
+        done[name] = rec
+        _append(out, rec)
+    records = list(done.values())
+    table = confusion(records) + "\n" + model_error_table(records)
+    (out / "confusion.md").write_text(table)
+    return table
+
+
+def model_error_table(records: list[dict]) -> str:
+    """Markdown: per drive, the model error on the pair and on the noise-free surfaces [mm],
+    prediction cost over noise floor before and after, and fitted against true coefficients."""
+    lines = [f"model error: mean |simulated H_b - noise-free H_b| where the noise-free ground changed by more "
+             f"than {1e3 * CHANGED:g} mm", "",
+             "| drive | model error [mm] | fitted to noise-free [mm] | excess [mm] | prediction / floor "
+             "before -> after | fitted | truth |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in records:
+        e, c = r.get("model_error_mm", math.nan), r.get("model_error_clean_mm", math.nan)
+        floor = r.get("noise_floor") or math.nan
+        lines.append(f"| {r['case']} | {e:.2f} | {c:.2f} | {e - c:+.2f} | "
+                     f"{r['cost_before']['prediction'] / floor:.2f} -> {r['cost_after']['prediction'] / floor:.2f} | "
+                     f"{r['parameters'] or '-'} | "
+                     f"{ {k: round(v, 3) for k, v in r.get('truth_parameters', {}).items()} or '-'} |")
     return "\n".join(lines) + "\n"

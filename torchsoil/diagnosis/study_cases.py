@@ -1,5 +1,8 @@
 """Short synthetic drives (10-15 m) for the diagnosis study and its tests: one per catalogue effect, a
-null case (base physics, soil varying along the path) and an out-of-catalogue effect.
+null case (base physics, soil varying along the path) and an out-of-catalogue effect
+(STUDY_CASES); and a randomized study (`randomized_cases`): random effect, law form and
+magnitude, drive shape (revisits of every shape for hardening), soil, tyre and measurement
+nuisances, plus null drives.
 
 `world.chunk` is 0.1 m: the recorder's world relaxes chunk by chunk and its default 0.4 m
 chunks leave a faint periodic pattern on deep rut floors that a tread test would see too.
@@ -8,6 +11,11 @@ chunks leave a faint periodic pattern on deep rut floors that a tread test would
 from __future__ import annotations
 
 import copy
+
+import numpy as np
+
+from torchsoil.settings import REALISTIC
+from torchsoil.synth import effects as fx
 
 STRAIGHT = {"segments": [{"straight": 14.0, "speed": 1.0}]}
 
@@ -123,3 +131,118 @@ STUDY_CASES: list[tuple[str, dict, int, str, str | None]] = [
     ("tread seed 1", scenario("tread"), 1, "unexplained", None),
     ("tread seed 2", scenario("tread", wavelength=0.3), 2, "unexplained", None),
 ]
+
+
+# ---------------------------------------------------------------------------- randomized study
+# typical covariate size |x0| of each effect on the drives below, and the range of the linear
+# coefficient k_lin: a law of any form is scaled so that k phi(x0) = k_lin x0 (the same effect
+# at the typical covariate, other shapes around it)
+LAWS = {"speed_dependent_sinkage": (0.5, (0.3, 0.8)), "slip_sinkage": (0.08, (4.0, 8.0)),
+        "lateral_load_transfer": (0.14, (1.0, 2.0)), "multi_pass_hardening": (1.0, (-0.6, -0.3)),
+        "cohesive_walls": (1.0, (0.5, 1.0)), "footprint_width": (0.6, (0.4, 0.8))}
+KINDS = (*LAWS, "tread")
+REVISITS = ("out_and_back", "loop", "lane_changes")
+
+
+def random_law(rng: np.random.Generator, eid: str) -> dict:
+    """An effect law of a random form (effects.FORMS) and magnitude for effect `eid`."""
+    if eid == "tread":
+        return {"amp": float(rng.uniform(0.004, 0.008)), "wavelength": float(rng.uniform(0.12, 0.3))}
+    x0, k_range = LAWS[eid]
+    form = str(rng.choice(fx.FORMS))
+    law = {"form": form, "p": float(rng.uniform(0.5, 2.0)) if form == "power" else 1.0,
+           "x_s": float(x0 * (rng.uniform(0.5, 1.5) if form == "saturating" else rng.uniform(0.2, 0.5)))}
+    law["k"] = float(rng.uniform(*k_range) * x0 / fx.phi(x0, form, law["p"], law["x_s"]))
+    if eid == "cohesive_walls":
+        law["c0"] = float(rng.uniform(0.3, 1.0))
+    return law
+
+
+def random_path(rng: np.random.Generator, kind: str) -> dict:
+    """`trajectory` and `terrain.relief` of a random drive of one kind (lengths in m, speeds
+    m/s, angles deg): speed_steps, slope_speed (climbing with speed changes), s_turns (on a
+    side slope), the revisits out_and_back (light-bulb turn back onto the same ruts), loop (round
+    and over the start again), lane_changes (back along the first leg, on and off its ruts),
+    or plain (straight or a gentle curve at one speed)."""
+    u = rng.uniform
+    relief = {"amplitude": float(u(0.01, 0.05))}
+    if kind == "speed_steps":
+        speeds = [float(u(0.4, 0.7)) if i % 2 else float(u(1.2, 1.6)) for i in range(int(rng.integers(6, 9)))]
+        segs, accel = [{"straight": float(u(1.8, 2.5)), "speed": v} for v in speeds], 1.0
+    elif kind == "slope_speed":
+        speeds = [float(u(0.5, 0.7)) if i % 2 else float(u(1.3, 1.5)) for i in range(6)]
+        segs, accel = [{"straight": 2.5, "speed": v} for v in speeds], 0.4
+        relief["slope_x"] = float(rng.choice([-1, 1]) * u(0.04, 0.08))
+    elif kind == "s_turns":
+        r, a = float(u(2.5, 4.0)), float(u(30.0, 45.0) * rng.choice([-1, 1]))
+        segs = [{"straight": 1.0}, {"arc": r, "angle_deg": a}, {"arc": r, "angle_deg": -2 * a},
+                {"arc": r, "angle_deg": 2 * a}, {"arc": r, "angle_deg": -a}, {"straight": 1.0}]
+        segs, accel = [{**s, "speed": 1.0} for s in segs], 0.5
+        relief["slope_y"] = float(rng.choice([-1, 1]) * u(0.05, 0.1))
+    elif kind == "out_and_back":
+        # a light-bulb turn (60 deg one way, 300 deg the other, 60 deg, one radius) ends on the
+        # line it left, heading back: both tracks return on the ruts (left and right swapped)
+        r, side, leg = float(u(1.5, 2.0)), int(rng.choice([-1, 1])), float(u(6.0, 8.0))
+        segs = [{"straight": leg}, {"arc": r, "angle_deg": -60 * side}, {"arc": r, "angle_deg": 300 * side},
+                {"arc": r, "angle_deg": -60 * side}, {"straight": leg}]
+        segs, accel = [{**s, "speed": float(u(0.8, 1.0))} for s in segs], 0.5
+    elif kind == "loop":
+        r, leg = float(u(1.5, 2.5)), float(u(5.0, 7.0))
+        segs = [{"straight": leg}, {"arc": r, "angle_deg": 180}, {"straight": leg}, {"arc": r, "angle_deg": 180},
+                {"straight": float(u(3.0, leg))}]
+        segs, accel = [{**s, "speed": float(u(0.8, 1.0))} for s in segs], 0.5
+    elif kind == "lane_changes":
+        leg = float(u(5.0, 7.0))
+        segs = [{"straight": leg, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8},
+                {"straight": leg, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8}] + WEAVE
+        accel = 0.5
+    elif kind == "plain":
+        v = float(u(0.7, 1.3))
+        segs = [{"straight": float(u(12.0, 16.0)), "speed": v}] if rng.random() < 0.5 else [
+            {"straight": 2.0, "speed": v}, {"arc": float(u(10.0, 20.0)), "angle_deg": float(u(-40, 40)), "speed": v},
+            {"straight": 4.0, "speed": v}]
+        accel = 0.5
+    else:
+        raise ValueError(f"unknown path kind {kind!r}")
+    return {"trajectory": {"segments": segs, "accel_limit": accel}, "relief": relief}
+
+
+PATH_FOR = {"speed_dependent_sinkage": ("speed_steps",), "slip_sinkage": ("slope_speed",),
+            "lateral_load_transfer": ("s_turns",), "multi_pass_hardening": REVISITS}
+PATHS = ("speed_steps", "slope_speed", "s_turns", *REVISITS, "plain")
+
+
+def random_case(seed: int, kind: str | None) -> tuple[str, dict, int, str, str | None]:
+    """One randomized study case (name, scenario dict, seed, expected verdict, expected id):
+    effect `kind` (an id of KINDS; None: no missing physics) with a random law, on a random
+    drive that lets it show (nulls: any drive), random soil with a patch of other soil, and
+    the measurement nuisances and tyre draws of real data (settings.REALISTIC) on."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 12]))
+    paths = PATH_FOR.get(kind, ("plain",)) if kind is not None else PATHS
+    path_kind = str(rng.choice(paths))
+    path = random_path(rng, path_kind)
+    base = {"d": float(rng.uniform(0.015, 0.035)), "chi": float(rng.uniform(0.1, 0.35)),
+            "beta_deg": float(rng.uniform(24.0, 34.0)), "moisture": float(rng.uniform(0.0, 0.5))}
+    patch = {"kind": "band_x", "center": float(rng.uniform(3.0, 10.0)), "sigma": float(rng.uniform(1.0, 3.0)),
+             "delta": {"d": float(rng.uniform(0.005, 0.02) if kind == "footprint_width" else rng.uniform(-0.005, 0.02)),
+                       "beta_deg": float(rng.uniform(-5.0, 5.0))}}
+    sc = {"name": f"r{seed:04d}", "trajectory": path["trajectory"], "terrain": {"relief": path["relief"]},
+          "soil": {"base": base, "patches": [patch]}, "world": dict(WORLD), **copy.deepcopy(REALISTIC)}
+    if kind is not None:
+        law = random_law(rng, kind)
+        sc["effects"] = {kind: law}
+        form = law.get("form", "tread")
+        verdict, eid = ("unexplained", None) if kind == "tread" else ("missing_physics", kind)
+    else:
+        form, verdict, eid = "-", "adequate", None
+    return f"r{seed:04d} {kind or 'null'} {form} {path_kind}", sc, int(seed), verdict, eid
+
+
+def randomized_cases(n: int, n_null: int = 20, seed: int = 0) -> list[tuple[str, dict, int, str, str | None]]:
+    """n drives with an effect (the KINDS in turn: every catalogue id and the out-of-catalogue
+    tread come up once n >= 7) and n_null drives without. Effect case i has seed
+    1000 * seed + i, null case j 1000 * seed + 500 + j: a longer study extends a shorter one."""
+    if not (0 <= n <= 500 and 0 <= n_null <= 500):
+        raise ValueError(f"at most 500 effect and 500 null drives per study seed, got {n} and {n_null}")
+    return ([random_case(1000 * seed + i, KINDS[i % len(KINDS)]) for i in range(n)]
+            + [random_case(1000 * seed + 500 + j, None) for j in range(n_null)])

@@ -7,6 +7,7 @@ under the base model's conditions, with a choosable functional form phi:
     linear:      phi(x) = x
     power:       phi(x) = sign(x) |x|^p
     saturating:  phi(x) = x_s * tanh(x / x_s)        (linear near 0, bounded by +-x_s)
+    threshold:   phi(x) = sign(x) max(|x| - x_s, 0)  (no effect within +-x_s, linear beyond)
 
 | id | covariate x | scaled quantity |
 | --- | --- | --- |
@@ -29,7 +30,7 @@ CATALOGUE = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage",
              "lateral_load_transfer", "cohesive_walls", "footprint_width")
 OUT_OF_CATALOGUE = ("tread",)
 EFFECTS = CATALOGUE + OUT_OF_CATALOGUE
-FORMS = ("linear", "power", "saturating")
+FORMS = ("linear", "power", "saturating", "threshold")
 # what a diagnosis should find for each effect (FORMATS.md section 4 `where`): the signal the
 # mismatch follows and where across the track it shows
 SIGNATURES: dict[str, dict] = {
@@ -63,6 +64,8 @@ def phi(x, form: str, p: float = 1.0, x_s: float = 1.0) -> np.ndarray:
         return np.sign(x) * np.abs(x) ** p
     if form == "saturating":
         return x_s * np.tanh(x / x_s)
+    if form == "threshold":
+        return np.sign(x) * np.maximum(np.abs(x) - x_s, 0.0)
     raise ValueError(f"effect form must be one of {FORMS}, got {form!r}")
 
 

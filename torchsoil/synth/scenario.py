@@ -9,16 +9,24 @@ its keys, defaults and units); a scenario YAML is a document of that section:
     terrain:    {relief: {amplitude: m, wavelength: m, slope_x: m/m, slope_y: m/m},
                  micro: {rms: m, corr_length: m}, margin: m of field around the path}
     soil:       {base: {d: m, chi, beta_deg, moisture}, patches: [...], track_scale: [..]}
-    effects:    {id: {form: linear|power|saturating, k: .., ...}}   (torchsoil.synth.effects)
+    effects:    {id: {form: linear|power|saturating|threshold, k: .., ...}}   (torchsoil.synth.effects)
     landmarks:  {poles: n, trunks: n, shed: bool, fence: bool}
     lidar:      {columns: 512|1024|2048, rate_hz: 10, range_noise: m, dropout: fraction,
                  organized: bool (full beams x columns clouds, NaN where nothing returned)}
     world:      {chunk: m, and the simulator's settings (section sim)}
     robot:      shipped robot name or path to a robot YAML (default paper_platform)
+    tyre:       {sections: [taper|flat|rounded|crowned, ..], width_scale: [low, high]}  (drawn per seed)
+    measurement: {noise: m, noise_dof: [low, high] | null, offset: m, tilt_deg: deg,
+                 dropout: [low, high], blobs: 1/m^2, blob_radius: [m, m], streaks: 1/m,
+                 streak_length: [m, m]}   (terrain-pair nuisances, drawn per seed: synth.measurement)
+
+`SynthConfig.realistic()` (or `torchsoil record --pair-only --realistic`) turns on the
+nuisances and tyre draws of real data (settings.REALISTIC); by default they are off.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,8 +35,9 @@ import numpy as np
 
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot, load_robot
-from torchsoil.settings import Settings, SettingsError, SynthConfig, merge, read_yaml, validate
+from torchsoil.settings import Settings, SettingsError, SynthConfig, TyreConfig, merge, read_yaml, validate
 from torchsoil.synth import effects as fx
+from torchsoil.synth.measurement import apply_measurement
 from torchsoil.synth.terrain import Landmarks, Relief, check_patch, farm_landmarks, micro_topography
 from torchsoil.synth.trajectory import Trajectory, build_trajectory
 from torchsoil.synth.world import WorldResult, simulate_world
@@ -118,6 +127,7 @@ class Truth:
 
     field: lidar-visible grid; h_field: (X, Y) initial surface on it, m.
     corridor: (i0, j0) offset of the world grid inside the field grid.
+    tyre: the world's tyre drawn from the seed: {section, width_scale} (synth.world).
     """
 
     scenario: SynthConfig
@@ -131,6 +141,7 @@ class Truth:
     corridor: tuple[int, int]
     world: WorldResult
     timings: dict
+    tyre: dict
 
 
 def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
@@ -169,24 +180,35 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
     t1 = time.perf_counter()
     X, Y = corridor_grid.shape
     h0 = h_field[nx0:nx0 + X, ny0:ny0 + Y]
-    world = simulate_world(corridor_grid, h0, traj, robot, scn.soil, scn.effects, scn.world)
+    tyre = draw_tyre(scn.tyre, seed)
+    world = simulate_world(corridor_grid, h0, traj, robot, scn.soil, scn.effects, scn.world, **tyre)
     t2 = time.perf_counter()
     return Truth(scn, int(seed), robot, relief, landmarks, traj, field, h_field, (nx0, ny0), world,
-                 {"terrain_s": t1 - t0, "world_s": t2 - t1})
+                 {"terrain_s": t1 - t0, "world_s": t2 - t1}, tyre)
 
 
-def terrain_pair_from_truth(truth: Truth, seed: int, noise: float = 0.003) -> dict:
-    """Noisy before/after heightmaps straight from the truth (FORMATS.md section 3).
+def draw_tyre(cfg: TyreConfig, seed: int) -> dict:
+    """The world's tyre for a seed: {section: one of cfg.sections, width_scale: uniform in
+    cfg.width_scale} (synth.world.simulate_world's keywords)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 17]))
+    return {"section": str(cfg.sections[rng.integers(len(cfg.sections))]),
+            "width_scale": float(rng.uniform(*cfg.width_scale))}
+
+
+def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None) -> dict:
+    """Measured before/after heightmaps from the truth (FORMATS.md section 3).
 
     h_front: the surface before the last visit of the wheels to each cell (before the robot
-    for single passes); h_back: the final surface; each with independent per-cell Gaussian
-    noise of `noise` m. Extra keys: `n_visits` (X, Y) and `scenario` (its name)."""
+    for single passes); h_back: the final surface; each with the scenario's measurement
+    nuisances drawn from `seed` (synth.measurement; by default independent per-cell Gaussian
+    noise of 3 mm only). noise: overrides measurement.noise, m. Extra keys: `n_visits`
+    (X, Y), `scenario` (its name) and `nuisances` (JSON: the tyre and measurement draws)."""
     w = truth.world
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 11]))
     last = np.maximum(w.n_visits - 1, 0)
     h_pre = np.take_along_axis(w.states, last[None], 0)[0]
-    h_front = (h_pre + noise * rng.standard_normal(h_pre.shape)).astype(np.float32)
-    h_back = (w.h_after + noise * rng.standard_normal(h_pre.shape)).astype(np.float32)
+    half_width = float(np.abs(truth.robot.wheels[:, 1]).max()) + CORRIDOR / 2
+    h_front, h_back, drawn = apply_measurement(h_pre, w.h_after, w.grid, truth.traj.poses,
+                                               truth.scenario.measurement, seed, noise, half_width)
     r = truth.robot
     return {
         "dx": np.float64(w.grid.dx),
@@ -199,11 +221,12 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float = 0.003) -> di
         "wheel_flat_fraction": np.float64(r.wheel_flat_fraction),
         "n_visits": w.n_visits.astype(np.int16),
         "scenario": np.asarray(truth.scenario.name),
+        "nuisances": np.asarray(json.dumps({"tyre": truth.tyre, "measurement": drawn})),
     }
 
 
 def make_terrain_pair(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
-                      noise: float = 0.003) -> dict:
+                      noise: float | None = None) -> dict:
     """Terrain pair dict (FORMATS.md section 3 keys) for a scenario, without lidars.
 
     The noise-free truth is identical to that of a recording of the same scenario, seed

@@ -19,7 +19,7 @@ from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
-from torchsoil.settings import WorldConfig, WorldSoil
+from torchsoil.settings import SECTIONS, WorldConfig, WorldSoil
 from torchsoil.sim.relaxation import relax
 from torchsoil.sim.sinkage import reference_height, taper
 from torchsoil.synth import effects as fx
@@ -67,9 +67,29 @@ def _chunks(arc: np.ndarray, length: float) -> list[np.ndarray]:
     return out
 
 
+def section_profile(q: np.ndarray, section: str = "taper", flat_fraction: float = 0.0) -> np.ndarray:
+    """Share s(q) in [0, 1] of the sinkage across a tyre footprint, q = lateral offset /
+    footprint radius (any shape; s = 0 for |q| >= 1).
+
+    taper: the robot's (flat to |q| <= flat_fraction, cosine shoulder; what the estimator
+    assumes); flat: a flat tread with narrow shoulders (taper with flat fraction 0.9);
+    rounded: elliptic sqrt(1 - q^2); crowned: parabolic 1 - q^2."""
+    q = np.abs(np.asarray(q, dtype=np.float64))
+    if section in ("taper", "flat"):
+        f = flat_fraction if section == "taper" else 0.9
+        return taper(torch.from_numpy(q), f).numpy()
+    inside = np.clip(1.0 - q * q, 0.0, 1.0)
+    if section == "rounded":
+        return np.sqrt(inside)
+    if section == "crowned":
+        return inside
+    raise ValueError(f"tyre section must be one of {SECTIONS}, got {section!r}")
+
+
 def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, soil: WorldSoil | dict,
                    effects: dict | None = None, config: WorldConfig | None = None,
-                   revisit_gap: float | None = None) -> WorldResult:
+                   revisit_gap: float | None = None, section: str = "taper",
+                   width_scale: float = 1.0) -> WorldResult:
     """Drive the robot along `traj` over the surface h0 (X, Y) [m] on `grid`.
 
     soil: scenario soil section (WorldSoil or a dict of it, see `terrain.soil_at`), with
@@ -99,7 +119,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
 
     h = h0.copy()
     # the reference height of a first visit comes from the surface before the robot
-    h_ref = reference_height(torch.from_numpy(h0)[None], config.ref_radius * robot.wheel_width / 2, dx)[0].numpy()
+    h_ref = reference_height(torch.from_numpy(h0)[None], config.ref_radius * robot.wheel_width * width_scale / 2,
+                             dx)[0].numpy()
     # relaxation waits until the pass is over (or a revisit needs the settled surface): the
     # base model digs and deposits for every pose first, then relaxes once
     pending = np.zeros(grid.shape, dtype=bool)
@@ -123,7 +144,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     states = np.repeat(h0[None], MAX_VISITS + 1, axis=0)
     visit_time = np.full((MAX_VISITS, *grid.shape), np.inf)
     t_wheel = np.full(grid.shape, np.nan)
-    radius0 = robot.wheel_width / 2
+    radius0 = robot.wheel_width * width_scale / 2
     reach = radius0 * 1.5 + (config.band_width + 1) * dx + config.relax_margin * robot.wheel_width + 2 * dx
     wxy = robot.wheels[:, :2]
     K = len(robot.wheels)
@@ -181,7 +202,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
                                            .reshape(pidx.shape))
 
         h[win], covered, domain = _step(h[win], h_ref[win], geom, radius0 * rscale, robot, depth,
-                                        sf["chi"][win], config)
+                                        sf["chi"][win], config, section)
         pending[win] |= domain
         dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
@@ -260,7 +281,8 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
     return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "bin": bins, "dx": grid.dx}
 
 
-def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config: WorldConfig):
+def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config: WorldConfig,
+          section: str = "taper"):
     """Sinkage and deposition of one chunk on window arrays (X, Y) [m]; depth (K, X, Y) [m],
     chi (X, Y) the soil's displacement-compaction ratio where the soil is dug.
 
@@ -272,7 +294,7 @@ def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config:
     dist, lateral = geom["dist"], geom["lateral"]
     covered = dist <= radius
     s = np.zeros_like(dist)
-    s[covered] = taper(torch.from_numpy(lateral[covered] / radius), robot.wheel_flat_fraction).numpy()
+    s[covered] = section_profile(lateral[covered] / radius, section, robot.wheel_flat_fraction)
     target = np.where(covered, h_ref[None] - s * depth, np.inf).min(0)
     h_dug = np.minimum(h, target)
     removed = (h - h_dug) * chi

@@ -1,0 +1,146 @@
+"""The studies' parts: randomized cases, error rates, the foreign layout and the model error
+(the studies themselves are long: `torchsoil study`, not run here)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from torchsoil.diagnosis import study_cases as sc
+from torchsoil.diagnosis.study import confusion, error_rates, model_error, run_foreign, truth_coefficients
+from torchsoil.robot import paper_platform
+from torchsoil.settings import Settings
+from torchsoil.synth import effects as fx
+from torchsoil.synth.scenario import load_scenario
+from torchsoil.synth.terrain import Relief
+from torchsoil.synth.trajectory import build_trajectory
+from torchsoil.terrain import TerrainPair
+
+
+def test_randomized_cases_have_the_nulls_and_every_id():
+    cases = sc.randomized_cases(14, 20, seed=3)
+    assert len(cases) == 34 and len({c[0] for c in cases}) == 34
+    nulls = [c for c in cases if c[3] == "adequate"]
+    assert len(nulls) == 20 and all(c[4] is None and "effects" not in c[1] for c in nulls)
+    named = {c[4] for c in cases if c[3] == "missing_physics"}
+    assert named == set(fx.CATALOGUE)
+    assert any(c[3] == "unexplained" and "tread" in c[1]["effects"] for c in cases)
+    assert {c[0].split()[3] for c in nulls} > {"plain"}                # nulls on every kind of drive
+    for name, doc, *_ in cases:
+        scn = load_scenario(doc)
+        assert scn.measurement.offset > 0 and scn.measurement.noise_dof is not None, name
+        assert len(scn.tyre.sections) == 4, name
+    again = sc.randomized_cases(14, 20, seed=3)
+    assert [json.dumps(c[1], sort_keys=True) for c in again] == [json.dumps(c[1], sort_keys=True) for c in cases]
+    assert sc.randomized_cases(3, 2, seed=3) == [cases[i] for i in (0, 1, 2, 14, 15)]   # longer extends shorter
+
+
+@pytest.mark.parametrize("eid", sorted(sc.LAWS))
+def test_random_laws_have_the_drawn_effect_at_the_typical_covariate(eid):
+    x0, (lo, hi) = sc.LAWS[eid]
+    forms = set()
+    for seed in range(40):
+        law = sc.random_law(np.random.default_rng(seed), eid)
+        forms.add(law["form"])
+        k_lin = law["k"] * fx.phi(x0, law["form"], law["p"], law["x_s"]) / x0
+        assert lo - 1e-9 <= k_lin <= hi + 1e-9
+        fx.resolve({eid: law})                                           # a valid law
+    assert forms == set(fx.FORMS)
+
+
+@pytest.mark.parametrize("kind", sc.REVISITS)
+def test_hardening_drives_come_back_over_their_ruts(kind):
+    """Every revisit shape takes the wheels back over the first leg: some pose of the later
+    part of the drive lies within 0.15 m of the first leg's line (y = 0, 0 <= x <= 5)."""
+    seed = next(s for s in range(200) if sc.random_case(s, "multi_pass_hardening")[0].endswith(kind))
+    doc = sc.random_case(seed, "multi_pass_hardening")[1]
+    traj = build_trajectory(load_scenario(doc).trajectory, Relief(0.0, 0.0, *[np.zeros(0)] * 4), paper_platform())
+    x, y = traj.poses[:, 1], traj.poses[:, 2]
+    later = traj.arc > 8.0 + 3.0
+    back = later & (np.abs(y) < 0.15) & (x > 0.0) & (x < 5.0)
+    assert back.sum() > 30      # 0.3 m at least
+
+
+def test_error_rates_by_hand():
+    def rec(want, want_id, verdict, eid):
+        return {"case": f"{want}{want_id}{verdict}{eid}", "want": want, "want_id": want_id, "verdict": verdict,
+                "id": eid, "parameters": {}, "cost_before": {"prediction": 0.003}, "cost_after": {"prediction": 0.003},
+                "correct": (want, want_id) == (verdict, eid), "seconds": 10.0}
+
+    records = [rec("adequate", None, "adequate", None), rec("adequate", None, "unexplained", None),
+               rec("adequate", None, "missing_physics", "slip_sinkage"), rec("adequate", None, "adequate", None),
+               rec("missing_physics", "speed_dependent_sinkage", "missing_physics", "slip_sinkage"),
+               rec("missing_physics", "speed_dependent_sinkage", "missing_physics", "speed_dependent_sinkage"),
+               rec("unexplained", None, "missing_physics", "cohesive_walls")]
+    e = error_rates(records)
+    assert (e["nulls"], e["false_alarms"], e["wrong_id"]) == (4, 2, 3)
+    table = confusion(records)
+    assert "false alarms on null drives: 2/4 (rate 0.50)" in table and "wrong id named: 3" in table
+    assert "right: 3/7" in table
+
+
+def test_model_error_by_hand():
+    cf = np.zeros((4, 5), np.float32)
+    cb = cf.copy()
+    cb[1:3, 1:4] = -0.02                                                 # 6 cells changed
+    clean = TerrainPair(0.02, (0.0, 0.0), cf, cb, np.array([[0.0, 0, 0, 0, 0, 0, 0]]),
+                        paper_platform().wheels, 0.14)
+    h_sim = cb.astype(np.float64) + 0.002
+    h_sim[1, 1] = cb[1, 1] - 0.008                                      # one cell 8 mm off
+    h_sim[0, 0] = 5.0                                                   # unchanged ground: not counted
+    h_sim[2, 3] = np.nan                                                # not simulated: not counted
+    assert model_error(h_sim, clean) == pytest.approx((0.008 + 4 * 0.002) / 5)
+
+
+def test_truth_coefficients_by_hand():
+    v = np.array([0.5, 1.0, 1.5, 0.5, 1.5])
+    windows = [{"d1": 0.02 * (1 + 0.6 * (s - 1.0)), "d2": 0.02 * (1 + 0.6 * (s - 1.0)), "speed": s,
+                "curvature": 0.0, "roll_deg": 0.0, "beta_deg": 30.0} for s in v]
+    speed = {"expected": {"missing_physics": "speed_dependent_sinkage"}, "windows": windows}
+    assert truth_coefficients(speed)["k_speed"] == pytest.approx(0.6)             # mean speed 1.0
+    lat = [{"d1": 0.02 * (1 - 1.5 * L), "d2": 0.02 * (1 + 1.5 * L), "speed": 1.0, "curvature": 0.0,
+            "roll_deg": math.degrees(math.asin(L))} for L in (0.02, -0.05, 0.1)]
+    out = truth_coefficients({"expected": {"missing_physics": "lateral_load_transfer"}, "windows": lat})
+    assert out["k_lateral"] == pytest.approx(1.5)
+    walls = [{"d1": 0.02, "d2": 0.02, "beta_deg": 45.0, "beta_loose_deg": 30.0}]
+    out = truth_coefficients({"expected": {"missing_physics": "cohesive_walls"}, "windows": walls})
+    assert out["k_wall"] == pytest.approx(1.0 / math.tan(math.radians(30)) - 1.0)
+    passes = [{"d1": 0.02, "d2": 0.02, "g": 0.6}]
+    assert truth_coefficients({"expected": {"missing_physics": "multi_pass_hardening"},
+                               "windows": passes})["k_pass"] == pytest.approx(-0.4)
+    assert truth_coefficients({"expected": {"missing_physics": None}, "windows": windows}) == {}
+
+
+def test_foreign_study_runs_on_a_pair_in_the_foreign_layout(tmp_path):
+    """A 4 m synthetic drive written as NAME.npz, NAME_truth.json, NAME_surfaces.npz and
+    robot.yaml (with the pair's own wheels deliberately wrong: robot.yaml must win)."""
+    from torchsoil.synth.scenario import build_truth, terrain_pair_from_truth
+
+    doc = {"name": "tiny", "trajectory": {"segments": [{"straight": 4.0, "speed": 1.0}]},
+           "terrain": {"margin": 0.5}, "landmarks": {"poles": 0, "trunks": 0, "shed": False, "fence": False},
+           "measurement": {"offset": 0.002}}
+    truth = build_truth(doc, seed=1)
+    pair = terrain_pair_from_truth(truth, seed=1)
+    w = truth.world
+    clean_f = np.take_along_axis(w.states, np.maximum(w.n_visits - 1, 0)[None], 0)[0]
+    pair_bad_robot = {**{k: pair[k] for k in ("dx", "origin", "h_front", "h_back", "poses")},
+                      "wheels": pair["wheels"] * [1, 2, 1], "wheel_width": np.float64(0.3)}
+    np.savez(tmp_path / "tiny.npz", **pair_bad_robot)
+    np.savez(tmp_path / "tiny_surfaces.npz", h_front_clean=clean_f, h_back_clean=w.h_after)
+    (tmp_path / "tiny_truth.json").write_text(json.dumps({"expected": {"verdict": "adequate",
+                                                                       "missing_physics": None}, "windows": []}))
+    import yaml
+
+    (tmp_path / "robot.yaml").write_text(yaml.safe_dump(paper_platform().to_dict()))
+    settings = Settings().replace(diagnosis={"n_fit": 0})
+    table = run_foreign(tmp_path, tmp_path / "out", settings)
+    rec = json.loads((tmp_path / "out" / "cases.jsonl").read_text())
+    assert rec["case"] == "tiny" and rec["want"] == "adequate"
+    assert "| tiny |" in table and "false alarms on null drives" in table and "model error" in table
+    # fitted to its own noise-free surfaces, the base model (the world's physics) is within
+    # a fraction of the 3 mm noise; the noisy pair cannot do better
+    assert 0 < rec["model_error_clean_mm"] < 1.0
+    assert rec["model_error_mm"] > rec["model_error_clean_mm"]
+    assert (tmp_path / "out" / "confusion.md").read_text() == table
+    assert run_foreign(tmp_path, tmp_path / "out", settings) == table               # resumed: nothing redone
