@@ -385,6 +385,21 @@ def livox_custom(n: int = 960, lines: int = 4, no_return: float = 0.1, seed: int
                        "offset_time", "first point (timebase); offset_time: uint32 ns after timebase")
 
 
+TYPESTORE1 = get_typestore(Stores.ROS1_NOETIC)     # ROS 1: std_msgs/Header with its uint32 seq
+TYPESTORE1.register({k: v for k, v in TYPESTORE.fielddefs.items() if k.startswith("livox_ros_driver2/")})
+
+
+def ros1_message(msg, msgtype: str, seq: int):
+    """The same message in ROS 1 Noetic classes (a Header with seq), as a ROS 1 driver publishes it."""
+    T = TYPESTORE1.types
+    h = msg.header
+    header = T["std_msgs/msg/Header"](seq=seq, stamp=T["builtin_interfaces/msg/Time"](
+        sec=h.stamp.sec, nanosec=h.stamp.nanosec), frame_id=h.frame_id)
+    cls = T[msgtype]
+    return cls(**{f: header if f == "header" else getattr(msg, f) for f in cls.__dataclass_fields__
+                  if f != "__msgtype__"})
+
+
 def sweep_at(driver: str, start_ns: int, seed: int = 0, **kw) -> DriverCloud:
     """A sweep of `driver` whose first point is captured at `start_ns` (integer ns), written with
     that driver's stamp convention ("robosense_last": the last-point stamp; "velodyne": the
@@ -419,9 +434,10 @@ def write_bag(path, topics: dict, storage: str = "sqlite3"):
         from rosbags.rosbag1 import Writer as Writer1
 
         with Writer1(path) as w:
-            conns = {t: w.add_connection(t, msgtype(cs[0]), typestore=TYPESTORE) for t, cs in topics.items()}
-            for stamp, topic, c in msgs:
-                w.write(conns[topic], int(round(stamp * 1e9)) + 10_000_000, TYPESTORE.serialize_ros1(c.msg, msgtype(c)))
+            conns = {t: w.add_connection(t, msgtype(cs[0]), typestore=TYPESTORE1) for t, cs in topics.items()}
+            for seq, (stamp, topic, c) in enumerate(msgs):
+                w.write(conns[topic], int(round(stamp * 1e9)) + 10_000_000,
+                        TYPESTORE1.serialize_ros1(ros1_message(c.msg, msgtype(c), seq), msgtype(c)))
         return path
     from rosbags.rosbag2 import StoragePlugin, Writer
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from torchsoil.io.pointcloud import LIVOX_CUSTOM, Cloud, register_livox
+from torchsoil.io.pointcloud import LIVOX_CUSTOM, Cloud, parse_livox, register_livox
 from torchsoil.io.pointtime import PointTimeError, check_clock_domains
 from torchsoil.io.stream import SweepStream
 
@@ -176,7 +176,9 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             index = counts[name]
             counts[name] += 1
             try:
-                streams[name].add(reader.deserialize(raw, conn.msgtype), conn.msgtype, index, stamp * 1e-9)
+                msg = parse_livox(raw, not reader.is2) if conn.msgtype in LIVOX_CUSTOM else \
+                    reader.deserialize(raw, conn.msgtype)
+                streams[name].add(msg, conn.msgtype, index, stamp * 1e-9)
             except PointTimeError as e:
                 raise BagError(f"{path}: {e}") from None
             except Exception as e:

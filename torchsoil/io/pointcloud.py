@@ -9,6 +9,7 @@ x, y, z) are dropped. Per-point times are read in any common driver's convention
 
 from __future__ import annotations
 
+import struct
 from typing import NamedTuple
 
 import numpy as np
@@ -159,11 +160,67 @@ def register_livox(typestore) -> None:
     typestore.register(types)
 
 
+# one CustomPoint: CDR aligns each element to 4 bytes (stride 20), ROS 1 packs it (19)
+_LIVOX_POINT = {"names": ["offset_time", "x", "y", "z"], "formats": ["<u4", "<f4", "<f4", "<f4"],
+                "offsets": [0, 4, 8, 12]}
+LIVOX_POINT_CDR = np.dtype({**_LIVOX_POINT, "itemsize": 20})
+LIVOX_POINT_ROS1 = np.dtype({**_LIVOX_POINT, "itemsize": 19})
+
+
+class _Stamp(NamedTuple):
+    sec: int
+    nanosec: int
+
+
+class _Header(NamedTuple):
+    stamp: _Stamp
+    frame_id: str
+
+
+class LivoxScan(NamedTuple):
+    """A CustomMsg parsed straight from its bytes: header, timebase (ns) and points, a
+    structured array with offset_time, x, y, z."""
+
+    header: _Header
+    timebase: int
+    points: np.ndarray
+
+
+def parse_livox(raw: bytes, ros1: bool) -> LivoxScan:
+    """CustomMsg bytes (ROS 2 little-endian CDR, or ROS 1) -> LivoxScan, without a Python object
+    per point. Raises ValueError on a truncated or big-endian message."""
+    buf = memoryview(raw)
+    if ros1:
+        _, sec, nsec, n_frame = struct.unpack_from("<4I", buf, 0)
+        pos = 16 + n_frame
+        frame = bytes(buf[16:pos]).decode()
+        timebase, _, count = struct.unpack_from("<QI4xI", buf, pos)
+        pos, dt = pos + 20, LIVOX_POINT_ROS1
+    else:
+        if bytes(buf[:2]) != b"\x00\x01":
+            raise ValueError("CustomMsg is not little-endian CDR")
+        sec, nsec, n_frame = struct.unpack_from("<iII", buf, 4)
+        frame = bytes(buf[16:16 + n_frame]).rstrip(b"\x00").decode()
+        pos = 4 + -(-(12 + n_frame) // 8) * 8                     # timebase is 8-byte aligned
+        timebase, _, count = struct.unpack_from("<QI4xI", buf, pos)
+        pos, dt = pos + 20, LIVOX_POINT_CDR
+    need = pos + count * dt.itemsize - (dt.itemsize - 19 if count else 0)
+    if len(buf) < need:
+        raise ValueError(f"CustomMsg truncated: {len(buf)} bytes for {count} points needing {need}")
+    body = bytes(buf[pos:need]) + b"\x00" * (dt.itemsize - 19 if count else 0)
+    return LivoxScan(_Header(_Stamp(sec, nsec), frame), timebase, np.frombuffer(body, dt, count))
+
+
 def decode_livox(msg) -> RawCloud:
-    """livox_ros_driver2/msg/CustomMsg (and livox_ros_driver's) -> RawCloud: offset_time,
-    uint32 ns after `timebase` (uint64 ns), given as ns after the header stamp."""
+    """livox_ros_driver2/msg/CustomMsg (and livox_ros_driver's; a rosbags message or a LivoxScan)
+    -> RawCloud: offset_time, uint32 ns after `timebase` (uint64 ns), given as ns after the
+    header stamp."""
     n = len(msg.points)
-    a = np.array([(p.offset_time, p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(n, 4)
+    if isinstance(msg.points, np.ndarray):
+        p = msg.points
+        a = np.stack([p["offset_time"].astype(np.float64), p["x"], p["y"], p["z"]], 1).reshape(n, 4)
+    else:
+        a = np.array([(p.offset_time, p.x, p.y, p.z) for p in msg.points], dtype=np.float64).reshape(n, 4)
     xyz = a[:, 1:].astype(np.float32)
     keep = np.all(np.isfinite(xyz), axis=1) & np.any(xyz != 0, axis=1)
     sec, nanosec = int(msg.header.stamp.sec), int(msg.header.stamp.nanosec)
