@@ -109,8 +109,7 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     columns) clouds with NaN for no return instead of the returns only); convention: the
     lidar driver layout and stamp convention the sweeps are written in (synth.conventions:
     ouster, velodyne, hesai, robosense_start, robosense_end, livox, livox_custom, mixed).
-    Returns a dict of
-    figures (timings [s], bag size [MB], number of sweeps and points)."""
+    Returns a dict of figures (timings [s], bag size [MB], number of sweeps and points)."""
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"bag output {out} already exists; remove it or choose another path")
