@@ -98,6 +98,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--pair-only", action="store_true", help="write only the terrain pair .npz")
     p.add_argument("--realistic", action="store_true", help="with --pair-only: the measurement nuisances and "
                                                             "tyre draws of real data (settings.REALISTIC)")
+    p.add_argument("--convention", default="ouster",
+                   help="lidar driver layout and stamp convention of the sweeps: ouster, velodyne, hesai, "
+                        "robosense_start, robosense_end, livox, livox_custom, mixed (front ouster, back velodyne)")
 
     p = sub.add_parser("rollout", help="scripted policies on the soil-traverse environment (damage vs time)")
     p.add_argument("--config", default=None, help="env settings YAML (the env section)")
@@ -260,7 +263,8 @@ def cmd_record(args) -> int:
     from torchsoil.synth.record import make_recording
 
     stats = make_recording(args.scenario, args.out, args.seed, args.dx, args.storage, not args.no_compress,
-                           args.duration, args.columns, args.organized or None, progress=True)
+                           args.duration, args.columns, args.organized or None, progress=True,
+                           convention=args.convention)
     print(json.dumps({k: round(v, 3) for k, v in stats.items()}))
     return 0
 

@@ -134,6 +134,17 @@ class EstimatorConfig(Section):
 
 
 # ---------------------------------------------------------------------------- pipeline
+class TopicTime(Section):
+    """How one lidar topic times its points (torchsoil.io.pointtime); 'auto' reads it from the values."""
+
+    time_field: str = Field("auto", description="per-point time field: auto (t, time or timestamp), a name, "
+                                                "or none (already de-skewed)")
+    time_unit: Literal["auto", "s", "ms", "us", "ns"] = Field("auto", description="unit of the time field")
+    time_base: Literal["auto", "stamp", "absolute"] = Field("auto", description="times relative to the header "
+                                                                                "stamp, or absolute")
+    stamp: Literal["auto", "start", "end"] = Field("auto", description="where the header stamp sits in the sweep")
+
+
 class ReadConfig(Section):
     """Topics and frames of a recording."""
 
@@ -153,6 +164,9 @@ class ReadConfig(Section):
                 raise ValueError(f"{frame}: need 6 finite numbers [x, y, z, roll, pitch, yaw] (m, rad), "
                                  f"got {list(xyzrpy)}")
         return v
+
+    times: dict[str, TopicTime] = Field(default_factory=dict, description="{topic: {time_field, time_unit, "
+                                        "time_base, stamp}} per-point time convention (default: all auto)")
 
 
 class MappingConfig(Section):

@@ -322,4 +322,132 @@ def livox(n: int = 960, lines: int = 4, no_return: float = 0.1, seed: int = 4,
                        "first point (base_time); timestamp: float64 absolute ns")
 
 
-DRIVERS = {"ouster": ouster, "velodyne": velodyne, "hesai": hesai, "robosense": robosense, "livox": livox}
+
+
+# ------------------------------------------------------------------------ Livox CustomMsg
+# Livox-SDK/livox_ros_driver2 msg/CustomMsg.msg and msg/CustomPoint.msg, verbatim fields
+LIVOX_CUSTOM_MSG = """std_msgs/Header header    # ROS standard message header
+uint64 timebase           # The time of first point
+uint32 point_num          # Total number of pointclouds
+uint8  lidar_id           # Lidar device id number
+uint8[3]  rsvd            # Reserved use
+CustomPoint[] points      # Pointcloud data
+"""
+LIVOX_CUSTOM_POINT = """uint32 offset_time      # offset time relative to the base time
+float32 x               # X axis, unit:m
+float32 y               # Y axis, unit:m
+float32 z               # Z axis, unit:m
+uint8 reflectivity      # reflectivity, 0~255
+uint8 tag               # livox tag
+uint8 line              # laser number in lidar
+"""
+LIVOX_CUSTOM = "livox_ros_driver2/msg/CustomMsg"
+
+
+def _register_livox():
+    from rosbags.typesys import get_types_from_msg
+
+    types = get_types_from_msg(LIVOX_CUSTOM_POINT, "livox_ros_driver2/msg/CustomPoint")
+    types.update(get_types_from_msg(LIVOX_CUSTOM_MSG.replace("CustomPoint[]", "livox_ros_driver2/CustomPoint[]"),
+                                    LIVOX_CUSTOM))
+    TYPESTORE.register(types)
+
+
+_register_livox()
+
+
+def livox_custom(n: int = 960, lines: int = 4, no_return: float = 0.1, seed: int = 5,
+                 base_ns: int = 1_700_000_050_300_000_000, frame: str = "livox_frame") -> DriverCloud:
+    """livox_ros_driver2 CustomMsg output (xfer_format 1): src/lddc.cpp PublishCustomPointcloud
+    sets timebase = the packet's base_time (ns of the first point), header.stamp =
+    rclcpp::Time(timebase), point_num, lidar_id, and per point offset_time = point time -
+    base_time (uint32 ns), x, y, z, reflectivity, tag, line; zero-depth returns stay as
+    x = y = z = 0. `points` here is a structured array of what was written (offset_time, x,
+    y, z); msgtype: LIVOX_CUSTOM.
+    """
+    rng = np.random.default_rng(seed)
+    az, el, r = rng.uniform(0, 2 * math.pi, n), np.radians(rng.uniform(-7, 52, n)), rng.uniform(1.0, 40.0, n)
+    xyz = np.stack([r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)], 1).astype(np.float32)
+    hit = rng.random(n) >= no_return
+    hit[0] = True
+    xyz[~hit] = 0.0
+    off = (np.arange(n) * (int(SWEEP * 1e9) // n)).astype(np.uint32)
+    P = TYPESTORE.types["livox_ros_driver2/msg/CustomPoint"]
+    pts = [P(offset_time=int(o), x=float(p[0]), y=float(p[1]), z=float(p[2]), reflectivity=int(rng.integers(0, 255)),
+             tag=0 if h else 0x30, line=k % lines) for k, (o, p, h) in enumerate(zip(off, xyz, hit, strict=True))]
+    sec, nanosec = divmod(base_ns, 1_000_000_000)
+    msg = TYPESTORE.types[LIVOX_CUSTOM](
+        header=Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=frame), timebase=base_ns, point_num=n,
+        lidar_id=1, rsvd=np.zeros(3, np.uint8), points=pts)
+    rec = np.zeros(n, [("offset_time", "<u4"), ("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    rec["offset_time"], rec["x"], rec["y"], rec["z"] = off, xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    return DriverCloud(msg, rec, hit, xyz[hit], off[hit].astype(np.float64) * 1e-9, stamp_of(sec, nanosec),
+                       "offset_time", "first point (timebase); offset_time: uint32 ns after timebase")
+
+
+TYPESTORE1 = get_typestore(Stores.ROS1_NOETIC)     # ROS 1: std_msgs/Header with its uint32 seq
+TYPESTORE1.register({k: v for k, v in TYPESTORE.fielddefs.items() if k.startswith("livox_ros_driver2/")})
+
+
+def ros1_message(msg, msgtype: str, seq: int):
+    """The same message in ROS 1 Noetic classes (a Header with seq), as a ROS 1 driver publishes it."""
+    T = TYPESTORE1.types
+    h = msg.header
+    header = T["std_msgs/msg/Header"](seq=seq, stamp=T["builtin_interfaces/msg/Time"](
+        sec=h.stamp.sec, nanosec=h.stamp.nanosec), frame_id=h.frame_id)
+    cls = T[msgtype]
+    return cls(**{f: header if f == "header" else getattr(msg, f) for f in cls.__dataclass_fields__
+                  if f != "__msgtype__"})
+
+
+def sweep_at(driver: str, start_ns: int, seed: int = 0, **kw) -> DriverCloud:
+    """A sweep of `driver` whose first point is captured at `start_ns` (integer ns), written with
+    that driver's stamp convention ("robosense_last": the last-point stamp; "velodyne": the
+    last firing sits at the stamp)."""
+    sec, nanosec = divmod(start_ns, 1_000_000_000)
+    if driver == "ouster":
+        return ouster(sec=sec, nanosec=nanosec, seed=seed, **kw)
+    if driver == "velodyne":   # first firing 1/48 sweep after the stamp - 0.1 s
+        end = start_ns - int(SWEEP * 1e9) // 48 + int(SWEEP * 1e9)
+        return velodyne(sec=end // 1_000_000_000, nanosec=end % 1_000_000_000, seed=seed, **kw)
+    if driver == "hesai":
+        return hesai(start=start_ns * 1e-9, seed=seed, **kw)
+    if driver.startswith("robosense"):
+        return robosense(start=start_ns * 1e-9, seed=seed, stamp_at="last" if driver.endswith("last") else "first",
+                         **kw)
+    if driver == "livox":
+        return livox(base_ns=start_ns, seed=seed, **kw)
+    if driver == "livox_custom":
+        return livox_custom(base_ns=start_ns, seed=seed, **kw)
+    raise ValueError(driver)
+
+
+def msgtype(c: DriverCloud) -> str:
+    return LIVOX_CUSTOM if hasattr(c.msg, "timebase") else "sensor_msgs/msg/PointCloud2"
+
+
+def write_bag(path, topics: dict, storage: str = "sqlite3"):
+    """A bag with rosbags' own writer and serializer: {topic: [DriverCloud, ...]} (ROS 2
+    sqlite3 / mcap, or ROS 1 when `storage` is "ros1"); bag time = header stamp + 10 ms."""
+    msgs = sorted(((c.stamp, topic, c) for topic, cs in topics.items() for c in cs), key=lambda m: m[0])
+    if storage == "ros1":
+        from rosbags.rosbag1 import Writer as Writer1
+
+        with Writer1(path) as w:
+            conns = {t: w.add_connection(t, msgtype(cs[0]), typestore=TYPESTORE1) for t, cs in topics.items()}
+            for seq, (stamp, topic, c) in enumerate(msgs):
+                w.write(conns[topic], int(round(stamp * 1e9)) + 10_000_000,
+                        TYPESTORE1.serialize_ros1(ros1_message(c.msg, msgtype(c), seq), msgtype(c)))
+        return path
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        conns = {topic: w.add_connection(topic, msgtype(cs[0]), typestore=TYPESTORE) for topic, cs in topics.items()}
+        for stamp, topic, c in msgs:
+            w.write(conns[topic], int(round(stamp * 1e9)) + 10_000_000, TYPESTORE.serialize_cdr(c.msg, msgtype(c)))
+    return path
+
+
+DRIVERS = {"ouster": ouster, "velodyne": velodyne, "hesai": hesai, "robosense": robosense, "livox": livox,
+           "livox_custom": livox_custom}

@@ -15,7 +15,7 @@ def sweeps(n=3, seed=0, front="/lidar_front/points", back="/lidar_back/points"):
     pts, out = [], []
     for k in range(n):
         xyz = rng.normal(size=(32, 3)).astype(np.float32)
-        t = np.arange(32, dtype=np.uint32) * 1000
+        t = np.arange(32, dtype=np.uint32) * 3_000_000     # ns: a 0.1 s sweep
         pts.append(xyz)
         out.append((front, encode(xyz, t, 50 + 0.1 * k, "lidar_front", height=4)))
         out.append((back, encode(-xyz, t, 50.05 + 0.1 * k, "lidar_back", big_endian=True)))

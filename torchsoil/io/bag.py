@@ -16,7 +16,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from torchsoil.io.pointcloud import Cloud, decode
+from torchsoil.io.pointcloud import LIVOX_CUSTOM, Cloud, parse_livox, register_livox
+from torchsoil.io.pointtime import PointTimeError, check_clock_domains
+from torchsoil.io.stream import SweepStream
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
@@ -34,6 +36,8 @@ class Recording:
     extrinsics: frame name -> (4, 4) float64 pose of that frame in `base_frame`.
     problems: human-readable notes on skipped or suspicious messages (topic, index, time).
     start, end: first and last message time in the bag, s.
+    conventions: topic -> how its point times and stamps were read (sweep stamps are moved
+    to the sweep start, torchsoil.io.stream).
     """
 
     front: list[Cloud]
@@ -42,6 +46,7 @@ class Recording:
     problems: list[str] = field(default_factory=list)
     start: float = 0.0
     end: float = 0.0
+    conventions: dict[str, str] = field(default_factory=dict)
 
     @property
     def duration(self) -> float:
@@ -89,7 +94,9 @@ def _open(path: Path):
 
     if not path.exists():
         raise FileNotFoundError(f"recording not found: {path}")
-    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    typestore = get_typestore(Stores.ROS2_HUMBLE)
+    register_livox(typestore)
+    reader = AnyReader([path], default_typestore=typestore)
     try:
         reader.open()
     except Exception as e:  # rosbags raises several reader-specific errors
@@ -98,35 +105,37 @@ def _open(path: Path):
     return reader
 
 
-def _check_topic(reader, path: Path, topic: str, msgtype: str):
+def _check_topic(reader, path: Path, topic: str, msgtype: str | tuple[str, ...]):
     conns = [c for c in reader.connections if c.topic == topic]
     if not conns:
         have = sorted({f"{c.topic} [{c.msgtype}]" for c in reader.connections})
         raise BagError(f"{path}: topic '{topic}' not found; the bag holds: {have}")
-    wrong = [c.msgtype for c in conns if c.msgtype != msgtype]
+    ok = (msgtype,) if isinstance(msgtype, str) else msgtype
+    wrong = [c.msgtype for c in conns if c.msgtype not in ok]
     if wrong:
-        raise BagError(f"{path}: topic '{topic}' has type {wrong[0]}, expected {msgtype}")
+        raise BagError(f"{path}: topic '{topic}' has type {wrong[0]}, expected {' or '.join(ok)}")
     return conns
 
 
 def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
                    back_topic: str = "/lidar_back/points", tf_topic: str = "/tf_static",
                    base_frame: str = "base_link", require_tf: bool = False,
-                   progress: Callable[[int], None] | None = None) -> Recording:
+                   progress: Callable[[int], None] | None = None, times: dict | None = None) -> Recording:
     """Read both lidar streams and the static extrinsics of a bag.
 
     Args:
         path: ROS 2 bag directory (sqlite3 or mcap) or ROS 1 `.bag` file.
-        front_topic, back_topic: PointCloud2 topics.
+        front_topic, back_topic: PointCloud2 (or Livox CustomMsg) topics.
         tf_topic: TFMessage topic with the static extrinsics; may be absent unless
             `require_tf` (the caller then supplies extrinsics itself).
         base_frame: frame the extrinsics are expressed in.
         progress: called with the number of messages read since the last call.
+        times: {topic: torchsoil.settings.TopicTime} per-point time conventions (default auto).
     """
     path = Path(path)
     reader = _open(path)
     try:
-        conns = {name: _check_topic(reader, path, topic, POINTCLOUD2)
+        conns = {name: _check_topic(reader, path, topic, (POINTCLOUD2, *LIVOX_CUSTOM))
                  for name, topic in (("front", front_topic), ("back", back_topic))}
         tf_conns = [c for c in reader.connections if c.topic == tf_topic]
         if tf_conns:
@@ -139,6 +148,7 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
         tf_ids = {c.id for c in tf_conns}
         edges: dict[str, tuple[str, np.ndarray]] = {}
         counts = {"front": 0, "back": 0}
+        streams = {name: SweepStream(topic, (times or {}).get(topic)) for name, topic in topic_of.items()}
         wanted = [c for cs in conns.values() for c in cs] + list(tf_conns)
         it = reader.messages(connections=wanted)
         while True:
@@ -166,13 +176,16 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             index = counts[name]
             counts[name] += 1
             try:
-                cloud = decode(reader.deserialize(raw, conn.msgtype))
+                msg = parse_livox(raw, not reader.is2) if conn.msgtype in LIVOX_CUSTOM else \
+                    reader.deserialize(raw, conn.msgtype)
+                streams[name].add(msg, conn.msgtype, index, stamp * 1e-9)
+            except PointTimeError as e:
+                raise BagError(f"{path}: {e}") from None
             except Exception as e:
                 rec.problems.append(f"{topic_of[name]} sweep {index} at t={stamp * 1e-9:.3f} s "
                                     f"skipped: cannot decode ({type(e).__name__}: {e})")
-                continue
-            getattr(rec, name).append(cloud)
         rec.extrinsics = resolve_frames(edges, base_frame)
+        _finish_streams(rec, streams, path)
     finally:
         reader.close()
     for name in ("front", "back"):
@@ -181,8 +194,21 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
         if not getattr(rec, name):
             raise BagError(f"{path}: none of the {counts[name]} sweeps on '{topic_of[name]}' "
                            f"could be decoded; first problem: {rec.problems[0]}")
-        getattr(rec, name).sort(key=lambda c: c.stamp)
     return rec
+
+
+def _finish_streams(rec: Recording, streams: dict[str, SweepStream], path: Path) -> None:
+    """The streams' sweeps, conventions and notes into `rec`; BagError when the times of a
+    stream cannot be understood or the two streams are stamped in different clocks."""
+    try:
+        for name, s in streams.items():
+            setattr(rec, name, s.finish())
+            rec.problems += s.problems + [n for n in [s.note()] if n]
+            if s.convention is not None:
+                rec.conventions[s.topic] = s.convention.describe()
+        check_clock_domains({s.topic: np.array([c.stamp for c in s.clouds]) for s in streams.values()})
+    except PointTimeError as e:
+        raise BagError(f"{path}: {e}") from None
 
 
 def count_messages(path: str | Path, topics: list[str]) -> int:

@@ -147,7 +147,7 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     total = count_messages(bag_path, [cfg.read.front_topic, cfg.read.back_topic]) \
         if progress else None
     rec = read_recording(bag_path, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
-                         cfg.read.base_frame, progress=bar("read", total))
+                         cfg.read.base_frame, progress=bar("read", total), times=cfg.read.times)
     frames = [rec.front[0].frame, rec.back[0].frame]
     ext = extrinsics_for(rec, cfg.read, frames)
     front = _to_base(rec.front, ext[frames[0]])

@@ -97,6 +97,12 @@ class BagWriter:
         conn = self._conn(topic, "sensor_msgs/msg/PointCloud2")
         self.writer.write(conn, int(log_ns), TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
 
+    def write_message(self, topic: str, msgtype: str, msg, log_ns: int) -> None:
+        """Any message of a type TYPESTORE knows, or its CDR bytes (e.g. a cloud in another driver's layout)."""
+        conn = self._conn(topic, msgtype)
+        raw = msg if isinstance(msg, bytes) else TYPESTORE.serialize_cdr(msg, msgtype)
+        self.writer.write(conn, int(log_ns), raw)
+
     def write_tf_static(self, transforms, stamp_ns: int) -> None:
         msg = tf_message(transforms, stamp_ns)
         conn = self._conn("/tf_static", "tf2_msgs/msg/TFMessage", (TF_STATIC_QOS,))

@@ -23,6 +23,7 @@ import yaml
 from torchsoil.settings import SynthConfig, merge, validate
 from torchsoil.synth import effects as fx
 from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter
+from torchsoil.synth.conventions import driver_message, driver_of
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
 from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth
 
@@ -97,7 +98,7 @@ def with_lidar(scenario: SynthConfig, columns: int | None = None, organized: boo
 def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, seed: int = 0,
                    dx: float = 0.02, storage: str = "mcap", compress: bool = True,
                    duration: float | None = None, columns: int | None = None,
-                   organized: bool | None = None, progress: bool = False) -> dict:
+                   organized: bool | None = None, progress: bool = False, convention: str = "ouster") -> dict:
     """Write the bag directory `out` and its sidecar files (module docstring).
 
     scenario: a shipped name, a YAML path, a dict or a SynthConfig (see
@@ -105,11 +106,14 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     cell edge, m; storage: mcap or sqlite3; compress: mcap zstd chunk compression;
     duration: record only the first `duration` s of the drive (default: all of it);
     columns, organized: override the scenario's lidar settings (organized: full (beams,
-    columns) clouds with NaN for no return instead of the returns only). Returns a dict of
-    figures (timings [s], bag size [MB], number of sweeps and points)."""
+    columns) clouds with NaN for no return instead of the returns only); convention: the
+    lidar driver layout and stamp convention the sweeps are written in (synth.conventions:
+    ouster, velodyne, hesai, robosense_start, robosense_end, livox, livox_custom, mixed).
+    Returns a dict of figures (timings [s], bag size [MB], number of sweeps and points)."""
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"bag output {out} already exists; remove it or choose another path")
+    driver_of(convention, "lidar_front")   # an unknown convention fails before any work
     t0 = time.perf_counter()
     scn = with_lidar(load_scenario(scenario), columns, organized)
     truth = build_truth(scn, seed, dx)
@@ -131,7 +135,8 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
         for ts, s, pts in iter_sweeps(truth, seed, duration):
             stamp_ns = T0_NS + int(round(ts * 1e9))
             n_points += int(np.isfinite(pts["x"]).sum())
-            bag.write_cloud(f"/{s.name}/points", s.name, pts, stamp_ns, stamp_ns + int(round(period * 1e9)))
+            msgtype, msg = driver_message(pts, s.name, stamp_ns, driver_of(convention, s.name))
+            bag.write_message(f"/{s.name}/points", msgtype, msg, stamp_ns + int(round(period * 1e9)))
             if bar is not None:
                 bar.update(1)
     if bar is not None:
