@@ -83,8 +83,9 @@ def test_every_command_that_takes_a_bag_takes_the_same_recording_options(tmp_pat
     from torchsoil.cli import _bag_settings, parser
 
     for cmd in BAG_COMMANDS:
-        args = parser().parse_args([cmd, "in.bag", "--out", "o", "--robot", "r", "--front-topic", "/os1/points", "--back-topic",
-                                    "/vlp/points", "--imu-topic", "none", "--set", "pipeline.raster.dx=0.05",
+        args = parser().parse_args([cmd, "in.bag", "--out", "o", "--robot", "r", "--front-topic", "/os1/points",
+                                    "--back-topic", "/vlp/points", "--imu-topic", "none",
+                                    "--set", "pipeline.raster.dx=0.05",
                                     "--extrinsic", "/vlp/points", "-1", "0", "1", "0", "0.5", "3.14"])
         settings, given = _bag_settings(args)
         read = settings.pipeline.read

@@ -4,7 +4,7 @@ slashes, two lidars in one frame, and per-topic extrinsics."""
 
 import numpy as np
 import pytest
-from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
 from torchsoil.io.bag import BagError, read_recording
@@ -109,7 +109,8 @@ def test_chain_split_over_tf_static_and_tf_composes(tmp_path):
         ("/tf_static", "tf2_msgs/msg/TFMessage", 9.9, tf(ts, 9.9, [
             ("base_link", "os_sensor", [1, 0, 1], [0, 0, np.pi / 2]),
             ("base_link", "lidar_back", [-1, 0, 1], [0, 0, np.pi])])),
-        ("/tf", "tf2_msgs/msg/TFMessage", 9.95, tf(ts, 9.95, [("os_sensor", "os_lidar", [0, 0, 0.036], [0, 0, np.pi])])),
+        ("/tf", "tf2_msgs/msg/TFMessage", 9.95,
+         tf(ts, 9.95, [("os_sensor", "os_lidar", [0, 0, 0.036], [0, 0, np.pi])])),
         # a moving frame on /tf does no harm
         ("/tf", "tf2_msgs/msg/TFMessage", 10.0, tf(ts, 10.0, [("odom", "base_link", [5, 5, 0], [0, 0, 1])]))]
     rec = read_recording(write(tmp_path / "r", msgs))

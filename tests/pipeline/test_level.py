@@ -34,7 +34,7 @@ def side_slope(tmp_path_factory):
 def world_tilt_deg(res, truth) -> float:
     """Angle between the pipeline world's z axis and gravity (the truth world's z), deg."""
     est = rows_to_poses(res.terrain.poses)
-    A = truth_poses(truth, res.terrain.poses[:, :1])[0] @ np.linalg.inv(est[0])
+    A = truth_poses(truth, res.terrain.poses[:1, 0])[0] @ np.linalg.inv(est[0])
     return float(np.degrees(np.arccos(np.clip(A[2, 2], -1, 1))))
 
 
