@@ -51,11 +51,10 @@ def gravity_from_imu(stamps: np.ndarray, poses: np.ndarray, imu: ImuData, base_T
     """
     t0 = stamps[0]
     t1 = min(t0 + window, stamps[-1])
-    h = min(0.3, (t1 - t0) / 4)
+    h = min(0.5, (t1 - t0) / 3)
     if h <= 0:
         raise ValueError("the trajectory is too short to level by the IMU")
-    P = interpolate_poses(stamps, poses, np.array([t0, t0 + h, t1 - h, t1]))
-    v0, v1 = (P[1, :3, 3] - P[0, :3, 3]) / h, (P[3, :3, 3] - P[2, :3, 3]) / h
+    v0, v1 = (_velocity(stamps, poses, lo, lo + h) for lo in (t0, t1 - h))
     a, b = t0 + h / 2, t1 - h / 2
     sel = (imu.t >= a) & (imu.t <= b)
     if sel.sum() < 10:
@@ -70,6 +69,14 @@ def gravity_from_imu(stamps: np.ndarray, poses: np.ndarray, imu: ImuData, base_T
                          f"sweep's base_link, not about {G:.2f} m/s^2 downwards: is linear_acceleration in "
                          f"m/s^2 and the extrinsic of frame '{imu.frame}' right?")
     return g
+
+
+def _velocity(stamps: np.ndarray, poses: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(3,) mean velocity [m/s] over [lo, hi] s: the slope of a line fitted to the positions
+    there (steadier than a difference of two poses)."""
+    t = np.linspace(lo, hi, 11)
+    p = interpolate_poses(stamps, poses, t)[:, :3, 3]
+    return np.polyfit(t - t.mean(), p, 1)[0]
 
 
 def gravity_from_ground(points: np.ndarray, normals: np.ndarray, radius: float) -> np.ndarray:
