@@ -74,3 +74,37 @@ def test_the_package_data_pattern_ships_every_robot_and_scenario():
     files = {p for p in (root / "configs").rglob("*") if p.is_file()}
     assert files and files == shipped
     assert (root / "configs" / "robot" / "paper_platform.yaml") in shipped
+
+
+BAG_COMMANDS = ("estimate", "process-bag", "diagnose", "ablation")
+
+
+def test_every_command_that_takes_a_bag_takes_the_same_recording_options(tmp_path):
+    from torchsoil.cli import _bag_settings, parser
+
+    for cmd in BAG_COMMANDS:
+        args = parser().parse_args([cmd, "in.bag", "--out", "o", "--robot", "r", "--front-topic", "/os1/points",
+                                    "--back-topic", "/vlp/points", "--imu-topic", "none",
+                                    "--set", "pipeline.raster.dx=0.05",
+                                    "--extrinsic", "/vlp/points", "-1", "0", "1", "0", "0.5", "3.14"])
+        settings, given = _bag_settings(args)
+        read = settings.pipeline.read
+        assert (read.front_topic, read.back_topic, read.imu_topic) == ("/os1/points", "/vlp/points", "none"), cmd
+        assert settings.pipeline.raster.dx == 0.05
+        assert given == {"/vlp/points": [-1.0, 0.0, 1.0, 0.0, 0.5, 3.14]}
+
+
+def test_the_recording_options_reach_the_pipeline_of_every_command(tmp_path, capsys):
+    """A topic the bag does not hold, given on the command line, stops each command with the
+    topic named; a non-number in --extrinsic is named too."""
+    from tests.pipeline.toyscene import ToyScene
+
+    bag = tmp_path / "bag"
+    ToyScene(columns=64).write(bag, 0.3)
+    for cmd in BAG_COMMANDS:
+        out = tmp_path / cmd
+        assert main([cmd, str(bag), "--robot", "paper_platform", "--out", str(out), "--back-topic", "/rear"]) == 2
+        assert "'/rear' not found" in capsys.readouterr().err, cmd
+    assert main(["process-bag", str(bag), "--robot", "paper_platform", "--out", str(tmp_path / "x"),
+                 "--extrinsic", "lidar_front", "1", "0", "1", "0", "0", "yaw"]) == 2
+    assert "--extrinsic lidar_front: X Y Z ROLL PITCH YAW must be numbers" in capsys.readouterr().err

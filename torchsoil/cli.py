@@ -3,7 +3,8 @@
     torchsoil estimate [INPUT] [--robot NAME|PATH] [--out DIR] [--config YAML] [--set KEY=VALUE]
     torchsoil process-bag BAG --robot NAME|PATH --out DIR
     torchsoil diagnose INPUT --out DIR
-    torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]]
+    (each command that takes a bag also: --front-topic, --back-topic, --imu-topic, --extrinsic)
+    torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]] [--convention C] [--no-imu]
     torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR]
     torchsoil rollout --out DIR
     torchsoil bench [--only sim estimator] [--quick]
@@ -33,6 +34,22 @@ def _settings_options(p: argparse.ArgumentParser) -> None:
                    help="override one setting, e.g. estimator.window=1.0 (repeatable)")
 
 
+def _bag_options(p: argparse.ArgumentParser) -> None:
+    """The options of every command that takes a recording: pipeline settings (--config, --set),
+    topics and extrinsics (read by `_bag_settings`)."""
+    _settings_options(p)
+    g = p.add_argument_group("recording", "how a bag is read (FORMATS.md sections 1-2; ignored for a terrain pair)")
+    g.add_argument("--front-topic", metavar="TOPIC", help="front lidar PointCloud2 topic (= --set "
+                                                          "pipeline.read.front_topic=TOPIC)")
+    g.add_argument("--back-topic", metavar="TOPIC", help="back lidar PointCloud2 topic")
+    g.add_argument("--imu-topic", metavar="TOPIC", help="sensor_msgs/msg/Imu topic levelling the world frame "
+                                                        "(default: the bag's only one); none: level by the ground")
+    g.add_argument("--extrinsic", nargs=7, action="append", default=[],
+                   metavar=("FRAME|TOPIC", "X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                   help="a lidar's (or the IMU's) pose in base_link (m, rad), by frame or by topic, overriding "
+                        "the recording's and the robot YAML's (repeatable)")
+
+
 def _job_options(p: argparse.ArgumentParser, threads: int | None = 1) -> None:
     p.add_argument("--threads", type=int, default=threads,
                    help=f"torch intra-op threads for the run (default {threads})")
@@ -59,7 +76,7 @@ def parser() -> argparse.ArgumentParser:
                                             "(default: the bundled demo recording of a source checkout)")
     _robot_option(p, extra=" (default: the demo's, or the pair's own wheels)")
     p.add_argument("--out", help="output directory (default: out/<input name>)")
-    _settings_options(p)
+    _bag_options(p)
     p.add_argument("--grad", choices=["autograd", "fd"], help="= --set estimator.grad=...")
     p.add_argument("--merged-sinkage", action="store_true", help="ablation: one sinkage for all tracks")
     p.add_argument("--capped", type=int, metavar="N", help="ablation: relaxation capped at N iterations")
@@ -70,17 +87,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("bag", type=Path, help="ROS 2 bag directory or ROS 1 .bag file")
     _robot_option(p, required=True)
     p.add_argument("--out", type=Path, required=True, help="output directory")
-    _settings_options(p)
+    _bag_options(p)
     p.add_argument("--no-reregister", action="store_true", help="ablation: rasterize with T_ref")
-    p.add_argument("--extrinsic", nargs=7, action="append", default=[],
-                   metavar=("FRAME", "X", "Y", "Z", "ROLL", "PITCH", "YAW"),
-                   help="a lidar's pose in base_link (m, rad), overriding the recording's")
 
     p = sub.add_parser("diagnose", help="locate model mismatch, name the missing physics, show the fit improve")
     p.add_argument("input", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag)")
     p.add_argument("--out", required=True, help="output directory")
     _robot_option(p, extra=" (needed for a recording; default for a pair: its own wheels)")
-    _settings_options(p)
+    _bag_options(p)
     p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
     _job_options(p)
 
@@ -101,6 +115,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--convention", default="ouster",
                    help="lidar driver layout and stamp convention of the sweeps: ouster, velodyne, hesai, "
                         "robosense_start, robosense_end, livox, livox_custom, mixed (front ouster, back velodyne)")
+    p.add_argument("--no-imu", action="store_true", help="no IMU topic (/imu/data) in the bag")
 
     p = sub.add_parser("rollout", help="scripted policies on the soil-traverse environment (damage vs time)")
     p.add_argument("--config", default=None, help="env settings YAML (the env section)")
@@ -115,10 +130,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="fewer sizes and repeats")
 
     p = sub.add_parser("ablation", help="the paper's ablation table (proposed, merged sinkage, capped relaxation)")
-    p.add_argument("input")
+    p.add_argument("input", help="rosbag or terrain-pair .npz")
     _robot_option(p)
     p.add_argument("--out", required=True)
-    _settings_options(p)
+    _bag_options(p)
     p.add_argument("--threads", type=int, default=1)
 
     p = sub.add_parser("study", help="confusion table of the diagnosis over drives with known truth (long: "
@@ -168,6 +183,21 @@ def _settings(args, extra: list[str] = ()):
     return load_settings(*args.config, overrides=[*args.set, *extra])
 
 
+def _bag_settings(args, extra: list[str] = ()):
+    """Settings with the topic options applied, and the --extrinsic poses {frame or topic:
+    [x, y, z, roll, pitch, yaw]} (m, rad), of a command with `_bag_options`."""
+    topics = [f"pipeline.read.{k}_topic={v}" for k in ("front", "back", "imu")
+              if (v := getattr(args, f"{k}_topic")) is not None]
+    given = {}
+    for name, *values in args.extrinsic:
+        try:
+            given[name] = [float(v) for v in values]
+        except ValueError:
+            raise ValueError(f"--extrinsic {name}: X Y Z ROLL PITCH YAW must be numbers (m, rad), got "
+                             f"{' '.join(values)}") from None
+    return _settings(args, [*topics, *extra]), given
+
+
 def _robot(name_or_path):
     from torchsoil.robot import load_robot
 
@@ -196,7 +226,7 @@ def cmd_estimate(args) -> int:
     extra = [f"estimator.grad={args.grad}"] if args.grad else []
     extra += ["estimator.merged_sinkage=true"] if args.merged_sinkage else []
     extra += [f"sim.fixed_iter={args.capped}"] if args.capped else []
-    settings = _settings(args, extra)
+    settings, given = _bag_settings(args, extra)
     robot_arg = args.robot
     if args.input:
         source = Path(args.input)
@@ -210,7 +240,8 @@ def cmd_estimate(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     out = Path(args.out) if args.out else Path("out") / (source.stem if args.input else "demo")
     estimate(source, out, settings, robot=_robot(robot_arg), resume=args.resume, overwrite=args.overwrite,
-             tensorboard=not args.no_tensorboard, robot_yaml=_robot_yaml(robot_arg), threads=args.threads)
+             tensorboard=not args.no_tensorboard, robot_yaml=_robot_yaml(robot_arg), threads=args.threads,
+             extrinsics=given)
     print(f"wrote {out}: params.csv, summary.md, fig4_parameters.png, fig6_difference_maps.png, tensorboard/")
     print((out / "summary.md").read_text())
     return 0
@@ -221,8 +252,7 @@ def cmd_process_bag(args) -> int:
     from torchsoil.runner import pipeline_settings
 
     extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
-    settings = _settings(args, extra)
-    given = {frame: [float(v) for v in values] for frame, *values in args.extrinsic}
+    settings, given = _bag_settings(args, extra)
     cfg = pipeline_settings(settings, _robot_yaml(args.robot), given)
     result = process_bag(args.bag, _robot(args.robot), cfg, progress=True)
     for p in result.problems:
@@ -237,11 +267,12 @@ def cmd_process_bag(args) -> int:
 def cmd_diagnose(args) -> int:
     from torchsoil.diagnosis.job import diagnose_input
 
-    settings = _settings(args, [f"diagnosis.n_fit={args.n_fit}"] if args.n_fit is not None else [])
+    settings, given = _bag_settings(args, [f"diagnosis.n_fit={args.n_fit}"] if args.n_fit is not None else [])
     if not Path(args.input).exists():
         raise FileNotFoundError(f"input not found: {args.input}")
     summary = diagnose_input(args.input, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
-                             overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads)
+                             overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads,
+                             extrinsics=given)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
 
@@ -264,7 +295,7 @@ def cmd_record(args) -> int:
 
     stats = make_recording(args.scenario, args.out, args.seed, args.dx, args.storage, not args.no_compress,
                            args.duration, args.columns, args.organized or None, progress=True,
-                           convention=args.convention)
+                           convention=args.convention, imu=not args.no_imu)
     print(json.dumps({k: round(v, 3) for k, v in stats.items()}))
     return 0
 
@@ -323,9 +354,10 @@ def cmd_ablation(args) -> int:
 
     runs = {}
     for name, overrides in VARIANTS.items():
-        runs[name] = estimate(args.input, Path(args.out) / name, _settings(args, overrides), robot=_robot(args.robot),
+        settings, given = _bag_settings(args, overrides)
+        runs[name] = estimate(args.input, Path(args.out) / name, settings, robot=_robot(args.robot),
                               tensorboard=False, robot_yaml=_robot_yaml(args.robot), threads=args.threads,
-                              overwrite=False)
+                              overwrite=False, extrinsics=given)
     table = ablation_table(runs)
     (Path(args.out) / "ablation.md").write_text(table + "\n")
     print(table)

@@ -30,8 +30,8 @@ OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_p
 def pipeline_settings(settings: Settings, robot_yaml: str | Path | None,
                       extrinsics: dict[str, list[float]] | None = None) -> PipelineConfig:
     """The pipeline section with the robot YAML's `lidars:` extrinsics added, then
-    `extrinsics` ({frame: [x, y, z, roll, pitch, yaw]}, m, rad); each overrides the ones
-    before it for the frames it names."""
+    `extrinsics` ({frame or topic: [x, y, z, roll, pitch, yaw]}, m, rad); each overrides the
+    ones before it for the frames or topics it names."""
     extra = {}
     if robot_yaml:
         from torchsoil.pipeline.run import extrinsics_from_robot_yaml
@@ -100,17 +100,18 @@ def torch_threads(n: int | None):
 def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
              robot: Robot | None = None, resume: bool = False, overwrite: bool = False,
              tensorboard: bool = True, progress: bool = True, robot_yaml: str | Path | None = None,
-             threads: int | None = None) -> Path:
+             threads: int | None = None, extrinsics: dict[str, list[float]] | None = None) -> Path:
     """Run the sliding-window estimator on a recording or terrain pair; returns out_dir.
 
     out_dir/run.json records the input's identity, the robot and the settings; an out_dir
     holding another run is refused (`provenance.OutputMismatch`) unless `overwrite`, and
     `resume` continues only the same run. robot_yaml may carry lidar extrinsics (`lidars:`
-    key); threads: torch intra-op threads during the run (restored after; None: unchanged).
+    key); extrinsics: {frame or topic: [x, y, z, roll, pitch, yaw]} (m, rad) over those;
+    threads: torch intra-op threads during the run (restored after; None: unchanged).
     """
     settings = settings or Settings()
     out = Path(out_dir)
-    pipeline = pipeline_settings(settings, robot_yaml)
+    pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
     record = run_record("estimate", input_path, settings, pipeline, robot, ("sim", "estimator"))
     provenance.claim(out, record, resume=resume, overwrite=overwrite, outputs=OUTPUTS)
     pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))

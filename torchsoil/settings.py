@@ -150,11 +150,13 @@ class ReadConfig(Section):
 
     front_topic: str = Field("/lidar_front/points", description="front lidar PointCloud2 topic")
     back_topic: str = Field("/lidar_back/points", description="back lidar PointCloud2 topic")
-    tf_topic: str = Field("/tf_static", description="static transforms topic")
+    tf_topic: str = Field("/tf_static", description="static transforms topic (/tf is read too)")
+    imu_topic: str = Field("", description="sensor_msgs/msg/Imu topic levelling the world frame; empty: the "
+                                           "bag's only Imu topic, if any; none: no IMU")
     base_frame: str = Field("base_link", description="robot body frame")
     extrinsics: dict[str, tuple[float, ...]] = Field(
-        default_factory=dict, description="{frame: [x, y, z, roll, pitch, yaw]} in base_frame (m, rad), "
-                                          "overriding the recording's transforms")
+        default_factory=dict, description="{frame or topic: [x, y, z, roll, pitch, yaw]} in base_frame (m, "
+                                          "rad), overriding the recording's transforms")
 
     @field_validator("extrinsics")
     @classmethod
@@ -229,11 +231,22 @@ class RasterConfig(Section):
                                                        "wheels' plus this, m")
 
 
+class LevelConfig(Section):
+    """Levelling of the world frame (base_link at the first sweep) to gravity."""
+
+    source: Literal["auto", "imu", "ground", "none"] = Field(
+        "auto", description="auto: the IMU if the bag has one, else the ground; imu; ground: the mean ground "
+                            "plane near the start; none: not levelled")
+    window: float = Field(2.0, gt=0, description="IMU samples averaged from the first sweep on, s")
+    radius: float = Field(6.0, gt=0, description="ground within this distance of the start is fitted, m")
+
+
 class PipelineConfig(Section):
     """The lidar pipeline (paper section III), one section per stage."""
 
     read: ReadConfig = ReadConfig()
     mapping: MappingConfig = MappingConfig()
+    level: LevelConfig = LevelConfig()
     reregister: ReregisterConfig = ReregisterConfig()
     raster: RasterConfig = RasterConfig()
 

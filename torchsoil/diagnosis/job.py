@@ -19,15 +19,17 @@ OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covar
 
 def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
                    robot: Robot | None = None, progress: bool = True, tensorboard: bool = True,
-                   overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None) -> dict:
+                   overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None,
+                   extrinsics: dict[str, list[float]] | None = None) -> dict:
     """Diagnose a terrain pair (.npz) or a recording (bag, through the lidar pipeline).
 
     Writes out_dir/run.json (what made the folder; another run's folder is refused unless
     `overwrite`), diagnosis.json, report.md, figures and TensorBoard events; returns the
-    diagnosis.json dict."""
+    diagnosis.json dict. robot_yaml (`lidars:`) and extrinsics ({frame or topic: [x, y, z,
+    roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's."""
     settings = settings or Settings()
     out = Path(out_dir)
-    pipeline = pipeline_settings(settings, robot_yaml)
+    pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
     record = run_record("diagnose", input_path, settings, pipeline, robot, ("sim", "estimator", "diagnosis"))
     provenance.claim(out, record, overwrite=overwrite, outputs=OUTPUTS)
     pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))

@@ -1,7 +1,9 @@
 """Read a recording (FORMATS.md section 1) with `rosbags`: ROS 2 (sqlite3, mcap) or ROS 1.
 
-`read_recording(path, ...)` returns the front and back sweeps decoded to numpy and the
-lidar extrinsics from `/tf_static`. A missing topic, a wrong message type or a bag that
+`read_recording(path, ...)` returns the front and back sweeps decoded to numpy, the IMU
+samples (if the bag has a `sensor_msgs/msg/Imu` topic) and the transforms of `/tf_static`
+and `/tf` merged (ROS 1 `static_transform_publisher` publishes on `/tf`), chains composed
+to `base_link`, frame ids without their leading slash. A missing topic, a wrong message type or a bag that
 cannot be opened or read to its end raises `BagError` naming the bag and the topic; a
 single message that cannot be decoded is skipped and reported in `Recording.problems`
 (its sweep index and time), so the run continues with that span flagged.
@@ -22,6 +24,8 @@ from torchsoil.io.stream import SweepStream
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
+IMU = "sensor_msgs/msg/Imu"
+TF_DYNAMIC = "/tf"
 
 
 class BagError(ValueError):
@@ -29,11 +33,34 @@ class BagError(ValueError):
 
 
 @dataclass
+class ImuData:
+    """Samples of one sensor_msgs/msg/Imu topic, in time order.
+
+    t: (N,) header stamps, s; acc: (N, 3) linear acceleration (specific force, gravity
+    included), m/s^2; gyro: (N, 3) angular velocity, rad/s; both in the IMU's frame
+    `frame` (leading slash removed); topic: where they were read.
+    """
+
+    t: np.ndarray
+    acc: np.ndarray
+    gyro: np.ndarray
+    frame: str
+    topic: str
+
+
+def frame_name(frame_id: str) -> str:
+    """A frame id as tf2 compares it: without a leading slash (`/os_sensor` = `os_sensor`)."""
+    return str(frame_id).strip().lstrip("/")
+
+
+@dataclass
 class Recording:
     """Decoded sweeps of both lidars.
 
     front, back: time-ordered sweeps (sensor frame), one Cloud each.
-    extrinsics: frame name -> (4, 4) float64 pose of that frame in `base_frame`.
+    extrinsics: frame name (no leading slash) -> (4, 4) float64 pose of that frame in
+        `base_frame`, from /tf_static and /tf.
+    imu: the IMU samples, or None when the bag has no IMU topic (or it was not asked for).
     problems: human-readable notes on skipped or suspicious messages (topic, index, time).
     start, end: first and last message time in the bag, s.
     conventions: topic -> how its point times and stamps were read (sweep stamps are moved
@@ -44,6 +71,7 @@ class Recording:
     back: list[Cloud]
     extrinsics: dict[str, np.ndarray] = field(default_factory=dict)
     problems: list[str] = field(default_factory=list)
+    imu: ImuData | None = None
     start: float = 0.0
     end: float = 0.0
     conventions: dict[str, str] = field(default_factory=dict)
@@ -73,8 +101,9 @@ def xyzrpy_matrix(xyzrpy) -> np.ndarray:
 
 
 def resolve_frames(edges: dict[str, tuple[str, np.ndarray]], base_frame: str) -> dict:
-    """Static transforms child -> (parent, parent_T_child) -> {frame: base_T_frame} for every
-    frame whose chain of parents reaches `base_frame`."""
+    """Static transforms child -> (parent, parent_T_child) -> {frame: base_T_frame} (4, 4) for
+    every frame whose chain of parents reaches `base_frame` (base_link -> os_sensor ->
+    os_lidar composes to base_T_os_lidar)."""
     out = {base_frame: np.eye(4)}
     for frame in edges:
         T, f, seen = np.eye(4), frame, set()
@@ -117,39 +146,82 @@ def _check_topic(reader, path: Path, topic: str, msgtype: str | tuple[str, ...])
     return conns
 
 
+def _imu_connections(reader, path: Path, imu_topic: str | None) -> list:
+    """Connections of the IMU topic: `imu_topic` (must exist), or with "" the bag's only
+    sensor_msgs/msg/Imu topic (none: no IMU), or none at all for None / "none"."""
+    if imu_topic is None or imu_topic.lower() == "none":
+        return []
+    if imu_topic:
+        return _check_topic(reader, path, imu_topic, IMU)
+    topics = sorted({c.topic for c in reader.connections if c.msgtype == IMU})
+    if len(topics) > 1:
+        raise BagError(f"{path}: several IMU topics {topics}; choose one with pipeline.read.imu_topic "
+                       "(--imu-topic) or none with imu_topic=none")
+    return [c for c in reader.connections if topics and c.topic == topics[0]]
+
+
+def _edges(msg) -> dict[str, tuple[str, np.ndarray]]:
+    """TFMessage -> {child: (parent, parent_T_child)}, frame ids without leading slash."""
+    out = {}
+    for tr in msg.transforms:
+        q, p = tr.transform.rotation, tr.transform.translation
+        out[frame_name(tr.child_frame_id)] = (frame_name(tr.header.frame_id), transform_matrix(
+            (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
+    return out
+
+
+def _imu_data(msgs: list, topic: str) -> ImuData:
+    """Deserialized Imu messages -> ImuData sorted by stamp."""
+    t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
+    acc = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
+                    for m in msgs], dtype=np.float64).reshape(-1, 3)
+    gyro = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z]
+                     for m in msgs], dtype=np.float64).reshape(-1, 3)
+    order = np.argsort(t, kind="stable")
+    return ImuData(t[order], acc[order], gyro[order], frame_name(msgs[0].header.frame_id), topic)
+
+
 def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
                    back_topic: str = "/lidar_back/points", tf_topic: str = "/tf_static",
                    base_frame: str = "base_link", require_tf: bool = False,
-                   progress: Callable[[int], None] | None = None, times: dict | None = None) -> Recording:
-    """Read both lidar streams and the static extrinsics of a bag.
+                   progress: Callable[[int], None] | None = None, times: dict | None = None,
+                   imu_topic: str | None = "") -> Recording:
+    """Read both lidar streams, the IMU and the extrinsics of a bag.
 
     Args:
         path: ROS 2 bag directory (sqlite3 or mcap) or ROS 1 `.bag` file.
         front_topic, back_topic: PointCloud2 (or Livox CustomMsg) topics.
-        tf_topic: TFMessage topic with the static extrinsics; may be absent unless
-            `require_tf` (the caller then supplies extrinsics itself).
+        tf_topic: TFMessage topic with the static extrinsics; `/tf` is read as well (its first
+            transform of each frame; /tf_static wins where both name a frame). Both may be
+            absent unless `require_tf` (the caller then supplies extrinsics itself).
         base_frame: frame the extrinsics are expressed in.
         progress: called with the number of messages read since the last call.
+        imu_topic: sensor_msgs/msg/Imu topic; "" the bag's only Imu topic if it has one;
+            None or "none": no IMU.
         times: {topic: torchsoil.settings.TopicTime} per-point time conventions (default auto).
     """
     path = Path(path)
+    base_frame = frame_name(base_frame)
     reader = _open(path)
     try:
         conns = {name: _check_topic(reader, path, topic, (POINTCLOUD2, *LIVOX_CUSTOM))
                  for name, topic in (("front", front_topic), ("back", back_topic))}
-        tf_conns = [c for c in reader.connections if c.topic == tf_topic]
-        if tf_conns:
-            tf_conns = _check_topic(reader, path, tf_topic, TFMESSAGE)
-        elif require_tf:
-            raise BagError(f"{path}: topic '{tf_topic}' not found and no extrinsics given")
+        present = {c.topic for c in reader.connections}
+        tf_conns = [c for t in dict.fromkeys((tf_topic, TF_DYNAMIC)) if t in present
+                    for c in _check_topic(reader, path, t, TFMESSAGE)]
+        if not tf_conns and require_tf:
+            raise BagError(f"{path}: neither '{tf_topic}' nor '{TF_DYNAMIC}' found and no extrinsics given")
+        imu_conns = _imu_connections(reader, path, imu_topic)
         rec = Recording([], [], start=reader.start_time * 1e-9, end=reader.end_time * 1e-9)
         stream_of = {c.id: name for name, cs in conns.items() for c in cs}
         topic_of = {"front": front_topic, "back": back_topic}
-        tf_ids = {c.id for c in tf_conns}
-        edges: dict[str, tuple[str, np.ndarray]] = {}
+        tf_ids = {c.id: c.topic for c in tf_conns}
+        imu_ids = {c.id for c in imu_conns}
+        edges: dict[str, dict] = {tf_topic: {}, TF_DYNAMIC: {}}
+        imu_msgs: list = []
         counts = {"front": 0, "back": 0}
         streams = {name: SweepStream(topic, (times or {}).get(topic)) for name, topic in topic_of.items()}
-        wanted = [c for cs in conns.values() for c in cs] + list(tf_conns)
+        wanted = [c for cs in conns.values() for c in cs] + list(tf_conns) + list(imu_conns)
         it = reader.messages(connections=wanted)
         while True:
             try:
@@ -162,15 +234,8 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
                                f"{done}; the bag is truncated or corrupt") from None
             if progress is not None:
                 progress(1)
-            if conn.id in tf_ids:
-                try:
-                    msg = reader.deserialize(raw, conn.msgtype)
-                    for tr in msg.transforms:
-                        q, p = tr.transform.rotation, tr.transform.translation
-                        edges[tr.child_frame_id] = (tr.header.frame_id, transform_matrix(
-                            (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
-                except Exception as e:
-                    rec.problems.append(f"{tf_topic} message at t={stamp * 1e-9:.3f} s skipped: {e}")
+            if conn.id in tf_ids or conn.id in imu_ids:
+                _take_aux(reader, conn, raw, stamp, imu_msgs if conn.id in imu_ids else None, edges, rec)
                 continue
             name = stream_of[conn.id]
             index = counts[name]
@@ -184,7 +249,9 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             except Exception as e:
                 rec.problems.append(f"{topic_of[name]} sweep {index} at t={stamp * 1e-9:.3f} s "
                                     f"skipped: cannot decode ({type(e).__name__}: {e})")
-        rec.extrinsics = resolve_frames(edges, base_frame)
+        rec.extrinsics = resolve_frames({**edges[TF_DYNAMIC], **edges[tf_topic]}, base_frame)
+        if imu_msgs:
+            rec.imu = _imu_data(imu_msgs, imu_conns[0].topic)
         _finish_streams(rec, streams, path)
     finally:
         reader.close()
@@ -195,6 +262,21 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             raise BagError(f"{path}: none of the {counts[name]} sweeps on '{topic_of[name]}' "
                            f"could be decoded; first problem: {rec.problems[0]}")
     return rec
+
+
+def _take_aux(reader, conn, raw, stamp: int, imu_msgs: list | None, edges: dict, rec: Recording) -> None:
+    """One /tf(_static) or IMU message: transforms into edges[topic] (the first of each frame
+    wins), IMU messages appended to imu_msgs (None for a transform topic); a message that
+    cannot be decoded is noted in rec.problems."""
+    try:
+        msg = reader.deserialize(raw, conn.msgtype)
+        if imu_msgs is not None:
+            imu_msgs.append(msg)
+        else:
+            for child, edge in _edges(msg).items():
+                edges[conn.topic].setdefault(child, edge)
+    except Exception as e:
+        rec.problems.append(f"{conn.topic} message at t={stamp * 1e-9:.3f} s skipped: {e}")
 
 
 def _finish_streams(rec: Recording, streams: dict[str, SweepStream], path: Path) -> None:

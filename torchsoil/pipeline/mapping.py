@@ -154,7 +154,7 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
     """Register fused sweeps incrementally into P_ref and T_ref.
 
     sweeps: time-ordered fused sweeps in base_link. The world frame is base_link at the
-    first usable sweep. progress: optional callable(n) advanced once per sweep.
+    first usable sweep (`rotate_world` levels it afterwards). progress: optional callable(n) advanced once per sweep.
     """
     cfg = cfg or MappingConfig()
     S = len(sweeps)
@@ -234,6 +234,15 @@ def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=No
     normals, _ = icp.pca_normals(p_ref, cKDTree(p_ref), p_ref, radius=cfg.normal_radius)
     normals = icp.orient_to_viewpoints(p_ref, normals, views)
     return MappingResult(stamps, poses, p_ref, normals, fitness, rmse, flags)
+
+
+def rotate_world(maps: MappingResult, R: np.ndarray) -> MappingResult:
+    """The trajectory and P_ref in the world frame turned by R (3, 3) about its origin (the
+    first sweep's base_link): poses R T, points and normals R p."""
+    L = np.eye(4)
+    L[:3, :3] = R
+    return maps._replace(poses=L @ maps.poses, map_points=maps.map_points @ R.T,
+                         map_normals=maps.map_normals @ R.T)
 
 
 def _baseline(done: list[int], stamps: np.ndarray, window: float) -> int:

@@ -4,8 +4,9 @@
     result.terrain.save("terrain.npz")
 
 Stages: read (torchsoil.io.bag) -> fuse front + back in base_link -> reference map and
-trajectory (mapping) -> re-registration of each stream onto P_ref (reregister) -> corridor
-extraction and rasterization (raster). Sweeps the stages could not use are flagged per
+trajectory (mapping), levelled to gravity by the IMU or else the ground (gravity) ->
+re-registration of each stream onto P_ref (reregister) -> corridor extraction and
+rasterization (raster). Sweeps the stages could not use are flagged per
 sweep (`scan_flags` in the output, bit names in `mapping.FLAG_NAMES`) and summarised in
 `result.problems` with their times.
 """
@@ -20,8 +21,8 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from torchsoil.io.bag import Recording, count_messages, read_recording, xyzrpy_matrix
-from torchsoil.pipeline import icp, mapping
+from torchsoil.io.bag import Recording, count_messages, frame_name, read_recording, xyzrpy_matrix
+from torchsoil.pipeline import gravity, icp, mapping
 from torchsoil.pipeline.mapping import Sweep, build_map
 from torchsoil.pipeline.raster import Accumulator, corridor
 from torchsoil.pipeline.reregister import register_sweep
@@ -42,22 +43,46 @@ class PipelineResult(NamedTuple):
     duration: float
 
 
-def extrinsics_for(rec: Recording, cfg: ReadConfig, frames: list[str]) -> dict[str, np.ndarray]:
-    """{frame: base_T_frame} from /tf_static, overridden by cfg.extrinsics; error if missing."""
-    out = dict(rec.extrinsics)
-    for frame, v in cfg.extrinsics.items():
-        out[frame] = xyzrpy_matrix(v)
-    for frame in frames:
-        if frame not in out:
-            raise ValueError(f"no extrinsic for lidar frame '{frame}': neither {cfg.tf_topic} "
-                             f"links it to '{cfg.base_frame}' nor does the configuration "
-                             "(read.extrinsics) or the robot YAML (lidars) give it")
+def extrinsics_for(rec: Recording, cfg: ReadConfig, streams: dict[str, str]) -> dict[str, np.ndarray]:
+    """{topic: base_T_sensor (4, 4)} for streams {topic: frame_id}.
+
+    Each topic's pose is, in this order: a cfg.extrinsics entry keyed by the topic, one keyed
+    by its frame, the bag's transforms (/tf_static and /tf, chains composed). Topics and frames
+    are compared without a leading slash. Raises ValueError naming the frame when no pose is
+    known, and when two topics publish in one frame and are not both given per topic (the
+    frame cannot tell them apart: one would silently get the other's pose).
+    """
+    given = {frame_name(k): xyzrpy_matrix(v) for k, v in cfg.extrinsics.items()}
+    by_frame = {**rec.extrinsics, **given}
+    out: dict[str, np.ndarray] = {}
+    topic_of_frame: dict[str, str] = {}
+    for topic, frame_id in streams.items():
+        if frame_name(topic) in given:
+            out[topic] = given[frame_name(topic)]
+            continue
+        frame = frame_name(frame_id)
+        if frame in topic_of_frame:
+            other = topic_of_frame[frame]
+            raise ValueError(
+                f"'{other}' and '{topic}' both publish in frame '{frame}', so the frame cannot tell "
+                "their poses apart; give each topic its own extrinsic: in the robot YAML `lidars: "
+                f"{{{other}: [x, y, z, roll, pitch, yaw], {topic}: [...]}}` ({cfg.base_frame}, m, rad) "
+                "or `--extrinsic TOPIC X Y Z ROLL PITCH YAW`")
+        topic_of_frame[frame] = topic
+        if frame not in by_frame:
+            raise ValueError(f"no extrinsic for frame '{frame}' of '{topic}': neither {cfg.tf_topic} nor /tf "
+                             f"links it to '{cfg.base_frame}' (frames there: {sorted(rec.extrinsics)}) nor "
+                             "does the configuration (read.extrinsics) or the robot YAML (lidars) give it "
+                             "by frame or by topic")
+        out[topic] = by_frame[frame]
     return out
 
 
 def extrinsics_from_robot_yaml(path: str | Path) -> dict[str, list[float]]:
-    """Optional `lidars: {frame: [x, y, z, roll, pitch, yaw]}` (m, rad, in base_link) of a
-    robot YAML (FORMATS.md section 2 plus this key), for `ReadConfig.extrinsics`."""
+    """Optional `lidars: {frame or topic: [x, y, z, roll, pitch, yaw]}` (m, rad, in base_link)
+    of a robot YAML (FORMATS.md section 2), for `ReadConfig.extrinsics`. A key naming a topic
+    (`/lidar_back/points`) sets that topic's pose whatever its frame; the IMU's pose may be
+    given the same way."""
     doc = yaml.safe_load(Path(path).read_text()) or {}
     out = {}
     for frame, v in (doc.get("lidars") or {}).items():
@@ -147,11 +172,12 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     total = count_messages(bag_path, [cfg.read.front_topic, cfg.read.back_topic]) \
         if progress else None
     rec = read_recording(bag_path, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
-                         cfg.read.base_frame, progress=bar("read", total), times=cfg.read.times)
-    frames = [rec.front[0].frame, rec.back[0].frame]
-    ext = extrinsics_for(rec, cfg.read, frames)
-    front = _to_base(rec.front, ext[frames[0]])
-    back = _to_base(rec.back, ext[frames[1]])
+                         cfg.read.base_frame, progress=bar("read", total), times=cfg.read.times,
+                         imu_topic=cfg.read.imu_topic)
+    ext = extrinsics_for(rec, cfg.read, {cfg.read.front_topic: rec.front[0].frame,
+                                         cfg.read.back_topic: rec.back[0].frame})
+    front = _to_base(rec.front, ext[cfg.read.front_topic])
+    back = _to_base(rec.back, ext[cfg.read.back_topic])
     del rec.front[:], rec.back[:]
     timings["read"] = time.perf_counter() - t0
 
@@ -160,6 +186,13 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     period = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.1
     fused, flags = fuse(front, back, period)
     maps = build_map(fused, cfg.mapping, progress=bar("mapping", len(fused)))
+    imu_T = None
+    if rec.imu is not None and cfg.level.source in ("auto", "imu"):
+        imu_T = extrinsics_for(rec, cfg.read, {rec.imu.topic: rec.imu.frame})[rec.imu.topic]
+    R, notes = gravity.level(maps.stamps, maps.poses, maps.map_points, maps.map_normals, rec.imu, imu_T,
+                             cfg.level)
+    maps = mapping.rotate_world(maps, R)
+    rec.problems.extend(notes)
     flags |= maps.flags
     del fused
     timings["mapping"] = time.perf_counter() - t0

@@ -1,5 +1,5 @@
-"""rosbag2 output through `rosbags`: PointCloud2 lidar sweeps and /tf_static (FORMATS.md
-section 1), in sqlite3 or mcap storage (mcap optionally with zstd chunk compression)."""
+"""rosbag2 output through `rosbags`: PointCloud2 lidar sweeps, sensor_msgs/Imu and
+/tf_static (FORMATS.md section 1), in sqlite3 or mcap storage (mcap optionally with zstd chunk compression)."""
 
 from __future__ import annotations
 
@@ -59,6 +59,20 @@ def tf_message(transforms: list[tuple[str, str, np.ndarray, np.ndarray]], t_ns: 
     return _T["tf2_msgs/msg/TFMessage"](transforms=out)
 
 
+def imu_message(frame_id: str, t_ns: int, acc, gyro, acc_var: float, gyro_var: float):
+    """sensor_msgs/Imu with specific force acc (3,) [m/s^2] and rate gyro (3,) [rad/s]; no
+    orientation estimate (orientation_covariance[0] = -1, REP 145); variances per axis."""
+    V = _T["geometry_msgs/msg/Vector3"]
+    return _T["sensor_msgs/msg/Imu"](
+        header=_T["std_msgs/msg/Header"](stamp=stamp(t_ns), frame_id=frame_id),
+        orientation=_T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.array([-1.0] + [0.0] * 8),
+        angular_velocity=V(x=float(gyro[0]), y=float(gyro[1]), z=float(gyro[2])),
+        angular_velocity_covariance=np.diag([gyro_var] * 3).reshape(-1),
+        linear_acceleration=V(x=float(acc[0]), y=float(acc[1]), z=float(acc[2])),
+        linear_acceleration_covariance=np.diag([acc_var] * 3).reshape(-1))
+
+
 class BagWriter:
     """Write lidar sweeps and static transforms to a new rosbag2 directory.
 
@@ -102,6 +116,11 @@ class BagWriter:
         conn = self._conn(topic, msgtype)
         raw = msg if isinstance(msg, bytes) else TYPESTORE.serialize_cdr(msg, msgtype)
         self.writer.write(conn, int(log_ns), raw)
+
+    def write_imu(self, topic: str, msg, t_ns: int) -> None:
+        """An `imu_message` at bag time t_ns."""
+        conn = self._conn(topic, "sensor_msgs/msg/Imu")
+        self.writer.write(conn, int(t_ns), TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
 
     def write_tf_static(self, transforms, stamp_ns: int) -> None:
         msg = tf_message(transforms, stamp_ns)

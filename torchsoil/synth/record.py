@@ -2,7 +2,8 @@
 
 Files written for `make_recording(..., out=PATH)`:
 
-    PATH/                 the rosbag2 directory (FORMATS.md section 1), nothing else inside
+    PATH/                 the rosbag2 directory (FORMATS.md section 1), nothing else inside:
+                          both lidars, /tf_static and, unless imu=False, IMU_TOPIC
     PATH.robot.yaml       the robot description (FORMATS.md section 2)
     PATH.pair.npz         terrain pair straight from the truth, 3 mm per-cell noise (section 3)
     PATH.truth.npz        the truth: noise-free surfaces, per-visit states and times, soil
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -22,12 +24,14 @@ import yaml
 
 from torchsoil.settings import SynthConfig, merge, validate
 from torchsoil.synth import effects as fx
-from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter
+from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter, imu_message
 from torchsoil.synth.conventions import driver_message, driver_of
+from torchsoil.synth.imu import ImuSpec, imu_samples
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
 from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth
 
 T0_NS = 1_750_000_000 * 1_000_000_000   # bag clock of trajectory time 0, ns
+IMU_TOPIC = "/imu/data"
 
 
 def sidecar(out: str | Path, suffix: str) -> Path:
@@ -98,7 +102,8 @@ def with_lidar(scenario: SynthConfig, columns: int | None = None, organized: boo
 def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, seed: int = 0,
                    dx: float = 0.02, storage: str = "mcap", compress: bool = True,
                    duration: float | None = None, columns: int | None = None,
-                   organized: bool | None = None, progress: bool = False, convention: str = "ouster") -> dict:
+                   organized: bool | None = None, progress: bool = False, convention: str = "ouster",
+                   imu: bool = True) -> dict:
     """Write the bag directory `out` and its sidecar files (module docstring).
 
     scenario: a shipped name, a YAML path, a dict or a SynthConfig (see
@@ -108,8 +113,9 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     columns, organized: override the scenario's lidar settings (organized: full (beams,
     columns) clouds with NaN for no return instead of the returns only); convention: the
     lidar driver layout and stamp convention the sweeps are written in (synth.conventions:
-    ouster, velodyne, hesai, robosense_start, robosense_end, livox, livox_custom, mixed).
-    Returns a dict of figures (timings [s], bag size [MB], number of sweeps and points)."""
+    ouster, velodyne, hesai, robosense_start, robosense_end, livox, livox_custom, mixed);
+    imu: also write a MEMS IMU (synth.imu.ImuSpec) on IMU_TOPIC in frame imu_link. Returns a
+    dict of figures (timings [s], bag size [MB], number of sweeps and points)."""
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"bag output {out} already exists; remove it or choose another path")
@@ -128,21 +134,32 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
         from tqdm import tqdm
 
         bar = tqdm(total=2 * len(starts), unit="sweep", desc=f"recording {out.name}")
+    imu_spec = ImuSpec() if imu else None
+    imu_msgs = iter(imu_messages(truth, seed, float(starts[-1] + period) if len(starts) else 0.0, imu_spec))
+    pending = next(imu_msgs, None)
     with BagWriter(out, storage=storage, compress=compress) as bag:
         tfs = [("base_link", s.name, np.asarray(s.xyz), matrix_quaternion(s.transform()[:3, :3]))
                for s in specs]
+        if imu_spec is not None:
+            tfs.append(("base_link", imu_spec.name, np.asarray(imu_spec.xyz),
+                        matrix_quaternion(imu_spec.transform()[:3, :3])))
         bag.write_tf_static(tfs, T0_NS)
         for ts, s, pts in iter_sweeps(truth, seed, duration):
             stamp_ns = T0_NS + int(round(ts * 1e9))
+            while pending is not None and pending[0] <= stamp_ns + int(round(period * 1e9)):
+                bag.write_imu(IMU_TOPIC, pending[1], pending[0])
+                pending = next(imu_msgs, None)
             n_points += int(np.isfinite(pts["x"]).sum())
             msgtype, msg = driver_message(pts, s.name, stamp_ns, driver_of(convention, s.name))
             bag.write_message(f"/{s.name}/points", msgtype, msg, stamp_ns + int(round(period * 1e9)))
             if bar is not None:
                 bar.update(1)
+        for t_ns, msg in ([pending] if pending is not None else []) + list(imu_msgs):
+            bag.write_imu(IMU_TOPIC, msg, t_ns)
     if bar is not None:
         bar.close()
     t2 = time.perf_counter()
-    write_sidecars(truth, out, seed, specs)
+    write_sidecars(truth, out, seed, specs, imu_spec)
     t3 = time.perf_counter()
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     return {"truth_s": t1 - t0, "lidar_s": t2 - t1, "sidecars_s": t3 - t2, "total_s": t3 - t0,
@@ -150,7 +167,21 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
             "bag_mb": size / 1e6}
 
 
-def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | None = None) -> None:
+def imu_messages(truth: Truth, seed: int, end: float, spec: ImuSpec | None):
+    """Yield (bag time ns, sensor_msgs/Imu) of the IMU from trajectory time 0 to `end` s (none
+    without a spec); its own noise stream, so the lidar sweeps do not change with it."""
+    if spec is None:
+        return
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
+    t, acc, gyro = imu_samples(truth.traj.poses, spec, rng, end)
+    acc_var, gyro_var = (spec.acc_noise**2 * spec.rate_hz, spec.gyro_noise**2 * spec.rate_hz)
+    for k in range(len(t)):
+        t_ns = T0_NS + int(round(t[k] * 1e9))
+        yield t_ns, imu_message(spec.name, t_ns, acc[k], gyro[k], acc_var, gyro_var)
+
+
+def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | None = None,
+                   imu: ImuSpec | None = None) -> None:
     """Robot YAML, terrain pair and truth files beside the bag path `out`."""
     specs = specs or lidars_for(truth)
     sidecar(out, "robot.yaml").write_text(yaml.safe_dump(truth.robot.to_dict(), sort_keys=False))
@@ -184,6 +215,7 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "extrinsics": {s.name: {"parent": "base_link", "xyz": list(s.xyz), "rpy": list(s.rpy),
                                 "beams": s.beams, "vfov_deg": s.vfov_deg, "columns": s.columns,
                                 "rate_hz": s.rate_hz} for s in specs},
+        "imu": None if imu is None else {"topic": IMU_TOPIC, "parent": "base_link", **asdict(imu)},
     }
     sidecar(out, "truth.json").write_text(json.dumps(meta, indent=1, default=_jsonable))
 
