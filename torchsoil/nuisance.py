@@ -122,15 +122,16 @@ def fit_map_nuisance(h_front: np.ndarray, h_back: np.ndarray, grid, index, wheel
         A = np.concatenate([A, np.stack([xs[ii] - x0, ys[jj] - y0], axis=1)], axis=1)
     coef, sigma = _huber_lstsq(A, y)
     slope = (float(coef[1]), float(coef[2])) if cfg.tilt else (0.0, 0.0)
+    hats = _hats(s, knots)
     along = np.zeros(len(knots))
     if len(knots) > 1:
-        along, sigma = _huber_lstsq(_hats(s, knots), y - A @ coef)
+        along, sigma = _huber_lstsq(hats, y - A @ coef)
     reach = np.isfinite(index.s)
     X, Y = np.nonzero(reach)
     field = np.zeros(h_back.shape, np.float64)
     field[reach] = (coef[0] + _hats(index.s[reach], knots) @ along
                     + slope[0] * (xs[X] - x0) + slope[1] * (ys[Y] - y0))
-    return MapNuisance(field=field, offset=float(coef[0] + np.median(_hats(s, knots) @ along)),
+    return MapNuisance(field=field, offset=float(coef[0] + np.median(hats @ along)),
                        drift=float(along.max() - along.min()), slope=slope,
                        tilt_deg=math.degrees(math.atan(math.hypot(*slope))), n_cells=n, sigma=sigma,
                        knots=knots, along=along)
