@@ -81,6 +81,8 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--merged-sinkage", action="store_true", help="ablation: one sinkage for all tracks")
     p.add_argument("--capped", type=int, metavar="N", help="ablation: relaxation capped at N iterations")
     p.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
+    p.add_argument("--realtime", action="store_true", help="play the recording at its own pace, as on the robot, "
+                                                           "printing each window's estimate and latency as it comes")
     _job_options(p)
 
     p = sub.add_parser("process-bag", help="lidar pipeline: a recording in, terrain pair and trajectory out")
@@ -241,7 +243,7 @@ def cmd_estimate(args) -> int:
     out = Path(args.out) if args.out else Path("out") / (source.stem if args.input else "demo")
     estimate(source, out, settings, robot=_robot(robot_arg), resume=args.resume, overwrite=args.overwrite,
              tensorboard=not args.no_tensorboard, robot_yaml=_robot_yaml(robot_arg), threads=args.threads,
-             extrinsics=given)
+             extrinsics=given, realtime=args.realtime)
     print(f"wrote {out}: params.csv, summary.md, fig4_parameters.png, fig6_difference_maps.png, tensorboard/")
     print((out / "summary.md").read_text())
     return 0

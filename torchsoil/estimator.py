@@ -63,6 +63,8 @@ class Estimator:
             depends on the poses, robot and corridor only; repeated runs over one pair share it).
         nuisance: the pair's fitted map offset (`nuisance.MapNuisance`), when already computed
             (default: fitted here when est.nuisance.offset).
+        arc0: arc length [m] of the pair's first pose along a longer drive (a stretch cut out of
+            it): windows sit where the whole drive's would, and rows report the drive's arc length.
 
     H_b is used net of the map offset and tilt (`self.nuisance`, fitted on untouched ground;
     `self.h_back`); each row reports the offset removed on the window's ground (`map_offset`, m).
@@ -74,7 +76,8 @@ class Estimator:
     """
 
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
-                 dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None):
+                 dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None,
+                 arc0: float = 0.0):
         self.pair = pair
         self.modifiers = modifiers
         self.est = est = est or EstimatorConfig()
@@ -92,7 +95,9 @@ class Estimator:
         self.h_back = np.asarray(pair.h_back, np.float64)
         if self.nuisance is not None:
             self.h_back = self.h_back - self.nuisance.field
-        self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), est.window, est.stride)
+        self.arc0 = arc0
+        start = (math.ceil(arc0 / est.stride - 1e-9) * est.stride - arc0) if arc0 > 0 else 0.0
+        self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), est.window, est.stride, start)
         ratio = est.window / est.stride
         self.ahead = int(round(ratio)) if abs(ratio - round(ratio)) < 1e-6 else None
         self.names = self.spec.names
@@ -151,13 +156,15 @@ class Estimator:
             return r.h[0], float(weighted_l1(r.h, wd.h_back, wd.weight)[0])
 
     # --------------------------------------------------------------------- run
-    def run(self, start: int = 0, theta: torch.Tensor | None = None) -> Iterator[WindowOutput]:
-        """Fit windows start, start+1, ... in order, yielding each as soon as it is done.
+    def run(self, start: int = 0, theta: torch.Tensor | None = None, stop: int | None = None
+            ) -> Iterator[WindowOutput]:
+        """Fit windows start, start+1, ... (up to stop, excluded) in order, yielding each as soon
+        as it is done.
 
         theta: warm start (P_free,) (default: config estimator.init).
         """
         theta = self.theta0.clone() if theta is None else theta.to(self.theta0)
-        for k in range(start, len(self.windows)):
+        for k in range(start, len(self.windows) if stop is None else min(stop, len(self.windows))):
             t0 = time.perf_counter()
             spec = self.windows[k]
             wd = self.data(k)
@@ -208,7 +215,7 @@ class Estimator:
         return ("registration",) if np.any((flags != 0) & (stamps >= t0) & (stamps <= t1)) else ()
 
     def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags) -> dict:
-        row = {"s": spec.centre,
+        row = {"s": spec.centre + self.arc0,
                "t": wd.t if wd else math.nan, "x": wd.x if wd else math.nan, "y": wd.y if wd else math.nan}
         full = self.full_theta(free[None])[0].tolist() if free is not None else [math.nan] * len(self.names)
         for name, unit, value in zip(self.names, self.spec.units, full, strict=True):

@@ -160,6 +160,7 @@ def write_summary(path: Path, rows: list[dict], reference: list[dict], meta: dic
             f"{meta.get('window', '?')} m every {meta.get('stride', '?')} m; gradients: {meta.get('grad', '?')}; "
             f"median {1e3 * np.nanmedian(secs):.0f} ms per window.", "",
             f"Removed from H_b before estimation: {meta['removed']}." if "removed" in meta else "", "",
+            f"Online: {meta['online']}." if "online" in meta else "", "",
             "Costs: weighted mean L1 height difference, x 1e-3 m (paper Table I).", "",
             summary_table(rows, reference), "",
             f"Mean prediction cost / mean noise floor: {pred / floor:.3f}" if floor > 0 else "", ""]

@@ -100,8 +100,14 @@ def torch_threads(n: int | None):
 def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
              robot: Robot | None = None, resume: bool = False, overwrite: bool = False,
              tensorboard: bool = True, progress: bool = True, robot_yaml: str | Path | None = None,
-             threads: int | None = None, extrinsics: dict[str, list[float]] | None = None) -> Path:
+             threads: int | None = None, extrinsics: dict[str, list[float]] | None = None,
+             realtime: bool = False) -> Path:
     """Run the sliding-window estimator on a recording or terrain pair; returns out_dir.
+
+    A recording streams through the pipeline (torchsoil.live): each window is fitted as soon as
+    its ground is complete and its row written then, in bounded memory; `realtime` plays it
+    at its own pace (as on the robot) and prints the rows as they come. A terrain pair, or a
+    recording whose pipeline output is already in out_dir, is estimated window by window.
 
     out_dir/run.json records the input's identity, the robot and the settings; an out_dir
     holding another run is refused (`provenance.OutputMismatch`) unless `overwrite`, and
@@ -114,9 +120,17 @@ def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | N
     pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
     record = run_record("estimate", input_path, settings, pipeline, robot, ("sim", "estimator"))
     provenance.claim(out, record, resume=resume, overwrite=overwrite, outputs=OUTPUTS)
-    pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))
+    cache = provenance.cache_key(record, "pipeline")
+    streamed = Path(input_path).suffix != ".npz" and not provenance.cache_valid(out / "terrain_pair.npz", cache)
     with torch_threads(threads):
-        _estimate(pair, out, settings, resume, tensorboard, progress, str(input_path))
+        if streamed:
+            if robot is None:
+                raise ValueError(f"{input_path}: a bag needs a robot description (--robot NAME or PATH)")
+            _estimate_live(Path(input_path), robot, out, settings.replace(pipeline=pipeline), resume, tensorboard,
+                           progress, realtime, cache)
+        else:
+            pair = load_input(input_path, out, robot, pipeline, cache)
+            _estimate(pair, out, settings, resume, tensorboard, progress, str(input_path))
     return out
 
 
@@ -171,6 +185,110 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
     figures.write_summary(out / "summary.md", params.rows, reference.rows,
                           {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad,
                            "removed": est.nuisance.describe() if est.nuisance is not None else "no map offset"})
+
+
+def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resume: bool, tensorboard: bool,
+                   progress: bool, realtime: bool, cache: dict) -> None:
+    """Stream `bag` through LiveEstimator, writing each window's rows as it is fitted; at the end
+    the pipeline outputs, terrain_pair.npz, simulated.npz, figures and summary.md. On resume the
+    recording is streamed again but the windows already in params.csv are not refitted."""
+    import tempfile
+    import time
+
+    from torchsoil.live import LiveEstimator, play
+    from torchsoil.pipeline.run import finish_result, write_outputs
+
+    spill = tempfile.TemporaryDirectory(prefix="tiles-") if settings.estimator.online.spill else None
+    live = LiveEstimator(robot, settings, spill_dir=spill.name if spill else None)
+    names = _param_names(robot)
+    params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "map_offset", "residual", "prediction",
+                                         "iterations", "seconds", "latency", "flags"], resume)
+    reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
+    n_done = min(len(params.rows), len(reference.rows))
+    params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
+    live.next = n_done
+    tb = TensorBoardLog(out / "tensorboard", tensorboard)
+    pieces: list = []
+    latency: list[float] = []
+    t_start = time.perf_counter()
+    bar = tqdm(unit="window", disable=None if progress and not realtime else True, desc="estimating")
+    try:
+        for w in play(bag, live, realtime=realtime):
+            o, k = w.output, w.index
+            latency.append(w.done - w.ready)
+            params.append({**o.row, "latency": w.done - w.ready})
+            reference.append({"s": o.row["s"], **o.reference})
+            tb.window(k, o.row, o.reference, names)
+            if o.h_sim is not None:
+                pieces.append(_sim_piece(w))
+            if realtime:
+                r = o.row
+                print(f"window {k:4d}  s {r['s']:7.2f} m  d1 {1e3 * r['d1']:6.1f} mm  chi {r['chi']:.2f}  "
+                      f"beta {r['beta']:5.1f} deg  latency {1e3 * (w.done - w.ready):4.0f} ms  {r['flags']}")
+            bar.update(1)
+    finally:
+        bar.close()
+        tb.close()
+    wall = time.perf_counter() - t_start
+    result = finish_result(live.pipeline, live.rec, bag, wall)
+    for problem in result.problems:
+        print(f"warning: {problem}")
+    write_outputs(result, out / "pipeline")
+    pair = result.terrain
+    pair.save(out / "terrain_pair.npz")
+    provenance.mark_cache(out / "terrain_pair.npz", cache)
+    h_sim = _stitch(pair, pieces)
+    _save_simulated(out / "simulated.npz", pair, h_sim)
+    est = Estimator(pair, settings.estimator, settings.sim)
+    figures.parameter_curves(params.rows, reference.rows, names, out / "fig4_parameters.png")
+    figures.difference_maps(pair, est.h_start, h_sim, params.rows, out / "fig6_difference_maps.png",
+                            h_back=est.h_back)
+    e = settings.estimator
+    lat = np.asarray(latency) if latency else np.full(1, np.nan)
+    figures.write_summary(out / "summary.md", params.rows, reference.rows,
+                          {"input": str(bag), "window": e.window, "stride": e.stride, "grad": e.grad,
+                           "removed": "map offset and tilt fitted per stretch as the windows came (see map_offset)"
+                           if e.nuisance.offset else "no map offset",
+                           "online": f"streamed in {wall:.1f} s for a {result.duration:.1f} s recording "
+                                     f"({wall / max(result.duration, 1e-9):.2f} x real time); window latency "
+                                     f"median {1e3 * np.median(lat):.0f} ms, max {1e3 * np.max(lat):.0f} ms"})
+    if spill is not None:
+        spill.cleanup()
+
+
+def _param_names(robot: Robot) -> list[str]:
+    from torchsoil.sim import ParamSpec
+
+    return list(ParamSpec.base(robot.n_tracks).names)
+
+
+def _sim_piece(w) -> tuple:
+    """A LiveWindow's simulated H_b on its ground: lattice indices (i0, j0) of its crop, h_sim
+    (X, Y) and each cell's distance to the window centre along the drive (inf off its ground)."""
+    o, pair = w.output, w.pair
+    i0, _, j0, _ = o.data.crop
+    gi, gj = (int(round(v / pair.dx)) for v in pair.origin)
+    dist = np.where(o.data.ground.cpu().numpy(), w.dist, np.inf).astype(np.float32)
+    return gi + i0, gj + j0, o.h_sim.detach().cpu().numpy().astype(np.float32), dist
+
+
+def _stitch(pair: TerrainPair, pieces: list) -> np.ndarray:
+    """Simulated H_b over the whole pair's grid: each cell from the window (of `pieces`) whose
+    centre is nearest along the drive, as `estimator.Stitcher`."""
+    h = np.full(pair.h_front.shape, np.nan, np.float32)
+    best = np.full(pair.h_front.shape, np.inf, np.float32)
+    gi, gj = (int(round(v / pair.dx)) for v in pair.origin)
+    for i0, j0, h_sim, dist in pieces:
+        a, b = i0 - gi, j0 - gj
+        a0, b0 = max(a, 0), max(b, 0)
+        a1, b1 = min(a + h_sim.shape[0], h.shape[0]), min(b + h_sim.shape[1], h.shape[1])
+        if a1 <= a0 or b1 <= b0:
+            continue
+        d = dist[a0 - a:a1 - a, b0 - b:b1 - b]
+        take = d < best[a0:a1, b0:b1]
+        best[a0:a1, b0:b1][take] = d[take]
+        h[a0:a1, b0:b1][take] = h_sim[a0 - a:a1 - a, b0 - b:b1 - b][take]
+    return h
 
 
 def _save_simulated(path: Path, pair: TerrainPair, h_sim: np.ndarray) -> None:

@@ -87,6 +87,17 @@ class NuisanceConfig(Section):
     min_cells: int = Field(200, ge=1, description="fewest untouched cells to fit on")
 
 
+class OnlineConfig(Section):
+    """Estimation while the robot drives (torchsoil.live): when a window's ground is complete."""
+
+    lag: float = Field(2.0, ge=0, description="a window is fitted once the back lidar has rasterized the ground "
+                                              "this far behind the rear wheels' margin past the window and the "
+                                              "one ahead, m (more: denser H_b, later rows)")
+    context: float = Field(4.0, ge=0, description="ground before a window also cut out with it (map offset fit, "
+                                                  "smoothing at the crop edge), m")
+    spill: bool = Field(True, description="heightmap tiles far from the robot written to disk (bounded memory)")
+
+
 class EstimatorConfig(Section):
     """Sliding-window estimation (paper section IV-C)."""
 
@@ -125,6 +136,7 @@ class EstimatorConfig(Section):
                                                   "every N windows (0: none)")
     device: str = Field("auto", description="auto (cuda when present), cpu, cuda, cuda:N")
     nuisance: NuisanceConfig = Field(NuisanceConfig(), description="map offset and tilt removed from H_b")
+    online: OnlineConfig = Field(OnlineConfig(), description="estimation while the recording streams in")
 
     @model_validator(mode="after")
     def _floor_zone(self):

@@ -176,19 +176,21 @@ def test_reregistration_cancels_a_drifting_trajectory(moving_bag, monkeypatch):
     re-registration the drift shows in H_delta off the ruts, with it it cancels."""
     from scipy.spatial.transform import Rotation
 
-    import torchsoil.pipeline.run as run
+    from torchsoil.pipeline.online import OnlinePipeline
 
-    build = run.build_map
+    final = OnlinePipeline._final
 
-    def drifting(sweeps, cfg=None, progress=None):
-        m = build(sweeps, cfg, progress)
-        t = m.stamps - m.stamps[0]
-        drift = np.repeat(np.eye(4)[None], len(t), 0)
-        drift[:, :3, :3] = Rotation.from_euler("y", np.deg2rad(0.1) * t[:, None]).as_matrix()
-        drift[:, 2, 3] = 0.004 * t
-        return m._replace(poses=m.poses @ drift)
+    def drifting(self, k):
+        n = len(self.ok_poses)
+        final(self, k)
+        if len(self.ok_poses) > n:
+            t = self.ok_stamps[-1] - self.ok_stamps[0]
+            drift = np.eye(4)
+            drift[:3, :3] = Rotation.from_euler("y", np.deg2rad(0.1) * t).as_matrix()
+            drift[2, 3] = 0.004 * t
+            self.ok_poses[-1] = self.ok_poses[-1] @ drift
 
-    monkeypatch.setattr(run, "build_map", drifting)
+    monkeypatch.setattr(OnlinePipeline, "_final", drifting)
     path, scene = moving_bag
     off_rut = {}
     for enabled in (True, False):

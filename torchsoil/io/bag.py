@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -170,15 +171,23 @@ def _edges(msg) -> dict[str, tuple[str, np.ndarray]]:
     return out
 
 
-def _imu_data(msgs: list, topic: str) -> ImuData:
-    """Deserialized Imu messages -> ImuData sorted by stamp."""
-    t = np.array([m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec for m in msgs])
-    acc = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z]
-                    for m in msgs], dtype=np.float64).reshape(-1, 3)
-    gyro = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z]
-                     for m in msgs], dtype=np.float64).reshape(-1, 3)
+class ImuSample(NamedTuple):
+    """One IMU message: t [s], acc (3,) specific force [m/s^2], gyro (3,) [rad/s], its frame and topic."""
+
+    t: float
+    acc: tuple
+    gyro: tuple
+    frame: str
+    topic: str
+
+
+def imu_data(samples: list[ImuSample]) -> ImuData:
+    """IMU samples -> ImuData sorted by stamp."""
+    t = np.array([m.t for m in samples])
+    acc = np.array([m.acc for m in samples], dtype=np.float64).reshape(-1, 3)
+    gyro = np.array([m.gyro for m in samples], dtype=np.float64).reshape(-1, 3)
     order = np.argsort(t, kind="stable")
-    return ImuData(t[order], acc[order], gyro[order], frame_name(msgs[0].header.frame_id), topic)
+    return ImuData(t[order], acc[order], gyro[order], samples[0].frame, samples[0].topic)
 
 
 def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
@@ -200,6 +209,28 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             None or "none": no IMU.
         times: {topic: torchsoil.settings.TopicTime} per-point time conventions (default auto).
     """
+    rec = Recording([], [])
+    imu: list = []
+    for name, item in stream_recording(path, rec, front_topic, back_topic, tf_topic, base_frame, require_tf,
+                                       progress, times, imu_topic):
+        (imu if name == "imu" else getattr(rec, name)).append(item)
+    if imu:
+        rec.imu = imu_data(imu)
+    for name in ("front", "back"):
+        getattr(rec, name).sort(key=lambda c: c.stamp)
+    return rec
+
+
+def stream_recording(path: str | Path, rec: Recording, front_topic: str = "/lidar_front/points",
+                     back_topic: str = "/lidar_back/points", tf_topic: str = "/tf_static",
+                     base_frame: str = "base_link", require_tf: bool = False,
+                     progress: Callable[[int], None] | None = None, times: dict | None = None,
+                     imu_topic: str | None = ""):
+    """The messages of a bag as they come: yields ("front" | "back", Cloud) once the topic's
+    time convention is known (after its first few sweeps, torchsoil.io.stream) and ("imu",
+    ImuSample) per IMU message, in bag order. `rec` (an empty Recording) is filled meanwhile:
+    start, end, extrinsics (updated as transforms arrive), problems, and at the end
+    conventions. Arguments and errors as `read_recording`."""
     path = Path(path)
     base_frame = frame_name(base_frame)
     reader = _open(path)
@@ -212,15 +243,15 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
         if not tf_conns and require_tf:
             raise BagError(f"{path}: neither '{tf_topic}' nor '{TF_DYNAMIC}' found and no extrinsics given")
         imu_conns = _imu_connections(reader, path, imu_topic)
-        rec = Recording([], [], start=reader.start_time * 1e-9, end=reader.end_time * 1e-9)
+        rec.start, rec.end = reader.start_time * 1e-9, reader.end_time * 1e-9
         stream_of = {c.id: name for name, cs in conns.items() for c in cs}
         topic_of = {"front": front_topic, "back": back_topic}
         tf_ids = {c.id: c.topic for c in tf_conns}
         imu_ids = {c.id for c in imu_conns}
         edges: dict[str, dict] = {tf_topic: {}, TF_DYNAMIC: {}}
-        imu_msgs: list = []
         counts = {"front": 0, "back": 0}
         streams = {name: SweepStream(topic, (times or {}).get(topic)) for name, topic in topic_of.items()}
+        clock = ClockCheck(path)
         wanted = [c for cs in conns.values() for c in cs] + list(tf_conns) + list(imu_conns)
         it = reader.messages(connections=wanted)
         while True:
@@ -235,7 +266,11 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             if progress is not None:
                 progress(1)
             if conn.id in tf_ids or conn.id in imu_ids:
-                _take_aux(reader, conn, raw, stamp, imu_msgs if conn.id in imu_ids else None, edges, rec)
+                sample = _take_aux(reader, conn, raw, stamp, conn.id in imu_ids, edges, rec)
+                if sample is not None:
+                    yield "imu", sample
+                elif conn.id in tf_ids:
+                    rec.extrinsics = resolve_frames({**edges[TF_DYNAMIC], **edges[tf_topic]}, base_frame)
                 continue
             name = stream_of[conn.id]
             index = counts[name]
@@ -249,48 +284,75 @@ def read_recording(path: str | Path, front_topic: str = "/lidar_front/points",
             except Exception as e:
                 rec.problems.append(f"{topic_of[name]} sweep {index} at t={stamp * 1e-9:.3f} s "
                                     f"skipped: cannot decode ({type(e).__name__}: {e})")
-        rec.extrinsics = resolve_frames({**edges[TF_DYNAMIC], **edges[tf_topic]}, base_frame)
-        if imu_msgs:
-            rec.imu = _imu_data(imu_msgs, imu_conns[0].topic)
-        _finish_streams(rec, streams, path)
+            for cloud in streams[name].take():
+                clock.check(streams[name].topic, cloud.stamp)
+                yield name, cloud
+        yield from _drain(streams, rec, clock, path)
     finally:
         reader.close()
     for name in ("front", "back"):
         if counts[name] == 0:
             raise BagError(f"{path}: topic '{topic_of[name]}' holds no messages")
-        if not getattr(rec, name):
+        if not streams[name].yielded:
             raise BagError(f"{path}: none of the {counts[name]} sweeps on '{topic_of[name]}' "
                            f"could be decoded; first problem: {rec.problems[0]}")
-    return rec
 
 
-def _take_aux(reader, conn, raw, stamp: int, imu_msgs: list | None, edges: dict, rec: Recording) -> None:
+def _drain(streams: dict[str, SweepStream], rec: Recording, clock, path: Path):
+    """The sweeps the streams still hold at the end of the bag; their conventions and notes
+    into `rec`."""
+    for name, s in streams.items():
+        try:
+            clouds = s.finish()
+        except PointTimeError as e:
+            raise BagError(f"{path}: {e}") from None
+        rec.problems += s.problems + [n for n in [s.note()] if n]
+        if s.convention is not None:
+            rec.conventions[s.topic] = s.convention.describe()
+        for cloud in clouds:
+            clock.check(s.topic, cloud.stamp)
+            yield name, cloud
+
+
+class ClockCheck:
+    """Refuses two lidar streams stamped in different clock domains, from their first sweeps
+    on (pointtime.check_clock_domains on the stamps seen so far, once both streams have one)."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.spans: dict[str, list[float]] = {}
+        self.done = False
+
+    def check(self, topic: str, stamp: float) -> None:
+        if self.done:
+            return
+        lo, hi = self.spans.get(topic, [stamp, stamp])
+        self.spans[topic] = [min(lo, stamp), max(hi, stamp)]
+        if len(self.spans) < 2:
+            return
+        try:
+            check_clock_domains({k: np.array(v) for k, v in self.spans.items()})
+        except PointTimeError as e:
+            raise BagError(f"{self.path}: {e}") from None
+        self.done = True
+
+
+def _take_aux(reader, conn, raw, stamp: int, is_imu: bool, edges: dict, rec: Recording):
     """One /tf(_static) or IMU message: transforms into edges[topic] (the first of each frame
-    wins), IMU messages appended to imu_msgs (None for a transform topic); a message that
-    cannot be decoded is noted in rec.problems."""
+    wins); an IMU message is returned as an ImuSample; a message that cannot be decoded is
+    noted in rec.problems (and None returned)."""
     try:
         msg = reader.deserialize(raw, conn.msgtype)
-        if imu_msgs is not None:
-            imu_msgs.append(msg)
-        else:
-            for child, edge in _edges(msg).items():
-                edges[conn.topic].setdefault(child, edge)
+        if is_imu:
+            return ImuSample(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
+                             (msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z),
+                             (msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z),
+                             frame_name(msg.header.frame_id), conn.topic)
+        for child, edge in _edges(msg).items():
+            edges[conn.topic].setdefault(child, edge)
     except Exception as e:
         rec.problems.append(f"{conn.topic} message at t={stamp * 1e-9:.3f} s skipped: {e}")
-
-
-def _finish_streams(rec: Recording, streams: dict[str, SweepStream], path: Path) -> None:
-    """The streams' sweeps, conventions and notes into `rec`; BagError when the times of a
-    stream cannot be understood or the two streams are stamped in different clocks."""
-    try:
-        for name, s in streams.items():
-            setattr(rec, name, s.finish())
-            rec.problems += s.problems + [n for n in [s.note()] if n]
-            if s.convention is not None:
-                rec.conventions[s.topic] = s.convention.describe()
-        check_clock_domains({s.topic: np.array([c.stamp for c in s.clouds]) for s in streams.values()})
-    except PointTimeError as e:
-        raise BagError(f"{path}: {e}") from None
+    return None
 
 
 def count_messages(path: str | Path, topics: list[str]) -> int:

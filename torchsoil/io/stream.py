@@ -20,7 +20,7 @@ class SweepStream:
     """Sweeps of one topic. `add` each message in bag order, then `finish`.
 
     topic: its name (for messages); setting: its torchsoil.settings.TopicTime (None: all auto).
-    After `finish`: clouds (time-ordered Cloud list), convention (pointtime.Convention),
+    `take` hands out the sweeps decoded so far; after `finish`: convention (pointtime.Convention),
     period (s, from the header stamps of the first sweeps; None with one sweep), problems
     (one line per sweep skipped because of its times).
     """
@@ -33,6 +33,7 @@ class SweepStream:
         self.period: float | None = None
         self.clouds: list[Cloud] = []
         self.problems: list[str] = []
+        self.yielded = 0       # sweeps handed out by `take` and `finish`
 
     def add(self, msg, msgtype: str, index: int, when: float) -> None:
         """Decode message `index` (bag time `when`, s). Raises ValueError when it cannot be
@@ -46,12 +47,19 @@ class SweepStream:
         if len(self.pending) >= N_SAMPLE:
             self._decide()
 
+    def take(self) -> list[Cloud]:
+        """The sweeps decoded since the last call, in arrival order (none before the convention is
+        decided)."""
+        out, self.clouds = self.clouds, []
+        self.yielded += len(out)
+        return out
+
     def finish(self) -> list[Cloud]:
-        """The time-ordered sweeps (raises PointTimeError as `add`)."""
+        """The sweeps not taken yet, time-ordered (raises PointTimeError as `add`)."""
         if self.convention is None and self.pending:
             self._decide()
         self.clouds.sort(key=lambda c: c.stamp)
-        return self.clouds
+        return self.take()
 
     def note(self) -> str | None:
         """One line for the run's problems when the topic has no per-point time."""

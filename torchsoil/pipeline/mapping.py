@@ -149,91 +149,155 @@ def _prepare(sweep: Sweep, velocity: np.ndarray, period: float, cfg: MappingConf
     return deskew(pts[pick], t[pick], _motion_over(velocity, period), period)
 
 
-def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=None
-              ) -> MappingResult:
-    """Register fused sweeps incrementally into P_ref and T_ref.
+class Mapper:
+    """Incremental registration of fused sweeps into P_ref and T_ref (scan to local map).
 
-    sweeps: time-ordered fused sweeps in base_link. The world frame is base_link at the
-    first usable sweep (`rotate_world` levels it afterwards). progress: optional callable(n) advanced once per sweep.
+    `add(sweep)` each time-ordered fused sweep (base_link), `finish()` at the end; both return
+    the indices of the sweeps whose pose became final (`stamps`, `poses` (4, 4), `fitness`,
+    `rmse`, `flags` per index). The first sweeps are held until the initial velocity is
+    measured (over `cfg.startup_baseline` s). The world frame is base_link at the first usable
+    sweep (`rotate_world` levels it afterwards); `local` holds the local and reference maps.
     """
-    cfg = cfg or MappingConfig()
-    S = len(sweeps)
-    if S == 0:
-        raise ValueError("mapping needs at least one sweep")
-    stamps = np.array([s.stamp for s in sweeps])
-    if np.any(np.diff(stamps) <= 0):
-        bad = int(np.flatnonzero(np.diff(stamps) <= 0)[0]) + 1
-        raise ValueError(f"sweep stamps must increase; sweep {bad} at t={stamps[bad]:.3f} s")
-    period = float(np.median(np.diff(stamps))) if S > 1 else 0.1
-    usable = [k for k in range(S) if len(sweeps[k].points) >= 50]
-    if len(usable) < 2:
-        raise ValueError(f"mapping needs at least two sweeps with points; {len(usable)} of {S} "
-                         "have 50 or more")
-    # initial velocity over a longer baseline: over one sweep the ground rings, which move
-    # with the robot, bias the estimate towards standing still
-    later = [k for k in usable[1:] if stamps[k] - stamps[usable[0]] <= cfg.startup_baseline + 1e-9]
-    k1 = later[-1] if later else usable[1]
-    velocity = _startup_velocity(sweeps[usable[0]], sweeps[k1], stamps[k1] - stamps[usable[0]],
-                                 period, cfg)
-    poses = np.repeat(np.eye(4)[None], S, axis=0)
-    fitness, rmse = np.zeros(S), np.full(S, np.inf)
-    flags = np.zeros(S, dtype=np.int64)
-    local = LocalMap(cfg.voxel, cfg.map_radius, cfg.normal_radius)
-    prev = None
-    for k in range(S):
-        if progress is not None:
-            progress(1)
-        if k not in usable[:1] and len(sweeps[k].points) < 50:
-            flags[k] |= EMPTY
-        if prev is None:
-            if k != usable[0]:
-                continue
-            pts = _prepare(sweeps[k], velocity, period, cfg)
-            local.add(pts, np.zeros(3))
-            fitness[k], rmse[k], prev = 1.0, 0.0, k
-            done = [k]
-            continue
-        dt = stamps[k] - stamps[prev]
-        T_pred = poses[prev] @ _motion_over(velocity, dt)
-        if flags[k] & EMPTY:
-            poses[k] = T_pred
-            continue
-        pts = _prepare(sweeps[k], velocity, period, cfg)
-        gate = cfg.startup_dist if k == usable[1] else cfg.max_dist
+
+    def __init__(self, cfg: MappingConfig | None = None, period: float = 0.1):
+        self.cfg = cfg = cfg or MappingConfig()
+        self.period = period
+        self.local = LocalMap(cfg.voxel, cfg.map_radius, cfg.normal_radius)
+        self.stamps: list[float] = []
+        self.poses: list[np.ndarray] = []
+        self.fitness: list[float] = []
+        self.rmse: list[float] = []
+        self.flags: list[int] = []
+        self.held: list[Sweep] = []     # sweeps waiting for the initial velocity
+        self.velocity: np.ndarray | None = None
+        self.prev: int | None = None    # last registered sweep
+        self.first: int | None = None   # first usable sweep
+        self.done: list[int] = []       # registered sweeps (velocity baselines)
+
+    def add(self, sweep: Sweep) -> list[int]:
+        if self.stamps and sweep.stamp <= self.stamps[-1]:
+            raise ValueError(f"sweep stamps must increase; sweep {len(self.stamps)} at t={sweep.stamp:.3f} s "
+                             f"follows t={self.stamps[-1]:.3f} s")
+        self.stamps.append(float(sweep.stamp))
+        self.poses.append(np.eye(4))
+        self.fitness.append(0.0)
+        self.rmse.append(np.inf)
+        self.flags.append(0)
+        if self.velocity is not None:
+            return [self._register(len(self.stamps) - 1, sweep)]
+        self.held.append(sweep)
+        usable = [s for s in self.held if len(s.points) >= 50]
+        if usable and sweep.stamp - usable[0].stamp > self.cfg.startup_baseline + 1e-9 and len(usable) >= 2:
+            return self._start()
+        return []
+
+    def finish(self) -> list[int]:
+        if self.velocity is None:
+            if sum(len(s.points) >= 50 for s in self.held) < 2:
+                raise ValueError(f"mapping needs at least two sweeps with points; "
+                                 f"{sum(len(s.points) >= 50 for s in self.held)} of {len(self.held)} have 50 or more")
+            return self._start()
+        return []
+
+    def _start(self) -> list[int]:
+        """Initial velocity from the first usable sweep and the last within the baseline, then
+        the held sweeps registered."""
+        cfg, held = self.cfg, self.held
+        base = len(self.stamps) - len(held)
+        usable = [k for k, s in enumerate(held) if len(s.points) >= 50]
+        later = [k for k in usable[1:] if held[k].stamp - held[usable[0]].stamp <= cfg.startup_baseline + 1e-9]
+        k1 = later[-1] if later else usable[1]
+        self.velocity = _startup_velocity(held[usable[0]], held[k1], held[k1].stamp - held[usable[0]].stamp,
+                                          self.period, cfg)
+        self.held = []
+        return [self._register(base + k, s) for k, s in enumerate(held)]
+
+    def _register(self, k: int, sweep: Sweep) -> int:
+        cfg = self.cfg
+        empty = len(sweep.points) < 50
+        if self.prev is None:   # the first usable sweep starts the map
+            if empty:
+                self.flags[k] |= EMPTY
+                return k
+            self.local.add(_prepare(sweep, self.velocity, self.period, cfg), np.zeros(3))
+            self.fitness[k], self.rmse[k], self.prev, self.first = 1.0, 0.0, k, k
+            self.done.append(k)
+            return k
+        dt = self.stamps[k] - self.stamps[self.prev]
+        T_pred = self.poses[self.prev] @ _motion_over(self.velocity, dt)
+        if empty:
+            self.flags[k] |= EMPTY
+            self.poses[k] = T_pred
+            return k
+        pts = _prepare(sweep, self.velocity, self.period, cfg)
+        gate = cfg.startup_dist if len(self.done) == 1 else cfg.max_dist
         src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points)
-        res = icp.register(src, local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers,
+        res = icp.register(src, self.local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers,
                            ground_z=cfg.ground_z, one_sided=cfg.one_sided)
-        fitness[k], rmse[k] = res.fitness, res.rmse
+        self.fitness[k], self.rmse[k] = res.fitness, res.rmse
         if res.fitness < cfg.min_fitness or not np.isfinite(res.rmse):
-            flags[k] |= POOR_FIT
+            self.flags[k] |= POOR_FIT
             T = T_pred
         else:
             weak = icp.weak_directions(res.hessian, cfg.degenerate_eigen)
             if weak.shape[1]:
-                flags[k] |= DEGENERATE
+                self.flags[k] |= DEGENERATE
             T = icp.project_update(T_pred, res.transform, weak)
-        poses[k] = T
-        done.append(k)
-        base = _baseline(done, stamps, cfg.velocity_window)
-        velocity = _velocity(poses[base], T, stamps[k] - stamps[base])
-        if np.linalg.norm(velocity[:3, 3]) < cfg.stationary_speed:
-            flags[k] |= STATIONARY
-        if not flags[k] & POOR_FIT:
-            local.add(icp.apply(T, pts), T[:3, 3])
-        prev = k
-    degenerate = (flags & DEGENERATE) != 0
-    if degenerate.mean() > cfg.max_degenerate_share:
-        k = np.flatnonzero(degenerate)
-        raise ValueError(
-            f"registration is degenerate for {degenerate.sum()} of {S} sweeps (first at "
-            f"t = {stamps[k[0]] - stamps[0]:.2f} s, last at t = {stamps[k[-1]] - stamps[0]:.2f} "
-            "s after the start): the scene has no structure that fixes the motion along the "
-            "ground (a landmark-free field?), so the trajectory, and with it the heightmaps, "
-            "would be unreliable; nothing written")
-    p_ref, views = local.global_map()
-    normals, _ = icp.pca_normals(p_ref, cKDTree(p_ref), p_ref, radius=cfg.normal_radius)
-    normals = icp.orient_to_viewpoints(p_ref, normals, views)
-    return MappingResult(stamps, poses, p_ref, normals, fitness, rmse, flags)
+        self.poses[k] = T
+        self.done.append(k)
+        stamps = np.asarray(self.stamps)
+        base = _baseline(self.done, stamps, cfg.velocity_window)
+        self.velocity = _velocity(self.poses[base], T, stamps[k] - stamps[base])
+        if len(self.done) > 64:
+            del self.done[:-32]
+        if np.linalg.norm(self.velocity[:3, 3]) < cfg.stationary_speed:
+            self.flags[k] |= STATIONARY
+        if not self.flags[k] & POOR_FIT:
+            self.local.add(icp.apply(T, pts), T[:3, 3])
+        self.prev = k
+        return k
+
+    def check_degenerate(self) -> None:
+        """ValueError when more than cfg.max_degenerate_share of the sweeps are degenerate."""
+        flags, stamps = np.asarray(self.flags), np.asarray(self.stamps)
+        degenerate = (flags & DEGENERATE) != 0
+        if len(flags) and degenerate.mean() > self.cfg.max_degenerate_share:
+            k = np.flatnonzero(degenerate)
+            raise ValueError(
+                f"registration is degenerate for {degenerate.sum()} of {len(flags)} sweeps (first at "
+                f"t = {stamps[k[0]] - stamps[0]:.2f} s, last at t = {stamps[k[-1]] - stamps[0]:.2f} "
+                "s after the start): the scene has no structure that fixes the motion along the "
+                "ground (a landmark-free field?), so the trajectory, and with it the heightmaps, "
+                "would be unreliable; nothing written")
+
+    def result(self) -> MappingResult:
+        """Everything registered so far, with P_ref as the reference map holds it."""
+        p_ref, views = self.local.global_map()
+        normals, _ = icp.pca_normals(p_ref, cKDTree(p_ref), p_ref, radius=self.cfg.normal_radius)
+        normals = icp.orient_to_viewpoints(p_ref, normals, views)
+        return MappingResult(np.asarray(self.stamps), np.asarray(self.poses).reshape(-1, 4, 4), p_ref, normals,
+                             np.asarray(self.fitness), np.asarray(self.rmse), np.asarray(self.flags, np.int64))
+
+
+def build_map(sweeps: list[Sweep], cfg: MappingConfig | None = None, progress=None
+              ) -> MappingResult:
+    """Register fused sweeps incrementally into P_ref and T_ref (a `Mapper` run to the end).
+
+    sweeps: time-ordered fused sweeps in base_link. The world frame is base_link at the
+    first usable sweep (`rotate_world` levels it afterwards). progress: optional callable(n) advanced once per sweep.
+    """
+    if len(sweeps) == 0:
+        raise ValueError("mapping needs at least one sweep")
+    stamps = np.array([s.stamp for s in sweeps])
+    period = float(np.median(np.diff(stamps))) if len(sweeps) > 1 else 0.1
+    mapper = Mapper(cfg, period)
+    for sw in sweeps:
+        mapper.add(sw)
+        if progress is not None:
+            progress(1)
+    mapper.finish()
+    mapper.check_degenerate()
+    return mapper.result()
 
 
 def rotate_world(maps: MappingResult, R: np.ndarray) -> MappingResult:

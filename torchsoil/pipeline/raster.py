@@ -1,8 +1,9 @@
 """ROI extraction and rasterization: world points -> heightmap on a shared grid (paper
 section III).
 
-The region of interest is a corridor of width d_w around the trajectory. Every cell
-holds the mean z of its points; empty cells with measured neighbours within
+The region of interest is a corridor of width d_w around the trajectory. Points are summed
+into tiles of a fixed lattice as they come (`Tiles`, which can spill far tiles to disk); every
+cell holds the mean z of its points; empty cells with measured neighbours within
 `fill_radius` cells are filled by their (count-weighted) local mean, cells without stay
 NaN and invalid. Per-cell point count and variance are kept.
 """
@@ -51,36 +52,6 @@ def corridor(trajectory_xy: np.ndarray, width: float, dx: float, step: float = 0
     return grid, np.isfinite(d).reshape(grid.shape)
 
 
-class Accumulator:
-    """Running per-cell count, sum and sum of squares of z over a grid."""
-
-    def __init__(self, grid: Grid, mask: np.ndarray):
-        self.grid, self.mask = grid, mask
-        n = grid.shape[0] * grid.shape[1]
-        self.count = np.zeros(n, dtype=np.int64)
-        self.sum = np.zeros(n)
-        self.sumsq = np.zeros(n)
-
-    def add(self, points: np.ndarray) -> int:
-        """Add (N, 3) world points [m]; returns how many fell in the corridor."""
-        ij = self.grid.index(points[:, :2])
-        X, Y = self.grid.shape
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < X) & (ij[:, 1] >= 0) & (ij[:, 1] < Y)
-        ij, z = ij[inside], points[inside, 2]
-        keep = self.mask[ij[:, 0], ij[:, 1]]
-        flat = ij[keep, 0] * Y + ij[keep, 1]
-        z = z[keep]
-        n = len(self.count)
-        self.count += np.bincount(flat, minlength=n)
-        self.sum += np.bincount(flat, weights=z, minlength=n)
-        self.sumsq += np.bincount(flat, weights=z * z, minlength=n)
-        return int(keep.sum())
-
-    def heightmap(self, fill_radius: int) -> Heightmap:
-        return finish(self.count.reshape(self.grid.shape), self.sum.reshape(self.grid.shape),
-                      self.sumsq.reshape(self.grid.shape), self.mask, fill_radius)
-
-
 def finish(count: np.ndarray, total: np.ndarray, sumsq: np.ndarray, mask: np.ndarray,
            fill_radius: int) -> Heightmap:
     """Per-cell sums (X, Y) -> Heightmap, empty cells filled from neighbours."""
@@ -99,3 +70,99 @@ def finish(count: np.ndarray, total: np.ndarray, sumsq: np.ndarray, mask: np.nda
     h[~valid] = np.nan
     return Heightmap(h.astype(np.float32), valid, measured & mask, count.astype(np.int32),
                      np.maximum(var, 0).astype(np.float32))
+
+
+class Tiles:
+    """Per-cell count, sum and sum of squares of z over an unbounded lattice of `dx` cells (cell
+    (I, J) centred at (I dx, J dx), as every corridor grid), in square tiles of `size` cells
+    made as points arrive. Tiles can be spilled to `spill_dir` (`spill`) and are read back
+    when points fall in them again or a region is asked for: sums add up, so a spilled and
+    reloaded tile is exact. Memory is then set by the tiles near the robot."""
+
+    def __init__(self, dx: float, size: int = 128, spill_dir: str | None = None):
+        self.dx, self.size, self.spill_dir = dx, size, spill_dir
+        self.tiles: dict[tuple[int, int], np.ndarray] = {}   # (3, size, size): count, sum, sumsq
+        self.spilled: set[tuple[int, int]] = set()
+
+    def add(self, points: np.ndarray) -> None:
+        """Add (N, 3) world points [m]."""
+        if len(points) == 0:
+            return
+        ij = np.round(points[:, :2] / self.dx).astype(np.int64)
+        key = ij // self.size
+        local = ij - key * self.size
+        tid = (key[:, 0] << 32) + (key[:, 1] & 0xFFFFFFFF)
+        for t in np.unique(tid):
+            sel = tid == t
+            k = (int(key[sel][0, 0]), int(key[sel][0, 1]))
+            tile = self._tile(k, create=True)
+            flat = local[sel, 0] * self.size + local[sel, 1]
+            z = points[sel, 2]
+            n, shape = self.size * self.size, (self.size, self.size)
+            tile[0] += np.bincount(flat, minlength=n).reshape(shape)
+            tile[1] += np.bincount(flat, weights=z, minlength=n).reshape(shape)
+            tile[2] += np.bincount(flat, weights=z * z, minlength=n).reshape(shape)
+
+    def _path(self, k: tuple[int, int]) -> str:
+        return f"{self.spill_dir}/tile_{k[0]}_{k[1]}.npy"
+
+    def _tile(self, k: tuple[int, int], create: bool = False) -> np.ndarray | None:
+        if k in self.tiles:
+            return self.tiles[k]
+        if k in self.spilled:
+            tile = np.load(self._path(k))
+            self.spilled.discard(k)
+        elif create:
+            tile = np.zeros((3, self.size, self.size))
+        else:
+            return None
+        self.tiles[k] = tile
+        return tile
+
+    def spill(self, xy: np.ndarray, radius: float) -> int:
+        """Write to disk (and drop from memory) the tiles with no cell within `radius` m of any
+        of the (K, 2) positions xy; returns how many. Without a spill directory: none."""
+        if self.spill_dir is None or not self.tiles:
+            return 0
+        from scipy.spatial import cKDTree
+
+        side = self.size * self.dx
+        keys = list(self.tiles)
+        centres = (np.array(keys, dtype=np.float64) + 0.5) * side - self.dx / 2
+        d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
+        far = d > radius + side / np.sqrt(2)
+        for k, f in zip(keys, far, strict=True):
+            if f:
+                np.save(self._path(k), self.tiles.pop(k))
+                self.spilled.add(k)
+        return int(far.sum())
+
+    def region(self, i0: int, i1: int, j0: int, j1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """count, sum, sumsq (each (i1 - i0, j1 - j0)) of lattice cells [i0:i1, j0:j1], read from
+        memory or disk (spilled tiles read stay on disk)."""
+        out = np.zeros((3, i1 - i0, j1 - j0))
+        s = self.size
+        for a in range(i0 // s, (i1 - 1) // s + 1):
+            for b in range(j0 // s, (j1 - 1) // s + 1):
+                k = (a, b)
+                tile = self.tiles.get(k)
+                if tile is None and k in self.spilled:
+                    tile = np.load(self._path(k))
+                if tile is None:
+                    continue
+                x0, x1 = max(i0, a * s), min(i1, (a + 1) * s)
+                y0, y1 = max(j0, b * s), min(j1, (b + 1) * s)
+                out[:, x0 - i0:x1 - i0, y0 - j0:y1 - j0] = tile[:, x0 - a * s:x1 - a * s, y0 - b * s:y1 - b * s]
+        return out[0], out[1], out[2]
+
+    def heightmap(self, grid: Grid, mask: np.ndarray, fill_radius: int) -> Heightmap:
+        """The Heightmap of `grid` (its cell centres on the lattice) within `mask` (X, Y)."""
+        i0, j0 = (int(round(o / self.dx)) for o in grid.origin)
+        count, total, sumsq = self.region(i0, i0 + grid.shape[0], j0, j0 + grid.shape[1])
+        count = np.where(mask, count, 0)
+        return finish(count.astype(np.int64), np.where(mask, total, 0.0), np.where(mask, sumsq, 0.0), mask,
+                      fill_radius)
+
+    def memory(self) -> int:
+        """Bytes held in memory."""
+        return sum(t.nbytes for t in self.tiles.values())

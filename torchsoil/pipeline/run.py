@@ -21,11 +21,9 @@ import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
-from torchsoil.io.bag import Recording, count_messages, frame_name, read_recording, xyzrpy_matrix
-from torchsoil.pipeline import gravity, icp, mapping
-from torchsoil.pipeline.mapping import Sweep, build_map
-from torchsoil.pipeline.raster import Accumulator, corridor
-from torchsoil.pipeline.reregister import register_sweep
+from torchsoil.io.bag import Recording, count_messages, frame_name, stream_recording, xyzrpy_matrix
+from torchsoil.pipeline import mapping
+from torchsoil.pipeline.online import OnlinePipeline
 from torchsoil.robot import Robot
 from torchsoil.settings import PipelineConfig, ReadConfig
 from torchsoil.terrain import TerrainPair
@@ -95,28 +93,6 @@ def extrinsics_from_robot_yaml(path: str | Path) -> dict[str, list[float]]:
     return out
 
 
-def fuse(front: list[Sweep], back: list[Sweep], period: float) -> tuple[list[Sweep], np.ndarray]:
-    """Each front sweep merged with the back sweep nearest in time (within half a period);
-    returns fused sweeps (stamped like the front ones) and (S,) flags (MISSING_BACK)."""
-    bstamps = np.array([b.stamp for b in back])
-    out, flags = [], np.zeros(len(front), dtype=np.int64)
-    for k, f in enumerate(front):
-        j = int(np.argmin(np.abs(bstamps - f.stamp))) if len(back) else -1
-        if j < 0 or abs(bstamps[j] - f.stamp) > period / 2:
-            out.append(f)
-            flags[k] |= mapping.MISSING_BACK
-            continue
-        b = back[j]
-        out.append(Sweep(f.stamp, np.concatenate([f.points, b.points]),
-                         np.concatenate([f.t, b.t + (b.stamp - f.stamp)])))
-    return out, flags
-
-
-def _to_base(clouds, T: np.ndarray) -> list[Sweep]:
-    return [Sweep(c.stamp, icp.apply(T, c.xyz.astype(np.float64)), c.t.astype(np.float64))
-            for c in clouds]
-
-
 def poses_to_rows(stamps: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(S,) times and (S, 4, 4) poses -> (S, 7) FORMATS rows t, x, y, z, roll, pitch, yaw."""
     rpy = Rotation.from_matrix(poses[:, :3, :3]).as_euler("xyz")
@@ -152,127 +128,63 @@ def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]
 
 
 def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | None = None,
-                progress: bool = False) -> PipelineResult:
-    """Recording -> terrain pair (H_f, H_b on one grid, T_ref) with per-sweep flags.
+                progress: bool = False, spill_dir: str | Path | None = None) -> PipelineResult:
+    """Recording -> terrain pair (H_f, H_b on one grid, T_ref) with per-sweep flags: the
+    streaming pipeline (torchsoil.pipeline.online) run over the recording to its end.
 
     Args:
         bag_path: ROS 2 bag directory or ROS 1 file (FORMATS.md section 1).
         robot: wheel layout (written into the terrain pair; also bounds the ground each
             lidar may measure: ahead of the front wheels, behind the rear wheels).
         config: the pipeline section of the settings (torchsoil.settings.PipelineConfig).
-        progress: show tqdm progress bars.
+        progress: show a tqdm progress bar.
+        spill_dir: directory for heightmap tiles far from the robot (bounded memory).
     Raises:
         BagError / ValueError naming the bag, topic or frame when the input is unusable;
         nothing is written by this function.
     """
     cfg = config or PipelineConfig()
-    timings: dict[str, float] = {}
     bar = _bars(progress)
+    total = count_messages(bag_path, [cfg.read.front_topic, cfg.read.back_topic]) if progress else None
+    rec = Recording([], [])
+    online = OnlinePipeline(robot, cfg, rec, spill_dir)
+    t_read = time.perf_counter()
+    for name, item in stream_recording(bag_path, rec, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
+                                       cfg.read.base_frame, progress=bar("read", total), times=cfg.read.times,
+                                       imu_topic=cfg.read.imu_topic):
+        if name == "imu":
+            online.add_imu(item)
+        else:
+            online.add_cloud(name, item)
+    online.finish()
+    return finish_result(online, rec, bag_path, time.perf_counter() - t_read)
+
+
+def finish_result(online: OnlinePipeline, rec: Recording, bag_path, wall: float) -> PipelineResult:
+    """The whole drive's terrain pair, mapping result, timings and problems of a finished
+    OnlinePipeline."""
     t0 = time.perf_counter()
-    total = count_messages(bag_path, [cfg.read.front_topic, cfg.read.back_topic]) \
-        if progress else None
-    rec = read_recording(bag_path, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
-                         cfg.read.base_frame, progress=bar("read", total), times=cfg.read.times,
-                         imu_topic=cfg.read.imu_topic)
-    ext = extrinsics_for(rec, cfg.read, {cfg.read.front_topic: rec.front[0].frame,
-                                         cfg.read.back_topic: rec.back[0].frame})
-    front = _to_base(rec.front, ext[cfg.read.front_topic])
-    back = _to_base(rec.back, ext[cfg.read.back_topic])
-    del rec.front[:], rec.back[:]
-    timings["read"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    stamps = np.array([s.stamp for s in front])
-    period = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 0.1
-    fused, flags = fuse(front, back, period)
-    maps = build_map(fused, cfg.mapping, progress=bar("mapping", len(fused)))
-    imu_T = None
-    if rec.imu is not None and cfg.level.source in ("auto", "imu"):
-        imu_T = extrinsics_for(rec, cfg.read, {rec.imu.topic: rec.imu.frame})[rec.imu.topic]
-    R, notes = gravity.level(maps.stamps, maps.poses, maps.map_points, maps.map_normals, rec.imu, imu_T,
-                             cfg.level)
-    maps = mapping.rotate_world(maps, R)
-    rec.problems.extend(notes)
-    flags |= maps.flags
-    del fused
-    timings["mapping"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    target = icp.make_target(maps.map_points, cfg.mapping.normal_radius, maps.map_normals)
-    ref_ok = (maps.flags & (mapping.POOR_FIT | mapping.EMPTY)) == 0
-    ref_stamps, ref_poses = maps.stamps[ref_ok], maps.poses[ref_ok]
-    grid, mask = corridor(ref_poses[:, :2, 3], cfg.raster.corridor_width, cfg.raster.dx)
-    acc = {"front": Accumulator(grid, mask), "back": Accumulator(grid, mask)}
-    wheel_x = robot.wheels[:, 0]
-    edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
-    tick = bar("re-register", len(front) + len(back))
-    keep_x = {"front": lambda x: x > wheel_x.max() + edge, "back": lambda x: x < wheel_x.min() - edge}
-
-    def stream(name: str, sweeps: list[Sweep]):
-        """Re-register and rasterize one stream; returns per-sweep fitness, rmse, accepted and
-        the indices of empty sweeps."""
-        n = len(sweeps)
-        fit, rmse, ok = np.full(n, np.nan), np.full(n, np.nan), np.zeros(n, bool)
-        empty = np.zeros(n, bool)
-        for k, sw in enumerate(sweeps):
-            tick(1)
-            if len(sw.points) < 50:
-                empty[k] = True
-                continue
-            pts, T, fit[k], rmse[k], ok[k], _ = register_sweep(
-                sw.points, sw.t, sw.stamp, ref_stamps, ref_poses, target, cfg.reregister, period)
-            if ok[k]:
-                sel = np.linalg.norm(sw.points, axis=1) < cfg.raster.max_range
-                sel &= keep_x[name](pts[:, 0])
-                acc[name].add(icp.apply(T, pts[sel]))
-        return fit, rmse, ok, empty
-
-    # the two streams are independent: one thread each (KD-tree queries and numpy release
-    # the interpreter lock)
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        jobs = {name: pool.submit(stream, name, sweeps)
-                for name, sweeps in (("front", front), ("back", back))}
-        stats = {name: job.result() for name, job in jobs.items()}
-    for name, sweeps, fail_bit in (("front", front, mapping.REREG_FRONT_FAILED),
-                                   ("back", back, mapping.REREG_BACK_FAILED)):
-        _, _, ok, empty = stats[name]
-        for k, sw in enumerate(sweeps):
-            j = int(np.argmin(np.abs(stamps - sw.stamp)))
-            if empty[k]:
-                flags[j] |= mapping.EMPTY
-            elif not ok[k]:
-                flags[j] |= fail_bit
-    timings["reregister_raster"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    hf = acc["front"].heightmap(cfg.raster.fill_radius)
-    hb = acc["back"].heightmap(cfg.raster.fill_radius)
-    for name, hm in (("front", hf), ("back", hb)):
-        if not hm.valid.any():
-            kept = int(stats[name][2].sum())
-            raise ValueError(f"{bag_path}: the {name} heightmap is empty ({kept} of "
-                             f"{len(stats[name][2])} {name} sweeps re-registered, none with "
-                             "ground in the corridor); nothing to write")
-    extras = {
-        "valid_front": hf.valid, "valid_back": hb.valid,
-        "measured_front": hf.measured, "measured_back": hb.measured,
-        "count_front": hf.count, "count_back": hb.count,
-        "var_front": hf.var, "var_back": hb.var,
-        "scan_stamps": stamps, "scan_flags": flags,
-        "map_fitness": maps.fitness, "map_rmse": maps.rmse,
-        "rereg_fitness_front": stats["front"][0], "rereg_rmse_front": stats["front"][1],
-        "rereg_fitness_back": stats["back"][0], "rereg_rmse_back": stats["back"][1],
-        "roi_mask": mask,
-    }
-    terrain = TerrainPair(grid.dx, np.array(grid.origin), hf.h, hb.h,
-                          poses_to_rows(ref_stamps, ref_poses), robot.wheels, robot.wheel_width,
-                          robot.wheel_flat_fraction, extras)
+    terrain = online.terrain()
+    for name, key in (("front", "valid_front"), ("back", "valid_back")):
+        if not terrain.extras[key].any():
+            ok = online.stats[name]["ok"]
+            raise ValueError(f"{bag_path}: the {name} heightmap is empty ({int(np.sum(ok))} of {len(ok)} {name} "
+                             "sweeps re-registered, none with ground in the corridor); nothing to write")
+    maps = online.mapping_result()
+    extras = {"map_fitness": maps.fitness, "map_rmse": maps.rmse}
+    for name in ("front", "back"):
+        st = online.stats[name]
+        extras[f"rereg_fitness_{name}"] = np.asarray(st["fitness"], np.float64)
+        extras[f"rereg_rmse_{name}"] = np.asarray(st["rmse"], np.float64)
+    terrain.extras.update(extras)
+    timings = dict(online.timings)
     timings["finish"] = time.perf_counter() - t0
+    timings["read"] = max(wall - sum(timings.values()), 0.0)
+    stamps, flags = terrain.extras["scan_stamps"], terrain.extras["scan_flags"]
     problems = list(rec.problems) + flagged_spans(stamps, flags, rec.start)
     for name in ("front", "back"):
-        kept = stats[name][2].mean() if len(stats[name][2]) else 0.0
+        ok = online.stats[name]["ok"]
+        kept = float(np.mean(ok)) if len(ok) else 0.0
         if kept < 0.5:
             problems.append(f"only {kept:.0%} of the {name} sweeps were re-registered")
     return PipelineResult(terrain, maps, timings, problems, rec.duration)

@@ -1,0 +1,176 @@
+"""Soil parameters while the robot drives: the streaming lidar pipeline and the window
+estimator in one object, fed message by message (what a ROS 2 node's callbacks call).
+
+    live = LiveEstimator(robot, settings)
+    live.add_transforms(tf_static_msg)                   # tf2_msgs/TFMessage, any time
+    live.add_message("/lidar_front/points", msg)         # sensor_msgs/PointCloud2 (or Livox CustomMsg)
+    live.add_imu(imu_msg)                                # sensor_msgs/Imu (optional)
+    for w in live.poll():                                # windows whose ground is complete
+        print(w.index, w.output.row["d1"], w.output.row["beta"])
+    live.finish()                                        # the end: the last windows
+
+A window is fitted as soon as the back lidar has rasterized its ground and the next
+window's (for the prediction cost) `estimator.online.lag` m behind the rear wheels' margin.
+It is cut out of the tiles with `estimator.online.context` m of ground before it and fitted
+by `Estimator` on that stretch (map offset included), warm-started from the window before.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from torchsoil.estimator import Estimator, WindowOutput
+from torchsoil.io.bag import ImuSample, Recording, _edges, frame_name, resolve_frames
+from torchsoil.io.pointcloud import LIVOX_CUSTOM
+from torchsoil.io.stream import SweepStream
+from torchsoil.pipeline.online import OnlinePipeline
+from torchsoil.robot import Robot
+from torchsoil.settings import Settings
+from torchsoil.windows import path_arc
+
+
+class LiveWindow(NamedTuple):
+    """index: the window's number along the whole drive; output: its estimator output (row
+    with the drive's arc length `s`); pair: the stretch it was fitted on; ready: wall time
+    (time.perf_counter) at which its ground was complete; done: when its row was ready; dist:
+    (X, Y) over the window's crop, distance of each cell's arc length to the window centre, m."""
+
+    index: int
+    output: WindowOutput
+    pair: object
+    ready: float
+    done: float
+    dist: np.ndarray | None = None
+
+
+class LiveEstimator:
+    """The running estimate. Args: robot; settings (torchsoil.settings.Settings); spill_dir:
+    where far heightmap tiles go (None: kept in memory). `pipeline` is the OnlinePipeline."""
+
+    def __init__(self, robot: Robot, settings: Settings | None = None, spill_dir=None, rec: Recording | None = None):
+        self.settings = settings = settings or Settings()
+        self.robot = robot
+        self.rec = rec if rec is not None else Recording([], [])
+        self.pipeline = OnlinePipeline(robot, settings.pipeline, self.rec, spill_dir)
+        self.next = 0                      # next window index
+        self.theta: torch.Tensor | None = None
+        self.ready_at: dict[int, float] = {}
+        self.edges: dict[str, tuple] = {}
+        r = settings.pipeline.read
+        self.streams = {r.front_topic: ("front", SweepStream(r.front_topic, r.times.get(r.front_topic))),
+                        r.back_topic: ("back", SweepStream(r.back_topic, r.times.get(r.back_topic)))}
+        e = settings.estimator
+        self.behind = abs(float(robot.wheels[:, 0].min())) + robot.wheel_width / 2 \
+            + settings.pipeline.raster.wheel_margin + e.online.lag
+        self.reach = np.abs(robot.wheels[:, 0]).max() + robot.wheel_width
+
+    # ---------------------------------------------------------------- input
+    def add_message(self, topic: str, msg, msgtype: str = "sensor_msgs/msg/PointCloud2") -> None:
+        """A lidar message of the front or back topic (PointCloud2 or Livox CustomMsg)."""
+        name, stream = self.streams[topic]
+        stream.add(msg, msgtype, stream.yielded + len(stream.clouds), 0.0)
+        for cloud in stream.take():
+            self.pipeline.add_cloud(name, cloud)
+
+    def add_cloud(self, name: str, cloud) -> None:
+        """A decoded sweep (torchsoil.io.pointcloud.Cloud, stamped at its start) of "front" or "back"."""
+        self.pipeline.add_cloud(name, cloud)
+
+    def add_transforms(self, msg) -> None:
+        """A tf2_msgs/TFMessage (/tf_static or /tf): lidar and IMU extrinsics."""
+        for child, edge in _edges(msg).items():
+            self.edges.setdefault(child, edge)
+        self.rec.extrinsics = resolve_frames(self.edges, frame_name(self.settings.pipeline.read.base_frame))
+
+    def add_imu(self, msg) -> None:
+        """A sensor_msgs/Imu message (or an ImuSample)."""
+        if not isinstance(msg, ImuSample):
+            msg = ImuSample(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
+                            (msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z),
+                            (msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z),
+                            frame_name(msg.header.frame_id), "/imu")
+        self.pipeline.add_imu(msg)
+
+    # --------------------------------------------------------------- output
+    def poll(self, final: bool = False) -> list[LiveWindow]:
+        """Fit every window whose ground is now complete (with `final`: all that are left)."""
+        pipe, e = self.pipeline, self.settings.estimator
+        if pipe.L is None or pipe.mapper is None:
+            return []
+        stamps, poses = pipe.trajectory()
+        if len(stamps) < 2:
+            return []
+        rows = np.column_stack([stamps, poses[:, :3, 3]])
+        arc = path_arc(np.column_stack([rows, np.zeros((len(rows), 3))]))
+        if final:
+            done_arc = arc[-1]
+            last = int(math.floor((arc[-1] - e.window) / e.stride + 1e-9))
+        else:
+            done_arc = float(np.interp(pipe.ground_stamp, stamps, arc)) - self.behind
+            last = int(math.floor((done_arc - 2 * e.window) / e.stride + 1e-9))
+        if last < self.next:
+            return []
+        now = time.perf_counter()
+        for k in range(self.next, last + 1):
+            self.ready_at.setdefault(k, now)
+        a0 = max(0.0, self.next * e.stride - e.online.context)
+        a1 = min(arc[-1], (last * e.stride + 2 * e.window) + self.reach + e.corridor)
+        t0, t1 = np.interp([a0, a1], arc, stamps)
+        pair = pipe.terrain(t0, t1)
+        first = int(np.searchsorted(stamps, t0))
+        est = Estimator(pair, e, self.settings.sim, arc0=float(arc[first]))
+        out = []
+        index = [int(round((w.s0 + est.arc0) / e.stride)) for w in est.windows]
+        j0 = next((j for j, k in enumerate(index) if k >= self.next), len(index))
+        j1 = next((j for j, k in enumerate(index) if k > last), len(index))
+        for j, o in enumerate(est.run(start=j0, theta=self.theta, stop=j1), start=j0):
+            k = index[j]
+            if o.fit is not None:
+                self.theta = o.fit.theta
+            dist = None
+            if o.data is not None:
+                i0, i1, j0, j1 = o.data.crop
+                dist = np.abs(est.index.s[i0:i1, j0:j1] - o.data.spec.centre)
+            out.append(LiveWindow(k, o, pair, self.ready_at.pop(k, now), time.perf_counter(), dist))
+            self.next = k + 1
+        if final:   # the drive ends here: no later window can be fitted
+            self.next = max(self.next, last + 1)
+        return out
+
+    def finish(self) -> list[LiveWindow]:
+        """The end of the recording: the pipeline flushed and the last windows fitted."""
+        self.pipeline.finish()
+        return self.poll(final=True)
+
+
+def is_lidar(msgtype: str) -> bool:
+    return msgtype == "sensor_msgs/msg/PointCloud2" or msgtype in LIVOX_CUSTOM
+
+
+def play(bag, live: LiveEstimator, realtime: bool = False, progress=None):
+    """Feed a recording to `live` in bag order and yield each LiveWindow as it is fitted; with
+    `realtime`, at the recording's own pace (sweeps held until their time has come on the
+    wall clock). progress: optional callable(n) per message."""
+    from torchsoil.io.bag import stream_recording
+
+    r = live.settings.pipeline.read
+    start = None
+    for name, item in stream_recording(bag, live.rec, r.front_topic, r.back_topic, r.tf_topic, r.base_frame,
+                                       progress=progress, times=r.times, imu_topic=r.imu_topic):
+        if name == "imu":
+            live.add_imu(item)
+            continue
+        if realtime:
+            if start is None:
+                start = (time.perf_counter(), item.stamp)
+            wait = (item.stamp - start[1]) - (time.perf_counter() - start[0])
+            if wait > 0:
+                time.sleep(wait)
+        live.add_cloud(name, item)
+        yield from live.poll()
+    yield from live.finish()

@@ -1,0 +1,344 @@
+"""The lidar pipeline fed sweep by sweep, in bounded memory (paper section III, online).
+
+`OnlinePipeline` takes decoded sweeps of both lidars (and IMU samples) as they arrive:
+front and back are fused and registered into the reference map and trajectory (mapping.Mapper),
+the world frame is levelled once the first seconds are in (gravity), and each stream's sweep
+is re-registered onto the reference map near it (reregister) and rasterized into tiles of a
+fixed lattice (raster.Tiles) as soon as the trajectory around it is known. Nothing else is
+kept: sweeps are dropped once rasterized, and with a spill directory the tiles far from the
+robot go to disk. `terrain(...)` assembles a terrain pair of any stretch (or the whole drive)
+from the tiles; `process_bag` is this pipeline run over a recording to its end.
+"""
+
+from __future__ import annotations
+
+import bisect
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from torchsoil.io.bag import ImuSample, Recording, imu_data
+from torchsoil.io.pointcloud import Cloud
+from torchsoil.pipeline import gravity, icp, mapping
+from torchsoil.pipeline.mapping import Mapper, Sweep
+from torchsoil.pipeline.raster import Tiles, corridor
+from torchsoil.pipeline.reregister import register_sweep
+from torchsoil.robot import Robot
+from torchsoil.settings import PipelineConfig
+from torchsoil.terrain import TerrainPair
+
+STREAMS = ("front", "back")
+REF_OK = ~(mapping.POOR_FIT | mapping.EMPTY)
+
+
+class OnlinePipeline:
+    """Sweeps in, rasterized ground out, as the robot drives.
+
+    Args:
+        robot: wheel layout (bounds the ground each lidar may measure).
+        cfg: the pipeline settings.
+        rec: the recording's state as read so far: `extrinsics` (frame -> (4, 4), updated as
+            transforms arrive) and `problems` (torchsoil.io.bag.Recording).
+        spill_dir: directory for tiles far from the robot (None: all kept in memory).
+    Feed `add_cloud("front" | "back", cloud)` and `add_imu(sample)` in arrival order, then
+    `finish()`. `ground_stamp` is the time of the last back sweep rasterized: the ground
+    behind the robot at that time is measured before and after.
+    """
+
+    def __init__(self, robot: Robot, cfg: PipelineConfig, rec: Recording, spill_dir=None):
+        self.robot, self.cfg, self.rec = robot, cfg, rec
+        self.topics = {"front": cfg.read.front_topic, "back": cfg.read.back_topic}
+        self.ext: dict[str, np.ndarray] | None = None
+        self.held: list[tuple[str, Cloud]] = []          # clouds waiting for their extrinsics
+        self.frames: dict[str, str] = {}
+        self.front_wait: list[Sweep] = []                # front sweeps waiting for a back partner
+        self.back_pool: list[Sweep] = []
+        self.queue: dict[str, list[Sweep]] = {n: [] for n in STREAMS}  # waiting for re-registration
+        self.period: float | None = None
+        self.first_stamps: list[float] = []
+        self.mapper: Mapper | None = None
+        self.fuse_flags: list[int] = []
+        self.imu: list[ImuSample] = []
+        self.L: np.ndarray | None = None                 # levelling (4, 4)
+        self.ok_stamps: list[float] = []
+        self.ok_poses: list[np.ndarray] = []
+        self.tiles = {n: Tiles(cfg.raster.dx, spill_dir=spill_dir) for n in STREAMS}
+        self.stats = {n: defaultdict(list) for n in STREAMS}
+        self.target: icp.Target | None = None
+        self.target_at = (np.full(3, np.inf), 0)
+        self.timings: dict[str, float] = defaultdict(float)
+        self.ground_stamp = -np.inf
+        self.n_final = 0
+        self.finished = False
+        wheel_x, edge = robot.wheels[:, 0], robot.wheel_width / 2 + cfg.raster.wheel_margin
+        self.keep_x = {"front": lambda x: x > wheel_x.max() + edge, "back": lambda x: x < wheel_x.min() - edge}
+
+    # ------------------------------------------------------------------ input
+    def add_cloud(self, name: str, cloud: Cloud) -> None:
+        """One decoded sweep of stream `name` (sweep-start stamp, sensor frame)."""
+        if self.ext is None:
+            self.held.append((name, cloud))
+            self.frames.setdefault(name, cloud.frame)
+            if not self._resolve(final=False):
+                return
+            held, self.held = self.held, []
+            for n, c in held:
+                self._take(n, c)
+            return
+        self._take(name, cloud)
+
+    def add_imu(self, sample: ImuSample) -> None:
+        if self.L is None:
+            self.imu.append(sample)
+
+    def finish(self) -> None:
+        """The end of the recording: everything still held is registered and rasterized."""
+        if self.ext is None:
+            self._resolve(final=True)
+            held, self.held = self.held, []
+            for n, c in held:
+                self._take(n, c)
+        self._fuse(final=True)
+        if self.mapper is None:
+            raise ValueError("no front sweep with points: nothing to map")
+        t0 = time.perf_counter()
+        for k in self.mapper.finish():
+            self._final(k)
+        self.mapper.check_degenerate()
+        self.timings["mapping"] += time.perf_counter() - t0
+        self._level(final=True)
+        self._reregister(final=True)
+        self.finished = True
+
+    def _resolve(self, final: bool) -> bool:
+        """Both streams' extrinsics, once both have a sweep and the transforms are known;
+        raises the reason when still unknown after 50 sweeps or at the end."""
+        from torchsoil.pipeline.run import extrinsics_for
+
+        if len(self.frames) < 2 and not final:
+            return False
+        if len(self.frames) < 2:
+            missing = [self.topics[n] for n in STREAMS if n not in self.frames]
+            raise ValueError(f"no sweep could be read on {missing}")
+        try:
+            ext = extrinsics_for(self.rec, self.cfg.read, {self.topics[n]: self.frames[n] for n in STREAMS})
+        except ValueError:
+            if final or len(self.held) > 50:
+                raise
+            return False
+        self.ext = {n: ext[self.topics[n]] for n in STREAMS}
+        return True
+
+    def _take(self, name: str, cloud: Cloud) -> None:
+        T = self.ext[name]
+        sw = Sweep(cloud.stamp, icp.apply(T, cloud.xyz.astype(np.float64)), cloud.t.astype(np.float64))
+        q = self.queue[name]
+        if q and sw.stamp <= q[-1].stamp:
+            self.rec.problems.append(f"{self.topics[name]} sweep at t={sw.stamp:.3f} s out of order: skipped")
+            return
+        q.append(sw)
+        if name == "front":
+            self.front_wait.append(sw)
+            if len(self.first_stamps) < 6:
+                self.first_stamps.append(sw.stamp)
+        else:
+            self.back_pool.append(sw)
+        self._fuse(final=False)
+
+    # ----------------------------------------------------------------- stages
+    def _fuse(self, final: bool) -> None:
+        """Each front sweep with the back sweep nearest in time (within half a period), once no
+        nearer one can come, into the mapper."""
+        if self.period is None:
+            if len(self.first_stamps) < 6 and not final:
+                return
+            steps = np.diff(self.first_stamps)
+            self.period = float(np.median(steps)) if len(steps) else 0.1
+        while self.front_wait:
+            f = self.front_wait[0]
+            if not final and not any(b.stamp >= f.stamp + self.period / 2 for b in self.back_pool[-3:]):
+                return
+            self.front_wait.pop(0)
+            near = [b for b in self.back_pool if abs(b.stamp - f.stamp) <= self.period / 2]
+            flag = 0
+            if near:
+                b = min(near, key=lambda b: abs(b.stamp - f.stamp))
+                f = Sweep(f.stamp, np.concatenate([f.points, b.points]),
+                          np.concatenate([f.t, b.t + (b.stamp - f.stamp)]))
+            else:
+                flag = mapping.MISSING_BACK
+            self.back_pool = [b for b in self.back_pool if b.stamp > f.stamp - self.period]
+            self._map(f, flag)
+
+    def _map(self, sweep: Sweep, flag: int) -> None:
+        t0 = time.perf_counter()
+        if self.mapper is None:
+            self.mapper = Mapper(self.cfg.mapping, self.period)
+        self.fuse_flags.append(flag)
+        done = self.mapper.add(sweep)
+        self.timings["mapping"] += time.perf_counter() - t0
+        for k in done:
+            self._final(k)
+        self._level(final=False)
+        self._reregister(final=False)
+
+    def _final(self, k: int) -> None:
+        m = self.mapper
+        self.n_final = k + 1
+        if m.flags[k] & (mapping.POOR_FIT | mapping.EMPTY) == 0:
+            self.ok_stamps.append(m.stamps[k])
+            self.ok_poses.append(m.poses[k])
+
+    def _level(self, final: bool) -> None:
+        """The levelling rotation, once the first `level.window` s are registered (with an IMU)
+        or the robot is `level.radius` m from the start (by the ground), or at the end."""
+        if self.L is not None or not self.ok_poses:
+            return
+        cfg, m = self.cfg.level, self.mapper
+        imu = imu_data(self.imu) if self.imu else None
+        use_imu = imu is not None and cfg.source in ("auto", "imu")
+        if not final:
+            if cfg.source == "none":
+                pass
+            elif use_imu and self.ok_stamps[-1] < self.ok_stamps[0] + cfg.window + 2 * self.period:
+                return
+            elif not use_imu and np.linalg.norm(self.ok_poses[-1][:2, 3]) < cfg.radius:
+                return
+        t0 = time.perf_counter()
+        imu_T = None
+        if use_imu:
+            from torchsoil.pipeline.run import extrinsics_for
+
+            imu_T = extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
+        pts, views = m.local.global_map()
+        normals = np.zeros_like(pts)
+        if cfg.source in ("auto", "ground") and not use_imu and len(pts):
+            from scipy.spatial import cKDTree
+
+            normals, _ = icp.pca_normals(pts, cKDTree(pts), pts, radius=self.cfg.mapping.normal_radius)
+        R, notes = gravity.level(np.asarray(self.ok_stamps), np.asarray(self.ok_poses), pts, normals, imu, imu_T,
+                                 cfg)
+        self.rec.problems.extend(notes)
+        self.L = np.eye(4)
+        self.L[:3, :3] = R
+        self.imu = []
+        self.timings["mapping"] += time.perf_counter() - t0
+
+    def _reregister(self, final: bool) -> None:
+        """Re-register and rasterize every queued sweep whose time the trajectory now covers."""
+        if self.L is None or not self.ok_stamps:
+            return
+        t0 = time.perf_counter()
+        for name in STREAMS:
+            q = self.queue[name]
+            while q and (final or q[0].stamp + self.period <= self.ok_stamps[-1]):
+                self._rasterize(name, q.pop(0))
+        if self.tiles["back"].spill_dir is not None and self.n_final % 50 == 0:
+            xy = np.asarray(self.ok_poses[-10:])[:, :2, 3] @ self.L[:2, :2].T
+            radius = self.cfg.raster.max_range + self.cfg.raster.corridor_width
+            for tiles in self.tiles.values():
+                tiles.spill(xy, radius)
+        self.timings["reregister_raster"] += time.perf_counter() - t0
+
+    def _rasterize(self, name: str, sw: Sweep) -> None:
+        st = self.stats[name]
+        st["stamp"].append(sw.stamp)
+        if len(sw.points) < 50:
+            st["fitness"].append(np.nan), st["rmse"].append(np.nan), st["ok"].append(False), st["empty"].append(True)
+            return
+        i = max(bisect.bisect_left(self.ok_stamps, sw.stamp - 3 * self.period) - 1, 0)
+        j = bisect.bisect_right(self.ok_stamps, sw.stamp + 3 * self.period) + 1
+        stamps, poses = np.asarray(self.ok_stamps[i:j]), np.asarray(self.ok_poses[i:j])
+        seed = poses[int(np.argmin(np.abs(stamps - sw.stamp)))]
+        pts, T, fit, rmse, ok, _ = register_sweep(sw.points, sw.t, sw.stamp, stamps, poses,
+                                                  self._target(seed[:3, 3]), self.cfg.reregister, self.period)
+        st["fitness"].append(fit), st["rmse"].append(rmse), st["ok"].append(ok), st["empty"].append(False)
+        if not ok:
+            return
+        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & self.keep_x[name](pts[:, 0])
+        self.tiles[name].add(icp.apply(self.L @ T, pts[sel]))
+        if name == "back":
+            self.ground_stamp = sw.stamp
+
+    def _target(self, center: np.ndarray) -> icp.Target:
+        """The reference map near `center` (mapper frame), rebuilt every metre or 10 sweeps."""
+        at, n = self.target_at
+        if self.target is None or np.linalg.norm(center - at) > 1.0 or self.n_final - n >= 10:
+            radius = self.cfg.reregister.max_range + 2.0
+            local = self.mapper.local
+            if hasattr(local, "reference"):
+                self.target = local.reference(center, radius)
+            else:
+                from scipy.spatial import cKDTree
+
+                pts, views = local.global_map()
+                near = np.linalg.norm(pts[:, :2] - center[:2], axis=1) < radius
+                pts, views = pts[near], views[near]
+                normals, _ = icp.pca_normals(pts, cKDTree(pts), pts, radius=self.cfg.mapping.normal_radius)
+                self.target = icp.make_target(pts, self.cfg.mapping.normal_radius,
+                                              icp.orient_to_viewpoints(pts, normals, views))
+            self.target_at = (center.copy(), self.n_final)
+        return self.target
+
+    # ----------------------------------------------------------------- output
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """T_ref so far, levelled: stamps (S,) s and poses (S, 4, 4) of the sweeps the mapper
+        registered (not poor fits nor empty)."""
+        L = np.eye(4) if self.L is None else self.L
+        poses = np.asarray(self.ok_poses).reshape(-1, 4, 4)
+        return np.asarray(self.ok_stamps), L @ poses
+
+    def scan_flags(self) -> tuple[np.ndarray, np.ndarray]:
+        """Stamps (S,) and flags (S,) of every mapped sweep: the mapper's, the fusion's and the
+        re-registration's (a stream's failed or empty sweep flags the mapped sweep nearest in time)."""
+        m = self.mapper
+        n = self.n_final
+        stamps = np.asarray(m.stamps[:n])
+        flags = np.asarray(m.flags[:n], np.int64) | np.asarray(self.fuse_flags[:n], np.int64)
+        for name, bit in (("front", mapping.REREG_FRONT_FAILED), ("back", mapping.REREG_BACK_FAILED)):
+            st = self.stats[name]
+            if not st["stamp"] or not n:
+                continue
+            s = np.asarray(st["stamp"])
+            j = np.clip(np.searchsorted(stamps, s), 1, max(n - 1, 1))
+            j = np.where(np.abs(stamps[j - 1] - s) <= np.abs(stamps[np.minimum(j, n - 1)] - s), j - 1,
+                         np.minimum(j, n - 1))
+            empty, ok = np.asarray(st["empty"]), np.asarray(st["ok"])
+            np.bitwise_or.at(flags, j[empty], mapping.EMPTY)
+            np.bitwise_or.at(flags, j[~empty & ~ok], bit)
+        return stamps, flags
+
+    def terrain(self, t0: float = -np.inf, t1: float = np.inf) -> TerrainPair:
+        """The terrain pair of the stretch driven between t0 and t1 (s; default: all so far): the
+        corridor around that part of T_ref, H_f and H_b from the tiles, poses and per-sweep flags
+        of the stretch as extras (FORMATS.md section 3)."""
+        stamps, poses = self.trajectory()
+        sel = (stamps >= t0) & (stamps <= t1)
+        if sel.sum() < 2:
+            raise ValueError(f"fewer than two registered poses between t = {t0:.2f} and {t1:.2f} s")
+        stamps, poses = stamps[sel], poses[sel]
+        rc = self.cfg.raster
+        grid, mask = corridor(poses[:, :2, 3], rc.corridor_width, rc.dx)
+        hf = self.tiles["front"].heightmap(grid, mask, rc.fill_radius)
+        hb = self.tiles["back"].heightmap(grid, mask, rc.fill_radius)
+        scan_stamps, flags = self.scan_flags()
+        keep = (scan_stamps >= stamps[0] - 1.0) & (scan_stamps <= stamps[-1] + 1.0)
+        extras = {"valid_front": hf.valid, "valid_back": hb.valid,
+                  "measured_front": hf.measured, "measured_back": hb.measured,
+                  "count_front": hf.count, "count_back": hb.count, "var_front": hf.var, "var_back": hb.var,
+                  "scan_stamps": scan_stamps[keep], "scan_flags": flags[keep], "roi_mask": mask}
+        from torchsoil.pipeline.run import poses_to_rows
+
+        return TerrainPair(grid.dx, np.array(grid.origin), hf.h, hb.h, poses_to_rows(stamps, poses),
+                           self.robot.wheels, self.robot.wheel_width, self.robot.wheel_flat_fraction, extras)
+
+    def mapping_result(self) -> mapping.MappingResult:
+        """The mapper's result (P_ref as held), levelled."""
+        res = self.mapper.result()
+        return mapping.rotate_world(res, np.eye(3) if self.L is None else self.L[:3, :3])
+
+    def memory(self) -> int:
+        """Bytes held in tiles and queued sweeps (the parts that grow with the drive if unbounded)."""
+        sweeps = sum(s.points.nbytes + s.t.nbytes for q in self.queue.values() for s in q)
+        return sweeps + sum(t.memory() for t in self.tiles.values())
