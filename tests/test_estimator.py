@@ -79,7 +79,7 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
     cfg = load_settings()
     out = estimate(src, tmp_path / "run", cfg, tensorboard=True, progress=False)
     names = ["s", "t", "x", "y", "d1", "d2", "chi", "beta", "map_offset", "residual", "prediction", "iterations",
-             "seconds", "flags"]
+             "seconds", "latency", "flags"]
     with (out / "params.csv").open() as f:
         reader = csv.DictReader(f)
         assert reader.fieldnames == names

@@ -22,7 +22,7 @@ def test_estimate_cli_on_a_terrain_pair(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "noise floor" in r.stdout
     header = (out / "params.csv").read_text().splitlines()[0]
-    assert header == "s,t,x,y,d1,d2,chi,beta,map_offset,residual,prediction,iterations,seconds,flags"
+    assert header == "s,t,x,y,d1,d2,chi,beta,map_offset,residual,prediction,iterations,seconds,latency,flags"
 
 
 def test_estimate_cli_bad_input(tmp_path):

@@ -59,6 +59,7 @@ class LiveEstimator:
         self.pipeline = OnlinePipeline(robot, settings.pipeline, self.rec, spill_dir)
         self.next = 0                      # next window index
         self.theta: torch.Tensor | None = None
+        self.last_row: dict | None = None  # warm start of a resumed run (a params.csv row)
         self.ready_at: dict[int, float] = {}
         self.edges: dict[str, tuple] = {}
         r = settings.pipeline.read
@@ -124,6 +125,8 @@ class LiveEstimator:
         pair = pipe.terrain(t0, t1)
         first = int(np.searchsorted(stamps, t0))
         est = Estimator(pair, e, self.settings.sim, arc0=float(arc[first]))
+        if self.theta is None and self.last_row is not None:
+            self.theta = est.free_from_row(self.last_row)
         out = []
         index = [int(round((w.s0 + est.arc0) / e.stride)) for w in est.windows]
         j0 = next((j for j, k in enumerate(index) if k >= self.next), len(index))
@@ -141,6 +144,13 @@ class LiveEstimator:
         if final:   # the drive ends here: no later window can be fitted
             self.next = max(self.next, last + 1)
         return out
+
+    def resume(self, rows: list[dict]) -> None:
+        """Continue after the windows of `rows` (params.csv rows of an interrupted run, in order):
+        they are not fitted again, and the last fitted one warm-starts the next."""
+        self.next = len(rows)
+        fitted = [r for r in rows if not math.isnan(float(r["d1"]))]
+        self.last_row = fitted[-1] if fitted else None
 
     def finish(self) -> list[LiveWindow]:
         """The end of the recording: the pipeline flushed and the last windows fitted."""

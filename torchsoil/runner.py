@@ -27,6 +27,13 @@ OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_p
            "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline")
 
 
+def param_columns(names: list[str]) -> list[str]:
+    """params.csv columns for parameters `names`; latency: from the arrival of the sweep that
+    completed the window's ground to its row, s (NaN when not streamed)."""
+    return ["s", "t", "x", "y", *names, "map_offset", "residual", "prediction", "iterations", "seconds", "latency",
+            "flags"]
+
+
 def pipeline_settings(settings: Settings, robot_yaml: str | Path | None,
                       extrinsics: dict[str, list[float]] | None = None) -> PipelineConfig:
     """The pipeline section with the robot YAML's `lidars:` extrinsics added, then
@@ -138,8 +145,7 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
               progress: bool, name: str) -> None:
     est = Estimator(pair, settings.estimator, settings.sim)
     names = list(est.names)
-    params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "map_offset", "residual", "prediction",
-                                         "iterations", "seconds", "flags"], resume)
+    params = CsvLog(out / "params.csv", param_columns(names), resume)
     reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
     n_done = min(len(params.rows), len(reference.rows))
     params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
@@ -160,7 +166,7 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
                desc="estimating")
     try:
         for k, o in enumerate(est.run(start=n_done, theta=theta), start=n_done):
-            params.append(o.row)
+            params.append({**o.row, "latency": math.nan})
             reference.append({"s": o.row["s"], **o.reference})
             tb.window(k, o.row, o.reference, est.names)
             if o.h_sim is not None:
@@ -191,7 +197,8 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
                    progress: bool, realtime: bool, cache: dict) -> None:
     """Stream `bag` through LiveEstimator, writing each window's rows as it is fitted; at the end
     the pipeline outputs, terrain_pair.npz, simulated.npz, figures and summary.md. On resume the
-    recording is streamed again but the windows already in params.csv are not refitted."""
+    recording is streamed through the pipeline again, but the windows already in params.csv are
+    not refitted (simulated.npz then holds the windows fitted after the resume)."""
     import tempfile
     import time
 
@@ -201,12 +208,11 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     spill = tempfile.TemporaryDirectory(prefix="tiles-") if settings.estimator.online.spill else None
     live = LiveEstimator(robot, settings, spill_dir=spill.name if spill else None)
     names = _param_names(robot)
-    params = CsvLog(out / "params.csv", ["s", "t", "x", "y", *names, "map_offset", "residual", "prediction",
-                                         "iterations", "seconds", "latency", "flags"], resume)
+    params = CsvLog(out / "params.csv", param_columns(names), resume)
     reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
     n_done = min(len(params.rows), len(reference.rows))
     params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
-    live.next = n_done
+    live.resume(params.rows)
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
     pieces: list = []
     latency: list[float] = []

@@ -439,6 +439,7 @@ class LandmarkConfig(Section):
 
 class LidarConfig(Section):
     columns: Literal[512, 1024, 2048] = 1024
+    beams: int = Field(32, ge=1, le=128, description="rings (fewer: smaller bags for long drives)")
     rate_hz: float = Field(10.0, gt=0, description="Hz")
     range_noise: float = Field(0.01, ge=0, description="m")
     dropout: float = Field(0.02, ge=0, le=1, description="fraction of returns dropped")
