@@ -60,8 +60,9 @@ def test_far_tiles_leave_memory(streamed):
     assert tiles.spilled, "a 12 m drive with an 8 m raster range leaves tiles behind"
     side = tiles.size * tiles.dx
     x_end = live.pipeline.trajectory()[1][-1, 0, 3]
+    keep = settings.pipeline.raster.max_range + settings.pipeline.raster.corridor_width
     for i, _ in tiles.tiles:      # what is still in memory is near the end of the drive
-        assert (i + 1) * side > x_end - settings.pipeline.raster.max_range - settings.pipeline.raster.corridor_width - side
+        assert (i + 1) * side > x_end - keep - side
 
 
 def test_messages_fed_one_by_one_give_the_same_rows(streamed):
