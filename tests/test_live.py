@@ -85,3 +85,30 @@ def test_messages_fed_one_by_one_give_the_same_rows(streamed):
     assert len(got) == len(rows)
     for a, b in zip(got, rows, strict=True):
         assert a["s"] == b["s"] and (a["d1"] == b["d1"] or np.isnan(a["d1"]) and np.isnan(b["d1"]))
+
+
+def test_an_interrupted_streamed_run_resumes_without_refitting(streamed, tmp_path):
+    """`estimate BAG` streams; cut after 6 windows (as a killed run leaves it: no terrain pair
+    yet), `--resume` keeps those rows and fits only the rest."""
+    import csv
+
+    from torchsoil.runner import estimate
+
+    bag, robot, settings, _, _, _ = streamed
+    out = estimate(bag, tmp_path / "run", settings, robot=robot, tensorboard=False, progress=False)
+    with (out / "params.csv").open() as f:
+        full = list(csv.DictReader(f))
+    assert (out / "terrain_pair.npz").exists() and len(full) >= 12
+    for name in ("params.csv", "reference.csv"):
+        lines = (out / name).read_text().splitlines()
+        (out / name).write_text("\n".join(lines[:7]) + "\n")
+    (out / "terrain_pair.npz").unlink()
+    estimate(bag, out, settings, robot=robot, tensorboard=False, progress=False, resume=True)
+    with (out / "params.csv").open() as f:
+        again = list(csv.DictReader(f))
+    assert len(again) == len(full)
+    assert again[:6] == full[:6]                       # kept as written, not refitted
+    for a, b in zip(again[6:], full[6:], strict=True):
+        assert a["s"] == b["s"]
+        if a["d1"] != "nan":
+            assert abs(float(a["d1"]) - float(b["d1"])) < 0.002
