@@ -238,10 +238,13 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
             return IcpResult(T, n_used / n_src, np.inf, H, n_used, it)
         H = Hk.copy()
         T, size = _k.icp_step(T, H, g)
-        if size < tol:
+        if size < tol:  # converged: the matches of this last, sub-tolerance step still hold
             break
+    else:
+        idx = None
     p = apply(T, source)
-    _, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
+    if idx is None:
+        _, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
     n_used, sw, swr = _k.icp_residual(p, idx, tp, tn, T[:3, 3].copy(), one_sided, STEEP, kernel)
     if n_used == 0:
         return IcpResult(T, 0.0, np.inf, H, 0, it)

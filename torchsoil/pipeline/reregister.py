@@ -32,6 +32,12 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> n
         out[:, i, 3] = np.interp(t, stamps, poses[:, i, 3])
     i = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, len(stamps) - 2)
     alpha = (t - stamps[i]) / (stamps[i + 1] - stamps[i])
+    if len(t) <= 4:  # a seed or a motion: skip the vectorised rotation machinery
+        for q in range(len(t)):
+            R0, R1 = poses[i[q], :3, :3], poses[i[q] + 1, :3, :3]
+            step = _k.rotvec_of(np.ascontiguousarray(R0.T @ R1))
+            out[q, :3, :3] = R0 @ _k.rotation(step * alpha[q])
+        return out
     R0 = Rotation.from_matrix(poses[i, :3, :3])
     step = (R0.inv() * Rotation.from_matrix(poses[i + 1, :3, :3])).as_rotvec()
     out[:, :3, :3] = (R0 * Rotation.from_rotvec(step * alpha[:, None])).as_matrix()

@@ -113,8 +113,9 @@ def fuse(front: list[Sweep], back: list[Sweep], period: float) -> tuple[list[Swe
 
 
 def _to_base(clouds, T: np.ndarray) -> list[Sweep]:
-    return [Sweep(c.stamp, icp.apply(T, c.xyz.astype(np.float64)), c.t.astype(np.float64))
-            for c in clouds]
+    """Sensor clouds -> sweeps in base_link (float64 points, transformed straight from the
+    float32 ones without an intermediate copy)."""
+    return [Sweep(c.stamp, icp.apply(T, c.xyz), c.t.astype(np.float64)) for c in clouds]
 
 
 def poses_to_rows(stamps: np.ndarray, poses: np.ndarray) -> np.ndarray:
