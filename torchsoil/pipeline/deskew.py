@@ -10,7 +10,8 @@ reference frame.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from torchsoil.pipeline import _kernels as _k
 
 
 def relative_motion(T_prev: np.ndarray, T_curr: np.ndarray) -> np.ndarray:
@@ -30,16 +31,18 @@ def deskew(points: np.ndarray, t: np.ndarray, motion: np.ndarray, dt: float) -> 
     Returns:
         (N, 3) float64 points in the frame at the reference time, m.
     """
-    points = np.asarray(points, dtype=np.float64)
-    t = np.asarray(t, dtype=np.float64)
+    points = np.asarray(points)
+    if points.dtype not in (np.float32, np.float64):
+        points = points.astype(np.float64)
+    t = np.asarray(t)
+    if t.dtype not in (np.float32, np.float64):
+        t = t.astype(np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or t.shape != (len(points),):
         raise ValueError(f"deskew needs (N, 3) points and (N,) times, got {points.shape} "
                          f"and {t.shape}")
     if not dt > 0:
         raise ValueError(f"deskew needs a positive motion duration dt, got {dt}")
     if len(points) == 0:
-        return points.copy()
-    s = (t / dt)[:, None]
-    rotvec = Rotation.from_matrix(motion[:3, :3]).as_rotvec()
-    R = Rotation.from_rotvec(s * rotvec[None, :])
-    return R.apply(points) + s * motion[:3, 3][None, :]
+        return points.astype(np.float64)
+    rotvec = _k.rotvec_of(np.ascontiguousarray(motion[:3, :3], dtype=np.float64))
+    return _k.deskew(points, t, rotvec, np.ascontiguousarray(motion[:3, 3], dtype=np.float64), float(dt))

@@ -16,7 +16,8 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
+
+from torchsoil.pipeline import _kernels as _k
 
 
 class Target(NamedTuple):
@@ -54,28 +55,109 @@ def estimate_normals(points: np.ndarray, radius: float, max_nn: int = 20) -> np.
 
 def make_target(points: np.ndarray, normal_radius: float, normals: np.ndarray | None = None
                 ) -> Target:
-    """Target from (M, 3) points; normals estimated within `normal_radius` m if not given."""
+    """Target from (M, 3) points; normals estimated within `normal_radius` m if not given.
+    Its search structure is a `VoxelIndex` (exact within the gates ICP uses)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     if normals is None:
         normals = estimate_normals(points, normal_radius)
-    return Target(points, normals, cKDTree(points))
+    return Target(points, normals, VoxelIndex(points))
+
+
+class VoxelIndex:
+    """Exact nearest-neighbour search within a bounded distance over a hashed grid of cubic
+    cells (edge `cell` m; a few map voxels: 0.6 m suits the 0.2 m voxel map), answering the
+    `cKDTree.query` calls of the pipeline (k nearest, `distance_upper_bound`; same
+    conventions: inf distance and index n where none).
+
+    Building is linear in the points and a query visits only the cells that can hold a
+    closer point: on the 0.2 m voxel map with the ICP gates (0.3 and 0.5 m) about four times
+    as fast as a KD-tree, and as fast for the 12 nearest within 0.6 m (normals). Queries
+    without a bound, or a bound above 6 cells, go to a KD-tree built on first use. `workers`
+    is accepted for compatibility and ignored (the pipeline's threads run whole streams).
+    """
+
+    _offsets: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __init__(self, points: np.ndarray, cell: float = 0.6):
+        self.data = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
+        self.n, self.cell = len(self.data), float(cell)
+        self._grid = _k.grid_build(self.data, self.cell) if self.n else None
+        self._tree: cKDTree | None = None
+
+    @classmethod
+    def offsets(cls, reach: int) -> tuple[np.ndarray, np.ndarray]:
+        """Cell offsets within `reach` cells, sorted by their least squared distance in cells."""
+        if reach not in cls._offsets:
+            r = np.arange(-reach, reach + 1)
+            o = np.stack(np.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3).astype(np.int64)
+            lb = (np.maximum(np.abs(o) - 1, 0) ** 2).sum(1)
+            order = np.argsort(lb, kind="stable")
+            cls._offsets[reach] = (np.ascontiguousarray(o[order]), lb[order].astype(np.float64))
+        return cls._offsets[reach]
+
+    def query(self, x: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf, workers: int = 1
+              ) -> tuple[np.ndarray, np.ndarray]:
+        x = np.asarray(x, dtype=np.float64)
+        single = x.ndim == 1
+        q = np.ascontiguousarray(x.reshape(-1, 3))
+        r = float(distance_upper_bound)
+        if self.n == 0:
+            d, i = np.full((len(q), k), np.inf), np.zeros((len(q), k), np.int64)
+        elif not np.isfinite(r) or r > 6 * self.cell:
+            if self._tree is None:
+                self._tree = cKDTree(self.data)
+            d, i = self._tree.query(q, k=k, distance_upper_bound=r, workers=workers)
+            d, i = d.reshape(len(q), k), i.reshape(len(q), k)
+        elif k == 1:
+            d, i = _k.grid_nn(q, r, self.cell, *self._grid)
+            d, i = d[:, None], i[:, None]
+        else:
+            d, i = _k.grid_knn(q, int(k), r, self.cell, *self._grid, *self.offsets(int(np.ceil(r / self.cell))))
+        if k == 1:
+            d, i = d[:, 0], i[:, 0]
+        return (d[0], i[0]) if single else (d, i)
+
+    def any_newer(self, query: np.ndarray, since: np.ndarray, born: np.ndarray, radius: float) -> np.ndarray:
+        """(Q,) True where a point closer than `radius` to query (Q, 3) has born (n,) above
+        since (Q,) (its neighbourhood changed after `since`)."""
+        q = np.ascontiguousarray(query, dtype=np.float64).reshape(-1, 3)
+        if self.n == 0 or len(q) == 0:
+            return np.zeros(len(q), bool)
+        reach = int(np.ceil(radius / self.cell))
+        return _k.grid_any_newer(q, np.ascontiguousarray(since, np.int64), np.ascontiguousarray(born, np.int64),
+                                 float(radius), self.cell, *self._grid, *self.offsets(reach))
 
 
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
     """(N, 3) points -> (N,) int64 key of the cubic voxel of edge `voxel` m holding each
     (exact within +/- 2^20 voxels of the origin)."""
-    k = np.floor(np.asarray(points) / voxel).astype(np.int64) + (1 << 20)
+    points = np.asarray(points)
+    if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3:
+        return _k.voxel_keys(np.ascontiguousarray(points), float(voxel))
+    k = np.floor(points / voxel).astype(np.int64) + (1 << 20)
     return k[:, 0] + (k[:, 1] << 21) + (k[:, 2] << 42)
 
 
+def voxel_first(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of the first point in each cubic voxel of edge `voxel` m, in the order of the
+    voxels' keys (as np.unique(keys, return_index=True))."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=np.int64)
+    keys = voxel_keys(points, voxel)
+    first, _ = _k.first_of_keys(keys)
+    return first[np.argsort(keys[first])]
+
+
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """(N, 3) -> (M, 3): the centroid of the points in each cubic voxel of edge `voxel` m."""
+    """(N, 3) -> (M, 3): the centroid of the points in each cubic voxel of edge `voxel` m,
+    in the order of the voxels' keys."""
     if len(points) == 0:
         return np.zeros((0, 3))
-    _, inv, cnt = np.unique(voxel_keys(points, voxel), return_inverse=True, return_counts=True)
-    out = np.stack([np.bincount(inv, weights=points[:, i], minlength=len(cnt))
-                    for i in range(3)], axis=1)
-    return out / cnt[:, None]
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    keys = voxel_keys(points, voxel)
+    first, inv = _k.first_of_keys(keys)
+    out = _k.centroids(points, inv, len(first))
+    return out[np.argsort(keys[first])]
 
 
 def pca_normals(points: np.ndarray, tree: cKDTree, query: np.ndarray, k: int = 12,
@@ -92,17 +174,11 @@ def pca_normals(points: np.ndarray, tree: cKDTree, query: np.ndarray, k: int = 1
         return np.zeros((0, 3)), np.zeros(0, bool)
     d, idx = tree.query(query, k=min(k, len(points)), distance_upper_bound=radius)
     d, idx = d.reshape(len(query), -1), idx.reshape(len(query), -1)
-    ok = np.isfinite(d)
-    idx = np.where(ok, idx, 0)
-    nb = points[idx]  # (Q, k, 3)
-    w = ok[..., None].astype(np.float64)
-    cnt = np.maximum(w.sum(1), 1.0)
-    mean = (nb * w).sum(1) / cnt
-    c = (nb - mean[:, None]) * w
-    cov = np.einsum("qki,qkj->qij", c, c) / cnt[..., None]
+    cov, cnt = _k.covariances(_contiguous(points), np.ascontiguousarray(idx, dtype=np.int64),
+                              np.ascontiguousarray(d, dtype=np.float64))
     vals, vecs = np.linalg.eigh(cov)
     n = vecs[:, :, 0]
-    good = (ok.sum(1) >= 5) & (vals[:, 1] > min_spread * np.maximum(vals[:, 2], 1e-12))
+    good = (cnt >= 5) & (vals[:, 1] > min_spread * np.maximum(vals[:, 2], 1e-12))
     n = np.where(n[:, 2:3] < 0, -n, n)
     n[~good] = 0.0
     return n, good
@@ -116,7 +192,11 @@ def thin(points: np.ndarray, max_points: int) -> np.ndarray:
 
 
 def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(4, 4) transform applied to (N, 3) points."""
+    """(4, 4) transform applied to (N, 3) points (float64 out)."""
+    points = np.asarray(points)
+    if points.ndim == 2 and points.shape[1] == 3 and points.dtype in (np.float64, np.float32):
+        T = np.asarray(T, dtype=np.float64)
+        return _k.transform(points, np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]))
     return points @ T[:3, :3].T + T[:3, 3]
 
 
@@ -138,49 +218,42 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
     approach), which pulls every sweep back along the path (lag builds up in the map).
     """
     kernel = max_dist / 3 if kernel is None else kernel
+    source = np.ascontiguousarray(source, dtype=np.float64)
+    tp, tn = _contiguous(target.points), _contiguous(target.normals)
+    use_ground = ground_z is not None
+    gz = float(ground_z) if use_ground else 0.0
     T = np.array(init, dtype=np.float64)
     H = np.zeros((6, 6))
+    Hk, g = np.zeros((6, 6)), np.zeros(6)
+    n_src = len(source)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported
         p = apply(T, source)
-        d, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
-        ok = np.isfinite(d)
-        if ok.sum() < 6:
-            return IcpResult(T, float(ok.mean()) if len(ok) else 0.0, np.inf, H, int(ok.sum()), it)
-        p, q, n = p[ok], target.points[idx[ok]], target.normals[idx[ok]]
-        c = T[:3, 3]
-        if one_sided:
-            seen = facing(p, n, c)
-            if seen.sum() < 6:
-                return IcpResult(T, float(seen.sum() / len(source)), np.inf, H, int(seen.sum()), it)
-            p, q, n = p[seen], q[seen], n[seen]
-        r = np.einsum("ij,ij->i", p - q, n)
-        J = np.hstack([np.cross(p - c, n), n])
-        if ground_z is not None:
-            ground = n[:, 2] > ground_z
-            J[np.ix_(ground, [2, 3, 4])] = 0.0
-        w = (kernel**2 / (kernel**2 + r**2)) ** 2
-        H = (J * w[:, None]).T @ J
-        g = (J * w[:, None]).T @ r
-        delta = -np.linalg.solve(H + 1e-9 * np.eye(6), g)
-        R = Rotation.from_rotvec(delta[:3]).as_matrix()
-        step = np.eye(4)
-        step[:3, :3] = R
-        step[:3, 3] = c - R @ c + delta[3:]
-        T = step @ T
-        if np.abs(delta).max() < tol:
+        _, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
+        c = T[:3, 3].copy()
+        n_ok, n_used = _k.icp_system(p, idx, tp, tn, c, gz, use_ground, one_sided, STEEP, kernel, Hk, g)
+        if n_ok < 6:
+            return IcpResult(T, n_ok / n_src if n_src else 0.0, np.inf, H, n_ok, it)
+        if n_used < 6:
+            return IcpResult(T, n_used / n_src, np.inf, H, n_used, it)
+        H = Hk.copy()
+        T, size = _k.icp_step(T, H, g)
+        if size < tol:  # converged: the matches of this last, sub-tolerance step still hold
             break
+    else:
+        idx = None
     p = apply(T, source)
-    d, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
-    ok = np.isfinite(d)
-    if one_sided:
-        ok[ok] = facing(p[ok], target.normals[idx[ok]], T[:3, 3])
-    if ok.sum() == 0:
+    if idx is None:
+        _, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
+    n_used, sw, swr = _k.icp_residual(p, idx, tp, tn, T[:3, 3].copy(), one_sided, STEEP, kernel)
+    if n_used == 0:
         return IcpResult(T, 0.0, np.inf, H, 0, it)
-    r = np.einsum("ij,ij->i", p[ok] - target.points[idx[ok]], target.normals[idx[ok]])
-    w = (kernel**2 / (kernel**2 + r**2)) ** 2
-    rmse = float(np.sqrt(np.sum(w * r**2) / np.sum(w)))
-    return IcpResult(T, float(ok.mean()), rmse, H / max(int(ok.sum()), 1), int(ok.sum()), it)
+    rmse = float(np.sqrt(swr / sw))
+    return IcpResult(T, n_used / n_src, rmse, H / n_used, n_used, it)
+
+
+def _contiguous(a: np.ndarray) -> np.ndarray:
+    return a if a.flags.c_contiguous and a.dtype == np.float64 else np.ascontiguousarray(a, dtype=np.float64)
 
 
 STEEP = 0.7   # |normal z| below this: a wall, pole or post face (oriented to its viewer)
@@ -216,11 +289,11 @@ def project_update(T_pred: np.ndarray, T_icp: np.ndarray, weak: np.ndarray) -> n
         return T_icp
     c = T_pred[:3, 3]
     D = T_icp @ np.linalg.inv(T_pred)
-    w = Rotation.from_matrix(D[:3, :3]).as_rotvec()
+    w = _k.rotvec_of(np.ascontiguousarray(D[:3, :3]))
     v = D[:3, 3] - (c - D[:3, :3] @ c)
     delta = np.concatenate([w, v])
     delta = delta - weak @ (weak.T @ delta)
-    R = Rotation.from_rotvec(delta[:3]).as_matrix()
+    R = _k.rotation(np.ascontiguousarray(delta[:3]))
     step = np.eye(4)
     step[:3, :3] = R
     step[:3, 3] = c - R @ c + delta[3:]

@@ -21,6 +21,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from torchsoil.pipeline import _kernels as _k
 from torchsoil.pipeline import icp
 from torchsoil.pipeline.deskew import deskew
 from torchsoil.settings import MappingConfig
@@ -67,16 +68,109 @@ class MappingResult(NamedTuple):
 
 
 def voxel_pick(points: np.ndarray, voxel: float) -> np.ndarray:
-    """Indices of one point (the first) per cubic voxel of edge `voxel` m."""
-    if len(points) == 0:
-        return np.zeros(0, dtype=np.int64)
-    _, first = np.unique(icp.voxel_keys(points, voxel), return_index=True)
-    return first
+    """Indices of one point (the first) per cubic voxel of edge `voxel` m, in voxel-key order."""
+    return icp.voxel_first(points, voxel)
+
+
+class ReferenceMap:
+    """P_ref held incrementally: one point per cubic voxel of edge `voxel` m (the oldest: the
+    first point added into a voxel stays), with the robot position it was seen from.
+
+    Memory grows with the ground covered, not with the number of sweeps; `forget` drops the
+    voxels far from where the robot still works. `reference` serves the part near a position
+    as an ICP target; the normals it computes are cached per voxel and recomputed only where
+    a voxel's neighbourhood (within `normal_radius`) has changed since.
+    """
+
+    def __init__(self, voxel: float, normal_radius: float):
+        self.voxel, self.normal_radius = voxel, normal_radius
+        self.points = np.zeros((0, 3))
+        self.views = np.zeros((0, 3))
+        self.keys = np.zeros(0, np.int64)
+        self.born = np.zeros(0, np.int64)      # epoch at which each voxel was filled
+        self.normals = np.zeros((0, 3))        # cached, oriented; valid where stamp >= 0
+        self.stamp = np.zeros(0, np.int64)     # epoch of each cached normal, -1: none
+        self.epoch = 0
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def add(self, world_points: np.ndarray, center: np.ndarray) -> None:
+        """Insert (N, 3) world points [m] seen from `center` (3,): each fills its voxel unless
+        the voxel is occupied already (or an earlier point of the same call filled it)."""
+        world_points = np.ascontiguousarray(world_points, dtype=np.float64).reshape(-1, 3)
+        self.epoch += 1
+        keys = icp.voxel_keys(world_points, self.voxel)
+        new = _k.fresh(self.keys, keys)
+        if len(new) == 0:
+            return
+        n = len(new)
+        self.points = np.concatenate([self.points, world_points[new]])
+        self.views = np.concatenate([self.views, np.broadcast_to(np.asarray(center, np.float64), (n, 3))])
+        self.keys = np.concatenate([self.keys, keys[new]])
+        self.born = np.concatenate([self.born, np.full(n, self.epoch, np.int64)])
+        self.normals = np.concatenate([self.normals, np.zeros((n, 3))])
+        self.stamp = np.concatenate([self.stamp, np.full(n, -1, np.int64)])
+
+    def global_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """The held points (M, 3), in the order they entered, and the robot position (M, 3)
+        each was seen from, m."""
+        return self.points.copy(), self.views.copy()
+
+    def forget(self, keep_xy: np.ndarray, radius: float) -> int:
+        """Drop the voxels whose point lies farther than `radius` m (horizontally) from every
+        position of keep_xy (K, 2) (e.g. the recent trajectory); returns how many were dropped.
+        Cached normals of kept voxels whose neighbourhood lost points are recomputed on use."""
+        if len(self.points) == 0:
+            return 0
+        keep_xy = np.asarray(keep_xy, dtype=np.float64).reshape(-1, 2)
+        if len(keep_xy) == 0:
+            d = np.full(len(self.points), np.inf)
+        else:
+            bound = np.nextafter(float(radius), np.inf)  # the query's bound is strict
+            d, _ = cKDTree(keep_xy).query(self.points[:, :2], distance_upper_bound=bound)
+        keep = d <= radius
+        dropped = int((~keep).sum())
+        if dropped == 0:
+            return 0
+        self.epoch += 1
+        self.stamp[keep & (d > radius - self.normal_radius)] = -1
+        for name in ("points", "views", "keys", "born", "normals", "stamp"):
+            setattr(self, name, getattr(self, name)[keep])
+        return dropped
+
+    def reference(self, center: np.ndarray, radius: float) -> icp.Target:
+        """The held points within `radius` m (horizontally, <=) of `center` (3,), in the order
+        they entered, with their normals (icp.pca_normals within normal_radius over all held
+        points, turned towards the viewpoints by icp.orient_to_viewpoints; zero where the
+        neighbourhood is not a surface) and a search index: an ICP target."""
+        c = np.asarray(center, dtype=np.float64)
+        dxy = np.hypot(self.points[:, 0] - c[0], self.points[:, 1] - c[1])
+        ext = np.flatnonzero(dxy <= radius + self.normal_radius)  # holds every neighbourhood used
+        sel = ext[dxy[ext] <= radius]
+        pts = self.points[ext]
+        index = icp.VoxelIndex(pts, 3 * self.voxel)
+        todo = self.stamp[sel] < 0
+        cached = sel[~todo]
+        if len(cached):
+            changed = index.any_newer(self.points[cached], self.stamp[cached], self.born[ext], self.normal_radius)
+            todo[np.flatnonzero(~todo)[changed]] = True
+        redo = sel[todo]
+        if len(redo):
+            n, _ = icp.pca_normals(pts, index, self.points[redo], radius=self.normal_radius)
+            self.normals[redo] = icp.orient_to_viewpoints(self.points[redo], n, self.views[redo])
+            self.stamp[redo] = self.epoch
+        out = self.points[sel]
+        return icp.Target(out, self.normals[sel], icp.VoxelIndex(out, 3 * self.voxel))
 
 
 class LocalMap:
     """Voxelised world points near the robot (one point per voxel, oldest kept), with
-    normals turned towards the robot position from which each point was first seen."""
+    normals turned towards the robot position from which each point was first seen.
+
+    Every point added also feeds the reference map P_ref (`ref`, a ReferenceMap), reached
+    through `reference`, `forget` and `global_map`.
+    """
 
     def __init__(self, voxel: float, radius: float, normal_radius: float):
         self.voxel, self.radius, self.normal_radius = voxel, radius, normal_radius
@@ -85,53 +179,62 @@ class LocalMap:
         self.good = np.zeros(0, bool)
         self.age = np.zeros(0, np.int64)
         self.views = np.zeros((0, 3))
+        self.keys = np.zeros(0, np.int64)
         self.retries = 10
         self.target: icp.Target | None = None
-        self.history: list[tuple[np.ndarray, np.ndarray]] = []
+        self.ref = ReferenceMap(voxel, normal_radius)
 
     def global_map(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every point ever added, one per voxel (oldest kept): P_ref (M, 3), and the robot
-        position (M, 3) each was seen from, m."""
-        if not self.history:
-            return np.zeros((0, 3)), np.zeros((0, 3))
-        pts = np.concatenate([h[0] for h in self.history])
-        views = np.concatenate([np.broadcast_to(h[1], h[0].shape) for h in self.history])
-        keep = np.sort(voxel_pick(pts, self.voxel))
-        return pts[keep], views[keep]
+        """P_ref as held: every point added, one per voxel (oldest kept), minus what `forget`
+        dropped: points (M, 3), and the robot position (M, 3) each was seen from, m."""
+        return self.ref.global_map()
+
+    def reference(self, center: np.ndarray, radius: float) -> icp.Target:
+        """P_ref within `radius` m of `center` as an ICP target (see ReferenceMap.reference)."""
+        return self.ref.reference(center, radius)
+
+    def forget(self, keep_xy: np.ndarray, radius: float) -> int:
+        """Drop P_ref voxels farther than `radius` m from every point of keep_xy (K, 2)."""
+        return self.ref.forget(keep_xy, radius)
 
     def add(self, world_points: np.ndarray, center: np.ndarray) -> None:
-        self.history.append((world_points, np.array(center, np.float64)))
+        """Insert (N, 3) world points [m] seen from `center` (3,) into the local map (new
+        voxels only; voxels beyond `radius` of center are dropped) and into P_ref."""
+        world_points = np.ascontiguousarray(world_points, dtype=np.float64).reshape(-1, 3)
+        center = np.asarray(center, dtype=np.float64)
+        self.ref.add(world_points, center)
+        keys = icp.voxel_keys(world_points, self.voxel)
+        new = _k.fresh(self.keys, keys)  # earlier (older) points keep their voxel
         n_old = len(self.points)
-        pts = np.concatenate([self.points, world_points])
-        views = np.concatenate([self.views, np.broadcast_to(center, world_points.shape)])
-        keep = np.sort(voxel_pick(pts, self.voxel))  # earlier (older) points win their voxel
-        keep = keep[np.linalg.norm(pts[keep, :2] - center[:2], axis=1) < self.radius]
-        pts, views = pts[keep], views[keep]
-        tree = cKDTree(pts)
-        new = keep >= n_old
+        pts = np.concatenate([self.points, world_points[new]])
+        keys = np.concatenate([self.keys, keys[new]])
+        keep = np.flatnonzero(np.hypot(pts[:, 0] - center[0], pts[:, 1] - center[1]) < self.radius)
+        pts, keys = pts[keep], keys[keep]
+        old = keep[keep < n_old]
+        n_kept_old = len(old)
         normals = np.zeros_like(pts)
         good = np.zeros(len(pts), bool)
         age = np.zeros(len(pts), np.int64)
-        normals[~new] = self.normals[keep[~new]]
-        good[~new] = self.good[keep[~new]]
-        age[~new] = self.age[keep[~new]] + 1
+        views = np.empty_like(pts)
+        normals[:n_kept_old] = self.normals[old]
+        good[:n_kept_old] = self.good[old]
+        age[:n_kept_old] = self.age[old] + 1
+        views[:n_kept_old] = self.views[old]
+        views[n_kept_old:] = center
+        index = icp.VoxelIndex(pts, 3 * self.voxel)
         # a normal is computed when its point enters the map and again, for a few sweeps,
         # while its neighbourhood is not yet a surface patch (e.g. one ground ring)
-        redo = ~good & (age < self.retries)
-        normals[redo], good[redo] = icp.pca_normals(pts, tree, pts[redo],
-                                                    radius=self.normal_radius)
+        redo = np.flatnonzero(~good & (age < self.retries))
+        normals[redo], good[redo] = icp.pca_normals(pts, index, pts[redo], radius=self.normal_radius)
         normals[redo] = icp.orient_to_viewpoints(pts[redo], normals[redo], views[redo])
-        self.points, self.normals, self.good, self.age, self.views = pts, normals, good, age, views
-        self.target = icp.Target(pts, normals, tree)
+        self.points, self.normals, self.good, self.age, self.views, self.keys = pts, normals, good, age, views, keys
+        self.target = icp.Target(pts, normals, index)
 
 
 def _motion_over(velocity: np.ndarray, dt: float) -> np.ndarray:
     """Motion per second (4, 4, as a twist-like transform) -> motion over dt seconds."""
-    from scipy.spatial.transform import Rotation
-
     M = np.eye(4)
-    M[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(velocity[:3, :3]).as_rotvec() * dt
-                                     ).as_matrix()
+    M[:3, :3] = _k.rotation(_k.rotvec_of(np.ascontiguousarray(velocity[:3, :3])) * dt)
     M[:3, 3] = velocity[:3, 3] * dt
     return M
 

@@ -132,7 +132,7 @@ class OnlinePipeline:
 
     def _take(self, name: str, cloud: Cloud) -> None:
         T = self.ext[name]
-        sw = Sweep(cloud.stamp, icp.apply(T, cloud.xyz.astype(np.float64)), cloud.t.astype(np.float64))
+        sw = Sweep(cloud.stamp, icp.apply(T, cloud.xyz), cloud.t.astype(np.float64))
         q = self.queue[name]
         if q and sw.stamp <= q[-1].stamp:
             self.rec.problems.append(f"{self.topics[name]} sweep at t={sw.stamp:.3f} s out of order: skipped")
@@ -235,11 +235,17 @@ class OnlinePipeline:
             while q and (final or q[0].stamp + self.period <= self.ok_stamps[-1]):
                 self._rasterize(name, q.pop(0))
         if self.tiles["back"].spill_dir is not None and self.n_final % 50 == 0:
-            xy = np.asarray(self.ok_poses[-10:])[:, :2, 3] @ self.L[:2, :2].T
-            radius = self.cfg.raster.max_range + self.cfg.raster.corridor_width
-            for tiles in self.tiles.values():
-                tiles.spill(xy, radius)
+            self._bound_memory()
         self.timings["reregister_raster"] += time.perf_counter() - t0
+
+    def _bound_memory(self) -> None:
+        """Tiles beyond the raster range (plus a corridor) of the robot's last second go to disk;
+        reference-map voxels beyond the mapper's and the re-registration's reach are dropped."""
+        xy = np.asarray(self.ok_poses[-10:])[:, :2, 3]
+        for tiles in self.tiles.values():
+            tiles.spill(xy @ self.L[:2, :2].T, self.cfg.raster.max_range + self.cfg.raster.corridor_width)
+        reach = max(self.cfg.mapping.map_radius, self.cfg.reregister.max_range + 2.0) + 10.0
+        self.mapper.local.forget(xy, reach)
 
     def _rasterize(self, name: str, sw: Sweep) -> None:
         st = self.stats[name]
@@ -266,18 +272,7 @@ class OnlinePipeline:
         at, n = self.target_at
         if self.target is None or np.linalg.norm(center - at) > 1.0 or self.n_final - n >= 10:
             radius = self.cfg.reregister.max_range + 2.0
-            local = self.mapper.local
-            if hasattr(local, "reference"):
-                self.target = local.reference(center, radius)
-            else:
-                from scipy.spatial import cKDTree
-
-                pts, views = local.global_map()
-                near = np.linalg.norm(pts[:, :2] - center[:2], axis=1) < radius
-                pts, views = pts[near], views[near]
-                normals, _ = icp.pca_normals(pts, cKDTree(pts), pts, radius=self.cfg.mapping.normal_radius)
-                self.target = icp.make_target(pts, self.cfg.mapping.normal_radius,
-                                              icp.orient_to_viewpoints(pts, normals, views))
+            self.target = self.mapper.local.reference(center, radius)
             self.target_at = (center.copy(), self.n_final)
         return self.target
 

@@ -11,8 +11,9 @@ is kept.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
+from torchsoil.pipeline import _kernels as _k
 from torchsoil.pipeline import icp
 from torchsoil.pipeline.deskew import deskew
 from torchsoil.settings import ReregisterConfig
@@ -20,7 +21,8 @@ from torchsoil.settings import ReregisterConfig
 
 def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(S,) times [s] and (S, 4, 4) poses -> (Q, 4, 4) poses at times t (Q,), linear in
-    position, slerp in rotation, held constant beyond the ends."""
+    position, slerp in rotation, held constant beyond the ends. Only the bracketing poses
+    of each time are touched (as scipy's Slerp, without converting all S rotations)."""
     t = np.clip(np.asarray(t, dtype=np.float64), stamps[0], stamps[-1])
     out = np.repeat(np.eye(4)[None], len(t), axis=0)
     if len(stamps) == 1:
@@ -28,7 +30,17 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, t: np.ndarray) -> n
         return out
     for i in range(3):
         out[:, i, 3] = np.interp(t, stamps, poses[:, i, 3])
-    out[:, :3, :3] = Slerp(stamps, Rotation.from_matrix(poses[:, :3, :3]))(t).as_matrix()
+    i = np.clip(np.searchsorted(stamps, t, side="right") - 1, 0, len(stamps) - 2)
+    alpha = (t - stamps[i]) / (stamps[i + 1] - stamps[i])
+    if len(t) <= 4:  # a seed or a motion: skip the vectorised rotation machinery
+        for q in range(len(t)):
+            R0, R1 = poses[i[q], :3, :3], poses[i[q] + 1, :3, :3]
+            step = _k.rotvec_of(np.ascontiguousarray(R0.T @ R1))
+            out[q, :3, :3] = R0 @ _k.rotation(step * alpha[q])
+        return out
+    R0 = Rotation.from_matrix(poses[i, :3, :3])
+    step = (R0.inv() * Rotation.from_matrix(poses[i + 1, :3, :3])).as_rotvec()
+    out[:, :3, :3] = (R0 * Rotation.from_rotvec(step * alpha[:, None])).as_matrix()
     return out
 
 
@@ -61,7 +73,7 @@ def register_sweep(points: np.ndarray, t: np.ndarray, stamp: float, ref_stamps: 
     T = icp.project_update(seed, res.transform, weak)
     D = np.linalg.inv(seed) @ T
     shift = np.linalg.norm(D[:3, 3])
-    turn = np.degrees(np.linalg.norm(Rotation.from_matrix(D[:3, :3]).as_rotvec()))
+    turn = np.degrees(np.linalg.norm(_k.rotvec_of(np.ascontiguousarray(D[:3, :3]))))
     ok = (res.fitness >= cfg.min_fitness and res.rmse <= cfg.max_rmse
           and shift <= cfg.max_shift and turn <= cfg.max_turn)
     return pts, T, res.fitness, res.rmse, bool(ok), bool(weak.shape[1])
