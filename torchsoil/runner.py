@@ -24,7 +24,8 @@ from torchsoil.terrain import TerrainPair
 
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
 OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_parameters.png",
-           "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline")
+           "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "tiles",
+           "trajectory.csv")
 
 
 def param_columns(names: list[str]) -> list[str]:
@@ -199,14 +200,16 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     the pipeline outputs, terrain_pair.npz, simulated.npz, figures and summary.md. On resume the
     recording is streamed through the pipeline again, but the windows already in params.csv are
     not refitted (simulated.npz then holds the windows fitted after the resume)."""
-    import tempfile
+    import shutil
     import time
 
     from torchsoil.live import LiveEstimator, play
-    from torchsoil.pipeline.run import finish_result, write_outputs
 
-    spill = tempfile.TemporaryDirectory(prefix="tiles-") if settings.estimator.online.spill else None
-    live = LiveEstimator(robot, settings, spill_dir=spill.name if spill else None)
+    e = settings.estimator
+    tiles = out / "tiles"
+    if tiles.exists() and not resume:
+        shutil.rmtree(tiles)
+    live = LiveEstimator(robot, settings, spill_dir=str(tiles) if e.online.spill else None)
     names = _param_names(robot)
     params = CsvLog(out / "params.csv", param_columns(names), resume)
     reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
@@ -214,7 +217,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
     live.resume(params.rows)
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
-    pieces: list = []
+    pieces: list | None = []      # simulated H_b per window, while the whole drive fits in one pair
     latency: list[float] = []
     t_start = time.perf_counter()
     bar = tqdm(unit="window", disable=None if progress and not realtime else True, desc="estimating")
@@ -225,7 +228,9 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
             params.append({**o.row, "latency": w.done - w.ready})
             reference.append({"s": o.row["s"], **o.reference})
             tb.window(k, o.row, o.reference, names)
-            if o.h_sim is not None:
+            if pieces is not None and live.pipeline.grid_cells() > e.online.max_cells:
+                pieces = None
+            if o.h_sim is not None and pieces is not None:
                 pieces.append(_sim_piece(w))
             if realtime:
                 r = o.row
@@ -236,6 +241,36 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
         bar.close()
         tb.close()
     wall = time.perf_counter() - t_start
+    lat = np.asarray(latency) if latency else np.full(1, np.nan)
+    meta = {"input": str(bag), "window": e.window, "stride": e.stride, "grad": e.grad,
+            "removed": "map offset and tilt fitted per stretch as the windows came (see map_offset)"
+            if e.nuisance.offset else "no map offset"}
+    duration = float(np.ptp(live.pipeline.trajectory()[0])) if live.pipeline.ok_stamps else 0.0
+    meta["online"] = (f"streamed in {wall:.1f} s for a {duration:.1f} s drive ({wall / max(duration, 1e-9):.2f} x "
+                      f"real time); window latency median {1e3 * np.median(lat):.0f} ms, "
+                      f"max {1e3 * np.max(lat):.0f} ms")
+    figures.parameter_curves(params.rows, reference.rows, names, out / "fig4_parameters.png")
+    if pieces is not None:
+        _finish_whole(live, bag, out, settings, pieces, params.rows, wall, cache)
+    else:
+        live.pipeline.flush()
+        stamps, poses = live.pipeline.trajectory()
+        from torchsoil.pipeline.run import poses_to_rows
+
+        np.savetxt(out / "trajectory.csv", poses_to_rows(stamps, poses), delimiter=",", fmt="%.9f",
+                   header="t,x,y,z,roll,pitch,yaw", comments="")
+        meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
+                           f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
+                           "(torchsoil.pipeline.raster.Tiles), not assembled into one terrain pair")
+    figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
+
+
+def _finish_whole(live, bag: Path, out: Path, settings: Settings, pieces: list, rows: list[dict], wall: float,
+                  cache: dict) -> None:
+    """The whole drive as one terrain pair: pipeline outputs, terrain_pair.npz (the cache of a
+    later run), simulated.npz and the difference maps."""
+    from torchsoil.pipeline.run import finish_result, write_outputs
+
     result = finish_result(live.pipeline, live.rec, bag, wall)
     for problem in result.problems:
         print(f"warning: {problem}")
@@ -246,20 +281,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     h_sim = _stitch(pair, pieces)
     _save_simulated(out / "simulated.npz", pair, h_sim)
     est = Estimator(pair, settings.estimator, settings.sim)
-    figures.parameter_curves(params.rows, reference.rows, names, out / "fig4_parameters.png")
-    figures.difference_maps(pair, est.h_start, h_sim, params.rows, out / "fig6_difference_maps.png",
-                            h_back=est.h_back)
-    e = settings.estimator
-    lat = np.asarray(latency) if latency else np.full(1, np.nan)
-    figures.write_summary(out / "summary.md", params.rows, reference.rows,
-                          {"input": str(bag), "window": e.window, "stride": e.stride, "grad": e.grad,
-                           "removed": "map offset and tilt fitted per stretch as the windows came (see map_offset)"
-                           if e.nuisance.offset else "no map offset",
-                           "online": f"streamed in {wall:.1f} s for a {result.duration:.1f} s recording "
-                                     f"({wall / max(result.duration, 1e-9):.2f} x real time); window latency "
-                                     f"median {1e3 * np.median(lat):.0f} ms, max {1e3 * np.max(lat):.0f} ms"})
-    if spill is not None:
-        spill.cleanup()
+    figures.difference_maps(pair, est.h_start, h_sim, rows, out / "fig6_difference_maps.png", h_back=est.h_back)
 
 
 def _param_names(robot: Robot) -> list[str]:

@@ -95,7 +95,9 @@ class OnlineConfig(Section):
                                               "one ahead, m (more: denser H_b, later rows)")
     context: float = Field(4.0, ge=0, description="ground before a window also cut out with it (map offset fit, "
                                                   "smoothing at the crop edge), m")
-    spill: bool = Field(True, description="heightmap tiles far from the robot written to disk (bounded memory)")
+    spill: bool = Field(True, description="heightmap tiles far from the robot written to OUT/tiles (bounded memory)")
+    max_cells: int = Field(3_000_000, ge=1, description="a drive whose terrain pair would hold more cells is left "
+                                                        "as tiles (no terrain_pair.npz, simulated.npz, fig6)")
 
 
 class EstimatorConfig(Section):

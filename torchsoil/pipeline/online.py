@@ -63,7 +63,8 @@ class OnlinePipeline:
         self.L: np.ndarray | None = None                 # levelling (4, 4)
         self.ok_stamps: list[float] = []
         self.ok_poses: list[np.ndarray] = []
-        self.tiles = {n: Tiles(cfg.raster.dx, spill_dir=spill_dir) for n in STREAMS}
+        self.tiles = {n: Tiles(cfg.raster.dx, spill_dir=None if spill_dir is None else f"{spill_dir}/{n}")
+                      for n in STREAMS}
         self.stats = {n: defaultdict(list) for n in STREAMS}
         self.target: icp.Target | None = None
         self.target_at = (np.full(3, np.inf), 0)
@@ -332,6 +333,20 @@ class OnlinePipeline:
         """The mapper's result (P_ref as held), levelled."""
         res = self.mapper.result()
         return mapping.rotate_world(res, np.eye(3) if self.L is None else self.L[:3, :3])
+
+    def grid_cells(self) -> int:
+        """Cells of the whole drive's terrain pair so far (the corridor's bounding box)."""
+        _, poses = self.trajectory()
+        if len(poses) == 0:
+            return 0
+        xy = poses[:, :2, 3]
+        span = xy.max(0) - xy.min(0) + self.cfg.raster.corridor_width
+        return int(np.prod(np.floor(span / self.cfg.raster.dx) + 2))
+
+    def flush(self) -> None:
+        """Every tile to the spill directory (when there is one)."""
+        for tiles in self.tiles.values():
+            tiles.spill(np.zeros((1, 2)), -np.inf)
 
     def memory(self) -> int:
         """Bytes held in tiles and queued sweeps (the parts that grow with the drive if unbounded)."""

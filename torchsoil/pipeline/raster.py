@@ -83,6 +83,10 @@ class Tiles:
         self.dx, self.size, self.spill_dir = dx, size, spill_dir
         self.tiles: dict[tuple[int, int], np.ndarray] = {}   # (3, size, size): count, sum, sumsq
         self.spilled: set[tuple[int, int]] = set()
+        if spill_dir is not None:
+            import os
+
+            os.makedirs(spill_dir, exist_ok=True)
 
     def add(self, points: np.ndarray) -> None:
         """Add (N, 3) world points [m]."""
@@ -121,7 +125,9 @@ class Tiles:
 
     def spill(self, xy: np.ndarray, radius: float) -> int:
         """Write to disk (and drop from memory) the tiles with no cell within `radius` m of any
-        of the (K, 2) positions xy; returns how many. Without a spill directory: none."""
+        of the (K, 2) positions xy (radius -inf: all); returns how many. Without a spill
+        directory: none. Each tile is `tile_A_B.npy`, (3, size, size) float64 count, sum and sum
+        of squares of z [m] of lattice cells [A size:(A+1) size, B size:(B+1) size]."""
         if self.spill_dir is None or not self.tiles:
             return 0
         from scipy.spatial import cKDTree
@@ -130,7 +136,7 @@ class Tiles:
         keys = list(self.tiles)
         centres = (np.array(keys, dtype=np.float64) + 0.5) * side - self.dx / 2
         d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
-        far = d > radius + side / np.sqrt(2)
+        far = d > radius + side / np.sqrt(2) if np.isfinite(radius) else np.full(len(keys), radius < 0)
         for k, f in zip(keys, far, strict=True):
             if f:
                 np.save(self._path(k), self.tiles.pop(k))
