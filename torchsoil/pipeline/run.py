@@ -96,13 +96,24 @@ def extrinsics_from_robot_yaml(path: str | Path) -> dict[str, list[float]]:
 
 
 def fuse(front: list[Sweep], back: list[Sweep], period: float) -> tuple[list[Sweep], np.ndarray]:
-    """Each front sweep merged with the back sweep nearest in time (within half a period);
-    returns fused sweeps (stamped like the front ones) and (S,) flags (MISSING_BACK)."""
-    bstamps = np.array([b.stamp for b in back])
+    """Each front sweep merged with the back sweep nearest in time (within half a period; the
+    first in `back` on a tie); returns fused sweeps (stamped like the front ones) and (S,) flags
+    (MISSING_BACK)."""
     out, flags = [], np.zeros(len(front), dtype=np.int64)
+    nearest = np.full(len(front), -1)
+    if back:
+        bstamps = np.array([b.stamp for b in back])
+        order = np.argsort(bstamps, kind="stable")
+        sb = bstamps[order]
+        fstamps = np.array([f.stamp for f in front])
+        hi = np.minimum(np.searchsorted(sb, fstamps), len(sb) - 1)  # first at or after
+        lo = np.searchsorted(sb, sb[np.maximum(hi - 1, 0)])  # first of the stamp before
+        d_lo, d_hi = np.abs(sb[lo] - fstamps), np.abs(sb[hi] - fstamps)
+        pick = np.where((d_lo < d_hi) | ((d_lo == d_hi) & (order[lo] < order[hi])), lo, hi)
+        nearest = np.where(np.abs(sb[pick] - fstamps) <= period / 2, order[pick], -1)
     for k, f in enumerate(front):
-        j = int(np.argmin(np.abs(bstamps - f.stamp))) if len(back) else -1
-        if j < 0 or abs(bstamps[j] - f.stamp) > period / 2:
+        j = int(nearest[k])
+        if j < 0:
             out.append(f)
             flags[k] |= mapping.MISSING_BACK
             continue
