@@ -210,7 +210,7 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     timings["mapping"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    target = icp.make_target(maps.map_points, cfg.mapping.normal_radius, maps.map_normals)
+    target = icp.make_target(maps.map_points, cfg.mapping.normal_radius, maps.map_normals, 3 * cfg.mapping.voxel)
     ref_ok = (maps.flags & (mapping.POOR_FIT | mapping.EMPTY)) == 0
     ref_stamps, ref_poses = maps.stamps[ref_ok], maps.poses[ref_ok]
     grid, mask = corridor(ref_poses[:, :2, 3], cfg.raster.corridor_width, cfg.raster.dx)
