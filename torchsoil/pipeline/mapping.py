@@ -159,9 +159,13 @@ class ReferenceMap:
         self.stamp[keep & (d > radius - self.normal_radius)] = -1
         kept = {name: getattr(self, name)[keep] for name in self._FIELDS}
         self.n = len(kept["keys"])
+        if 4 * self.n < len(self._buf["keys"]):  # give memory back after a large cut
+            self._buf = {name: np.empty((max(2 * self.n, 1024), *shape), dtype)
+                         for name, (shape, dtype) in self._FIELDS.items()}
         for name, arr in kept.items():
             self._buf[name][:self.n] = arr
-        self._table = _k.table_build(self._buf["keys"], self.n, len(self._table))
+        size = 1 << int(np.ceil(np.log2(max(4 * self.n, 16))))
+        self._table = _k.table_build(self._buf["keys"], self.n, size)
         return dropped
 
     def reference(self, center: np.ndarray, radius: float) -> icp.Target:
