@@ -134,13 +134,14 @@ def test_local_map_equals_rebuilding_from_scratch():
 def test_voxel_index_equals_kd_tree(cell):
     rng = np.random.default_rng(5)
     pts = np.concatenate([scene(rng, 2000), rng.uniform(-10, 10, (500, 3))])
-    q = np.concatenate([pts[::7] + rng.normal(0, 0.1, (len(pts[::7]), 3)), rng.uniform(-12, 12, (300, 3))])
+    q = np.concatenate([pts[::2] + rng.normal(0, 0.1, (len(pts[::2]), 3)), rng.uniform(-12, 12, (300, 3))])
     index, tree = icp.VoxelIndex(pts, cell), cKDTree(pts)
     for k, bound in ((1, 0.3), (1, 0.5), (1, 1.5), (1, np.inf), (12, 0.6), (3, 0.25)):
-        d, i = index.query(q, k=k, distance_upper_bound=bound)
         dt, it = tree.query(q, k=k, distance_upper_bound=bound)
-        np.testing.assert_array_equal(i, it)
-        np.testing.assert_allclose(d, dt, rtol=1e-12)
+        for workers in (1, 2):
+            d, i = index.query(q, k=k, distance_upper_bound=bound, workers=workers)
+            np.testing.assert_array_equal(i, it)
+            np.testing.assert_allclose(d, dt, rtol=1e-12)
     d, i = index.query(q[0], distance_upper_bound=0.5)
     assert np.ndim(d) == 0 and i == tree.query(q[0], distance_upper_bound=0.5)[1]
     d, i = icp.VoxelIndex(np.zeros((0, 3))).query(q, distance_upper_bound=0.5)
