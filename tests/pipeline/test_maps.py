@@ -64,9 +64,16 @@ def test_forget_drops_exactly_the_far_voxels():
     np.testing.assert_array_equal(after, before[d <= 6.0])
     assert dropped == int((d > 6.0).sum()) > 0
     assert ref.forget(keep_xy, 6.0) == 0
-    # a forgotten voxel can be filled again
-    ref.add(np.array([[15.05, 15.05, 0.05]]), np.zeros(3))
+    # a forgotten voxel can be filled again, a held one not
+    ref.add(np.array([[15.05, 15.05, 0.05], np.floor(after[0] / 0.2) * 0.2 + 0.1]), np.zeros(3))
     assert len(ref) == len(after) + 1
+    # memory follows what is held
+    assert ref.forget(np.array([[100.0, 100.0]]), 1.0) == len(after) + 1
+    assert len(ref) == 0 and len(ref._buf["points"]) == 1024
+    assert len(ref.reference(np.zeros(3), 5.0).points) == 0
+    ref.add(np.zeros((0, 3)), np.zeros(3))
+    ref.add(after, np.zeros(3))
+    np.testing.assert_array_equal(ref.global_map()[0], after)
 
 
 @pytest.mark.parametrize("radius", [3.0, 7.5, 50.0])
@@ -119,19 +126,22 @@ def test_local_map_equals_rebuilding_from_scratch():
         np.testing.assert_allclose(np.abs(local.normals[new]), np.abs(n), atol=1e-9)
         np.testing.assert_array_equal(local.good[new], good)
     assert len(local.global_map()[0]) > len(local.points)
+    local.add(np.zeros((0, 3)), np.array([100.0, 0.0, 0.0]))  # nothing near any more
+    assert len(local.points) == 0 and len(local.target.points) == 0
 
 
 @pytest.mark.parametrize("cell", [0.1, 0.3, 0.6])
 def test_voxel_index_equals_kd_tree(cell):
     rng = np.random.default_rng(5)
     pts = np.concatenate([scene(rng, 2000), rng.uniform(-10, 10, (500, 3))])
-    q = np.concatenate([pts[::7] + rng.normal(0, 0.1, (len(pts[::7]), 3)), rng.uniform(-12, 12, (300, 3))])
+    q = np.concatenate([pts[::2] + rng.normal(0, 0.1, (len(pts[::2]), 3)), rng.uniform(-12, 12, (300, 3))])
     index, tree = icp.VoxelIndex(pts, cell), cKDTree(pts)
     for k, bound in ((1, 0.3), (1, 0.5), (1, 1.5), (1, np.inf), (12, 0.6), (3, 0.25)):
-        d, i = index.query(q, k=k, distance_upper_bound=bound)
         dt, it = tree.query(q, k=k, distance_upper_bound=bound)
-        np.testing.assert_array_equal(i, it)
-        np.testing.assert_allclose(d, dt, rtol=1e-12)
+        for workers in (1, 2):
+            d, i = index.query(q, k=k, distance_upper_bound=bound, workers=workers)
+            np.testing.assert_array_equal(i, it)
+            np.testing.assert_allclose(d, dt, rtol=1e-12)
     d, i = index.query(q[0], distance_upper_bound=0.5)
     assert np.ndim(d) == 0 and i == tree.query(q[0], distance_upper_bound=0.5)[1]
     d, i = icp.VoxelIndex(np.zeros((0, 3))).query(q, distance_upper_bound=0.5)
@@ -148,3 +158,20 @@ def test_voxel_grouping_equals_unique():
     np.testing.assert_array_equal(icp.voxel_first(pts, 0.25), first)
     want = np.stack([np.bincount(inv, weights=pts[:, i]) for i in range(3)], 1) / cnt[:, None]
     np.testing.assert_allclose(icp.voxel_downsample(pts, 0.25), want, rtol=1e-12, atol=1e-12)
+
+
+def test_reference_normals_are_cached_until_their_neighbourhood_changes():
+    rng = np.random.default_rng(7)
+    ref = ReferenceMap(voxel=0.2, normal_radius=0.6)
+    ref.add(scene(rng, 3000), np.array([0.0, 0.0, 1.0]))
+    ref.reference(np.zeros(3), 6.0)
+    first = ref.stamp.copy()
+    ref.reference(np.zeros(3), 6.0)
+    np.testing.assert_array_equal(ref.stamp, first)  # nothing recomputed
+    patch = np.column_stack([rng.uniform(2.0, 2.4, (50, 2)), rng.normal(0.3, 0.01, 50)])
+    ref.add(patch, np.array([0.0, 0.0, 1.0]))
+    ref.reference(np.zeros(3), 6.0)
+    old = np.arange(len(first))
+    redone = ref.stamp[old] != first
+    near = np.min(np.linalg.norm(ref.points[old, None] - ref.points[len(first):][None], axis=2), axis=1) < 0.6
+    np.testing.assert_array_equal(redone[first >= 0], near[first >= 0])

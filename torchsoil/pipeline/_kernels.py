@@ -549,3 +549,96 @@ def icp_step(T, H, g):
             step[a, b] = R[a, b]
             step[a, 3] -= R[a, b] * T[b, 3]
     return step @ T, np.abs(delta).max()
+
+
+@njit(**_OPTS)
+def local_merge(points, normals, good, age, views, keys, new_points, new_keys, center, radius):
+    """One LocalMap update: the held voxels (points, normals, good, age + 1, views, keys)
+    followed by the new ones (zero normal, not good, age 0, seen from center), keeping those
+    within `radius` of center horizontally. Returns the six arrays and the number of held
+    voxels kept (they come first)."""
+    n_old, n_new = points.shape[0], new_points.shape[0]
+    m = n_old + n_new
+    P = np.empty((m, 3))
+    N = np.empty((m, 3))
+    G = np.empty(m, np.bool_)
+    A = np.empty(m, np.int64)
+    V = np.empty((m, 3))
+    K = np.empty(m, np.int64)
+    u = 0
+    for i in range(n_old):
+        dx, dy = points[i, 0] - center[0], points[i, 1] - center[1]
+        if math.sqrt(dx * dx + dy * dy) < radius:
+            for a in range(3):
+                P[u, a] = points[i, a]
+                N[u, a] = normals[i, a]
+                V[u, a] = views[i, a]
+            G[u] = good[i]
+            A[u] = age[i] + 1
+            K[u] = keys[i]
+            u += 1
+    kept_old = u
+    for i in range(n_new):
+        dx, dy = new_points[i, 0] - center[0], new_points[i, 1] - center[1]
+        if math.sqrt(dx * dx + dy * dy) < radius:
+            for a in range(3):
+                P[u, a] = new_points[i, a]
+                N[u, a] = 0.0
+                V[u, a] = center[a]
+            G[u] = False
+            A[u] = 0
+            K[u] = new_keys[i]
+            u += 1
+    return P[:u].copy(), N[:u].copy(), G[:u].copy(), A[:u].copy(), V[:u].copy(), K[:u].copy(), kept_old
+
+
+@njit(**_OPTS)
+def table_insert(table, held, n_held, keys):
+    """Insert the keys (N,) not yet in the open-addressing `table` (slots hold indices into
+    `held`, -1 when free; `held` has room after its first n_held entries): each distinct new
+    key is appended to `held` and its table slot set. Returns the indices (into keys) of the
+    first point of each new key, in order. The table must stay below half full."""
+    mask = table.shape[0] - 1
+    out = np.empty(keys.shape[0], np.int64)
+    u = 0
+    for i in range(keys.shape[0]):
+        key = keys[i]
+        j = ((key * np.int64(-7046029254386353131)) >> np.int64(24)) & mask
+        while True:
+            s = table[j]
+            if s < 0:
+                table[j] = n_held + u
+                held[n_held + u] = key
+                out[u] = i
+                u += 1
+                break
+            if held[s] == key:
+                break
+            j = (j + 1) & mask
+    return out[:u]
+
+
+@njit(**_OPTS)
+def table_build(held, n_held, size):
+    """Open-addressing table of `size` slots (a power of two) over held[:n_held]."""
+    mask = size - 1
+    table = np.full(size, -1, np.int64)
+    for i in range(n_held):
+        j = ((held[i] * np.int64(-7046029254386353131)) >> np.int64(24)) & mask
+        while table[j] >= 0:
+            j = (j + 1) & mask
+        table[j] = i
+    return table
+
+
+@njit(**_OPTS)
+def within_range(points, max_range):
+    """Indices of the points (N, 3) closer than max_range to the origin."""
+    out = np.empty(points.shape[0], np.int64)
+    u = 0
+    for i in range(points.shape[0]):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if math.sqrt(x * x + y * y + z * z) < max_range:
+            out[u] = i
+            u += 1
+    return out[:u]

@@ -76,24 +76,47 @@ class ReferenceMap:
     """P_ref held incrementally: one point per cubic voxel of edge `voxel` m (the oldest: the
     first point added into a voxel stays), with the robot position it was seen from.
 
-    Memory grows with the ground covered, not with the number of sweeps; `forget` drops the
-    voxels far from where the robot still works. `reference` serves the part near a position
-    as an ICP target; the normals it computes are cached per voxel and recomputed only where
-    a voxel's neighbourhood (within `normal_radius`) has changed since.
+    Memory grows with the ground covered, not with the number of sweeps, and `forget` drops
+    the voxels far from where the robot still works. Adding costs in proportion to the
+    points added (a persistent voxel hash, buffers grown by doubling). `reference` serves the
+    part near a position as an ICP target; its normals are cached per voxel and recomputed
+    only where a voxel's neighbourhood (within `normal_radius`) changed since.
     """
+
+    _FIELDS = {"points": ((3,), np.float64), "views": ((3,), np.float64), "keys": ((), np.int64),
+               "born": ((), np.int64), "normals": ((3,), np.float64), "stamp": ((), np.int64)}
 
     def __init__(self, voxel: float, normal_radius: float):
         self.voxel, self.normal_radius = voxel, normal_radius
-        self.points = np.zeros((0, 3))
-        self.views = np.zeros((0, 3))
-        self.keys = np.zeros(0, np.int64)
-        self.born = np.zeros(0, np.int64)      # epoch at which each voxel was filled
-        self.normals = np.zeros((0, 3))        # cached, oriented; valid where stamp >= 0
-        self.stamp = np.zeros(0, np.int64)     # epoch of each cached normal, -1: none
-        self.epoch = 0
+        self.n = 0
+        self.epoch = 0  # advanced by every add and forget; `born` and `stamp` refer to it
+        self._buf = {name: np.empty((0, *shape), dtype) for name, (shape, dtype) in self._FIELDS.items()}
+        self._table = np.full(16, -1, np.int64)
+
+    # the held voxels, in the order they entered (views of the buffers): points (M, 3), the
+    # robot position each was seen from (M, 3), voxel keys (M,), epoch each entered (M,),
+    # cached oriented normals (M, 3) and the epoch each was computed at (M,; -1: none)
+    points = property(lambda self: self._buf["points"][:self.n])
+    views = property(lambda self: self._buf["views"][:self.n])
+    keys = property(lambda self: self._buf["keys"][:self.n])
+    born = property(lambda self: self._buf["born"][:self.n])
+    normals = property(lambda self: self._buf["normals"][:self.n])
+    stamp = property(lambda self: self._buf["stamp"][:self.n])
 
     def __len__(self) -> int:
-        return len(self.points)
+        return self.n
+
+    def _reserve(self, need: int) -> None:
+        cap = len(self._buf["keys"])
+        if need > cap:
+            cap = max(need, 2 * cap, 1024)
+            for name, (shape, dtype) in self._FIELDS.items():
+                buf = np.empty((cap, *shape), dtype)
+                buf[:self.n] = self._buf[name][:self.n]
+                self._buf[name] = buf
+        if 2 * need > len(self._table):
+            size = 1 << int(np.ceil(np.log2(4 * need)))
+            self._table = _k.table_build(self._buf["keys"], self.n, size)
 
     def add(self, world_points: np.ndarray, center: np.ndarray) -> None:
         """Insert (N, 3) world points [m] seen from `center` (3,): each fills its voxel unless
@@ -101,16 +124,15 @@ class ReferenceMap:
         world_points = np.ascontiguousarray(world_points, dtype=np.float64).reshape(-1, 3)
         self.epoch += 1
         keys = icp.voxel_keys(world_points, self.voxel)
-        new = _k.fresh(self.keys, keys)
-        if len(new) == 0:
-            return
-        n = len(new)
-        self.points = np.concatenate([self.points, world_points[new]])
-        self.views = np.concatenate([self.views, np.broadcast_to(np.asarray(center, np.float64), (n, 3))])
-        self.keys = np.concatenate([self.keys, keys[new]])
-        self.born = np.concatenate([self.born, np.full(n, self.epoch, np.int64)])
-        self.normals = np.concatenate([self.normals, np.zeros((n, 3))])
-        self.stamp = np.concatenate([self.stamp, np.full(n, -1, np.int64)])
+        self._reserve(self.n + len(keys))
+        new = _k.table_insert(self._table, self._buf["keys"], self.n, keys)  # appends the keys
+        a, b = self.n, self.n + len(new)
+        self._buf["points"][a:b] = world_points[new]
+        self._buf["views"][a:b] = center
+        self._buf["born"][a:b] = self.epoch
+        self._buf["normals"][a:b] = 0.0
+        self._buf["stamp"][a:b] = -1
+        self.n = b
 
     def global_map(self) -> tuple[np.ndarray, np.ndarray]:
         """The held points (M, 3), in the order they entered, and the robot position (M, 3)
@@ -121,22 +143,29 @@ class ReferenceMap:
         """Drop the voxels whose point lies farther than `radius` m (horizontally) from every
         position of keep_xy (K, 2) (e.g. the recent trajectory); returns how many were dropped.
         Cached normals of kept voxels whose neighbourhood lost points are recomputed on use."""
-        if len(self.points) == 0:
+        if self.n == 0:
             return 0
         keep_xy = np.asarray(keep_xy, dtype=np.float64).reshape(-1, 2)
         if len(keep_xy) == 0:
-            d = np.full(len(self.points), np.inf)
+            d = np.full(self.n, np.inf)
         else:
             bound = np.nextafter(float(radius), np.inf)  # the query's bound is strict
             d, _ = cKDTree(keep_xy).query(self.points[:, :2], distance_upper_bound=bound)
         keep = d <= radius
-        dropped = int((~keep).sum())
+        dropped = int(self.n - keep.sum())
         if dropped == 0:
             return 0
         self.epoch += 1
         self.stamp[keep & (d > radius - self.normal_radius)] = -1
-        for name in ("points", "views", "keys", "born", "normals", "stamp"):
-            setattr(self, name, getattr(self, name)[keep])
+        kept = {name: getattr(self, name)[keep] for name in self._FIELDS}
+        self.n = len(kept["keys"])
+        if 4 * self.n < len(self._buf["keys"]):  # give memory back after a large cut
+            self._buf = {name: np.empty((max(2 * self.n, 1024), *shape), dtype)
+                         for name, (shape, dtype) in self._FIELDS.items()}
+        for name, arr in kept.items():
+            self._buf[name][:self.n] = arr
+        size = 1 << int(np.ceil(np.log2(max(4 * self.n, 16))))
+        self._table = _k.table_build(self._buf["keys"], self.n, size)
         return dropped
 
     def reference(self, center: np.ndarray, radius: float) -> icp.Target:
@@ -145,22 +174,23 @@ class ReferenceMap:
         points, turned towards the viewpoints by icp.orient_to_viewpoints; zero where the
         neighbourhood is not a surface) and a search index: an ICP target."""
         c = np.asarray(center, dtype=np.float64)
-        dxy = np.hypot(self.points[:, 0] - c[0], self.points[:, 1] - c[1])
+        points, stamp = self.points, self.stamp
+        dxy = np.hypot(points[:, 0] - c[0], points[:, 1] - c[1])
         ext = np.flatnonzero(dxy <= radius + self.normal_radius)  # holds every neighbourhood used
         sel = ext[dxy[ext] <= radius]
-        pts = self.points[ext]
+        pts = points[ext]
         index = icp.VoxelIndex(pts, 3 * self.voxel)
-        todo = self.stamp[sel] < 0
+        todo = stamp[sel] < 0
         cached = sel[~todo]
         if len(cached):
-            changed = index.any_newer(self.points[cached], self.stamp[cached], self.born[ext], self.normal_radius)
+            changed = index.any_newer(points[cached], stamp[cached], self.born[ext], self.normal_radius)
             todo[np.flatnonzero(~todo)[changed]] = True
         redo = sel[todo]
         if len(redo):
-            n, _ = icp.pca_normals(pts, index, self.points[redo], radius=self.normal_radius)
-            self.normals[redo] = icp.orient_to_viewpoints(self.points[redo], n, self.views[redo])
-            self.stamp[redo] = self.epoch
-        out = self.points[sel]
+            n, _ = icp.pca_normals(pts, index, points[redo], radius=self.normal_radius)
+            self.normals[redo] = icp.orient_to_viewpoints(points[redo], n, self.views[redo])
+            stamp[redo] = self.epoch
+        out = points[sel]
         return icp.Target(out, self.normals[sel], icp.VoxelIndex(out, 3 * self.voxel))
 
 
@@ -201,33 +231,21 @@ class LocalMap:
         """Insert (N, 3) world points [m] seen from `center` (3,) into the local map (new
         voxels only; voxels beyond `radius` of center are dropped) and into P_ref."""
         world_points = np.ascontiguousarray(world_points, dtype=np.float64).reshape(-1, 3)
-        center = np.asarray(center, dtype=np.float64)
+        center = np.ascontiguousarray(center, dtype=np.float64)
         self.ref.add(world_points, center)
         keys = icp.voxel_keys(world_points, self.voxel)
         new = _k.fresh(self.keys, keys)  # earlier (older) points keep their voxel
-        n_old = len(self.points)
-        pts = np.concatenate([self.points, world_points[new]])
-        keys = np.concatenate([self.keys, keys[new]])
-        keep = np.flatnonzero(np.hypot(pts[:, 0] - center[0], pts[:, 1] - center[1]) < self.radius)
-        pts, keys = pts[keep], keys[keep]
-        old = keep[keep < n_old]
-        n_kept_old = len(old)
-        normals = np.zeros_like(pts)
-        good = np.zeros(len(pts), bool)
-        age = np.zeros(len(pts), np.int64)
-        views = np.empty_like(pts)
-        normals[:n_kept_old] = self.normals[old]
-        good[:n_kept_old] = self.good[old]
-        age[:n_kept_old] = self.age[old] + 1
-        views[:n_kept_old] = self.views[old]
-        views[n_kept_old:] = center
+        pts, normals, good, age, views, self.keys, _ = _k.local_merge(
+            self.points, self.normals, self.good, self.age, self.views, self.keys, world_points[new], keys[new],
+            center, float(self.radius))
         index = icp.VoxelIndex(pts, 3 * self.voxel)
         # a normal is computed when its point enters the map and again, for a few sweeps,
         # while its neighbourhood is not yet a surface patch (e.g. one ground ring)
         redo = np.flatnonzero(~good & (age < self.retries))
-        normals[redo], good[redo] = icp.pca_normals(pts, index, pts[redo], radius=self.normal_radius)
-        normals[redo] = icp.orient_to_viewpoints(pts[redo], normals[redo], views[redo])
-        self.points, self.normals, self.good, self.age, self.views, self.keys = pts, normals, good, age, views, keys
+        if len(redo):
+            normals[redo], good[redo] = icp.pca_normals(pts, index, pts[redo], radius=self.normal_radius)
+            normals[redo] = icp.orient_to_viewpoints(pts[redo], normals[redo], views[redo])
+        self.points, self.normals, self.good, self.age, self.views = pts, normals, good, age, views
         self.target = icp.Target(pts, normals, index)
 
 
@@ -245,11 +263,10 @@ def _velocity(T_prev: np.ndarray, T_curr: np.ndarray, dt: float) -> np.ndarray:
 
 def _prepare(sweep: Sweep, velocity: np.ndarray, period: float, cfg: MappingConfig) -> np.ndarray:
     """Downsampled, range-limited, de-skewed points of a sweep (robot frame at its stamp)."""
-    pts = sweep.points
-    keep = np.linalg.norm(pts, axis=1) < cfg.max_range
-    pts, t = pts[keep], sweep.t[keep]
-    pick = voxel_pick(pts, cfg.voxel / 2)
-    return deskew(pts[pick], t[pick], _motion_over(velocity, period), period)
+    pts = np.ascontiguousarray(sweep.points, dtype=np.float64)
+    near = _k.within_range(pts, float(cfg.max_range))
+    pick = near[voxel_pick(pts[near], cfg.voxel / 2)]
+    return deskew(pts[pick], sweep.t[pick], _motion_over(velocity, period), period)
 
 
 class Mapper:

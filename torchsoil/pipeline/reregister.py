@@ -64,7 +64,7 @@ def register_sweep(points: np.ndarray, t: np.ndarray, stamp: float, ref_stamps: 
     pts = deskew(points, t, motion_at(ref_stamps, ref_poses, stamp, period), period)
     if not cfg.enabled:
         return pts, seed, np.nan, np.nan, True, False
-    near = pts[np.linalg.norm(pts, axis=1) < cfg.max_range]
+    near = pts[_k.within_range(pts, float(cfg.max_range))]
     src = icp.thin(icp.voxel_downsample(near, cfg.voxel), cfg.max_points)
     if len(src) < 50:
         return pts, seed, 0.0, np.inf, False, False
