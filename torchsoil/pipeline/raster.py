@@ -96,16 +96,16 @@ class Tiles:
         key = ij // self.size
         local = ij - key * self.size
         tid = (key[:, 0] << 32) + (key[:, 1] & 0xFFFFFFFF)
-        for t in np.unique(tid):
-            sel = tid == t
-            k = (int(key[sel][0, 0]), int(key[sel][0, 1]))
-            tile = self._tile(k, create=True)
-            flat = local[sel, 0] * self.size + local[sel, 1]
-            z = points[sel, 2]
-            n, shape = self.size * self.size, (self.size, self.size)
-            tile[0] += np.bincount(flat, minlength=n).reshape(shape)
-            tile[1] += np.bincount(flat, weights=z, minlength=n).reshape(shape)
-            tile[2] += np.bincount(flat, weights=z * z, minlength=n).reshape(shape)
+        _, first, slot = np.unique(tid, return_index=True, return_inverse=True)
+        n = self.size * self.size
+        cells, inv = np.unique(slot * n + local[:, 0] * self.size + local[:, 1], return_inverse=True)
+        z = points[:, 2]
+        sums = np.stack([np.bincount(inv, weights=w, minlength=len(cells)) for w in (None, z, z * z)])
+        which, cell = np.divmod(cells, n)
+        for u, i in enumerate(first):
+            tile = self._tile((int(key[i, 0]), int(key[i, 1])), create=True)
+            sel = which == u
+            tile.reshape(3, n)[:, cell[sel]] += sums[:, sel]
 
     def _path(self, k: tuple[int, int]) -> str:
         return f"{self.spill_dir}/tile_{k[0]}_{k[1]}.npy"
