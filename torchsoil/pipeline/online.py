@@ -158,7 +158,8 @@ class OnlinePipeline:
             self.period = float(np.median(steps)) if len(steps) else 0.1
         while self.front_wait:
             f = self.front_wait[0]
-            if not final and not any(b.stamp >= f.stamp + self.period / 2 for b in self.back_pool[-3:]):
+            waiting = not any(b.stamp >= f.stamp + self.period / 2 for b in self.back_pool[-3:])
+            if not final and waiting and len(self.front_wait) < 10:   # a silent back lidar holds 1 s at most
                 return
             self.front_wait.pop(0)
             near = [b for b in self.back_pool if abs(b.stamp - f.stamp) <= self.period / 2]
