@@ -26,7 +26,6 @@ import torch
 
 from torchsoil.estimator import Estimator, WindowOutput
 from torchsoil.io.bag import ImuSample, Recording, _edges, frame_name, resolve_frames
-from torchsoil.io.pointcloud import LIVOX_CUSTOM
 from torchsoil.io.stream import SweepStream
 from torchsoil.pipeline.online import OnlinePipeline
 from torchsoil.robot import Robot
@@ -60,6 +59,7 @@ class LiveEstimator:
         self.next = 0                      # next window index
         self.theta: torch.Tensor | None = None
         self.last_row: dict | None = None  # warm start of a resumed run (a params.csv row)
+        self.polled = -np.inf              # pipeline.ground_stamp at the last poll
         self.ready_at: dict[int, float] = {}
         self.edges: dict[str, tuple] = {}
         r = settings.pipeline.read
@@ -101,8 +101,9 @@ class LiveEstimator:
     def poll(self, final: bool = False) -> list[LiveWindow]:
         """Fit every window whose ground is now complete (with `final`: all that are left)."""
         pipe, e = self.pipeline, self.settings.estimator
-        if pipe.L is None or pipe.mapper is None:
-            return []
+        if pipe.L is None or pipe.mapper is None or (not final and pipe.ground_stamp == self.polled):
+            return []   # no new ground since the last call: nothing can have become ready
+        self.polled = pipe.ground_stamp
         stamps, poses = pipe.trajectory()
         if len(stamps) < 2:
             return []
@@ -157,9 +158,6 @@ class LiveEstimator:
         self.pipeline.finish()
         return self.poll(final=True)
 
-
-def is_lidar(msgtype: str) -> bool:
-    return msgtype == "sensor_msgs/msg/PointCloud2" or msgtype in LIVOX_CUSTOM
 
 
 def play(bag, live: LiveEstimator, realtime: bool = False, progress=None):

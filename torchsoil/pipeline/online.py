@@ -348,8 +348,3 @@ class OnlinePipeline:
         """Every tile to the spill directory (when there is one)."""
         for tiles in self.tiles.values():
             tiles.spill(np.zeros((1, 2)), -np.inf)
-
-    def memory(self) -> int:
-        """Bytes held in tiles and queued sweeps (the parts that grow with the drive if unbounded)."""
-        sweeps = sum(s.points.nbytes + s.t.nbytes for q in self.queue.values() for s in q)
-        return sweeps + sum(t.memory() for t in self.tiles.values())
