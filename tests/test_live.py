@@ -74,8 +74,11 @@ def test_far_tiles_leave_memory_and_come_back_unchanged(streamed):
 
 
 def test_messages_fed_one_by_one_give_the_same_rows(streamed):
-    """The robot-side API: TF, PointCloud2 and Imu messages as a node's callbacks get them."""
+    """The robot-side API: TF, PointCloud2 and Imu messages as a node's callbacks get them,
+    fitted in the caller's thread, give the rows `play` got from the worker thread."""
     bag, robot, settings, _, rows, _ = streamed
+    assert settings.estimator.online.background
+    settings = load_settings(overrides=["pipeline.raster.max_range=8", "estimator.online.background=false"])
     live = LiveEstimator(robot, settings)
     r = settings.pipeline.read
     got = []
@@ -120,3 +123,19 @@ def test_an_interrupted_streamed_run_resumes_without_refitting(streamed, tmp_pat
         assert a["s"] == b["s"]
         if a["d1"] != "nan":
             assert abs(float(a["d1"]) - float(b["d1"])) < 0.002
+
+
+def test_a_failed_fit_reaches_the_caller(streamed):
+    """A window fit that fails on the worker thread raises in the caller's thread (at a poll or
+    at finish), not silently."""
+    bag, robot, settings, _, _, _ = streamed
+    live = LiveEstimator(robot, settings)
+
+    def broken(*args):
+        raise RuntimeError("fit failed")
+
+    live._fit = broken
+    with pytest.raises(RuntimeError, match="fit failed"):
+        for _ in play(bag, live):
+            pass
+    live.close()

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 import time
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import NamedTuple
 
 import numpy as np
@@ -30,7 +31,7 @@ from torchsoil.io.stream import SweepStream
 from torchsoil.pipeline.online import OnlinePipeline
 from torchsoil.robot import Robot
 from torchsoil.settings import Settings
-from torchsoil.windows import path_arc
+from torchsoil.windows import path_arc, plan_windows
 
 
 class LiveWindow(NamedTuple):
@@ -69,6 +70,8 @@ class LiveEstimator:
         self.behind = abs(float(robot.wheels[:, 0].min())) + robot.wheel_width / 2 \
             + settings.pipeline.raster.wheel_margin + e.online.lag
         self.reach = np.abs(robot.wheels[:, 0]).max() + robot.wheel_width
+        self.pending: list = []            # jobs queued or running, in window order
+        self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit") if e.online.background else None
 
     # ---------------------------------------------------------------- input
     def add_message(self, topic: str, msg, msgtype: str = "sensor_msgs/msg/PointCloud2") -> None:
@@ -99,51 +102,83 @@ class LiveEstimator:
 
     # --------------------------------------------------------------- output
     def poll(self, final: bool = False) -> list[LiveWindow]:
-        """Fit every window whose ground is now complete (with `final`: all that are left)."""
+        """Windows fitted since the last call, in order. Every window whose ground is now complete
+        (with `final`: all that are left) is cut out and queued for fitting; with
+        `estimator.online.background` the fitting runs on a worker thread while the caller feeds
+        the next sweeps, and its windows come out of a later call (`finish` waits for them all)."""
+        job = self._job(final)
+        if job is not None:
+            if self.worker is None:
+                self.pending.append(Future())
+                self.pending[-1].set_result(self._fit(*job))
+            else:
+                if len(self.pending) >= self.settings.estimator.online.max_pending:
+                    wait(self.pending[:1])          # bounded queue: the oldest job first (taken below)
+                self.pending.append(self.worker.submit(self._fit, *job))
+        out = []
+        while self.pending and (final or self.pending[0].done()):
+            out += self.pending.pop(0).result()   # a failed fit raises here, in the caller's thread
+        now = time.perf_counter()
+        return [w._replace(done=now) for w in out]
+
+    def _job(self, final: bool) -> tuple | None:
+        """(pair, arc0, indices, ready) of the windows whose ground became complete: the stretch
+        cut out of the tiles, its first pose's arc length along the drive, the windows' indices
+        along the drive, and when each became ready (wall clock); None when there are none."""
         pipe, e = self.pipeline, self.settings.estimator
         if pipe.L is None or pipe.mapper is None or (not final and pipe.ground_stamp == self.polled):
-            return []   # no new ground since the last call: nothing can have become ready
+            return None   # no new ground since the last call: nothing can have become ready
         self.polled = pipe.ground_stamp
         stamps, poses = pipe.trajectory()
         if len(stamps) < 2:
-            return []
-        rows = np.column_stack([stamps, poses[:, :3, 3]])
-        arc = path_arc(np.column_stack([rows, np.zeros((len(rows), 3))]))
+            return None
+        arc = path_arc(np.column_stack([stamps, poses[:, :3, 3], np.zeros((len(stamps), 3))]))
         if final:
-            done_arc = arc[-1]
             last = int(math.floor((arc[-1] - e.window) / e.stride + 1e-9))
         else:
             done_arc = float(np.interp(pipe.ground_stamp, stamps, arc)) - self.behind
             last = int(math.floor((done_arc - 2 * e.window) / e.stride + 1e-9))
         if last < self.next:
-            return []
+            return None
         now = time.perf_counter()
         for k in range(self.next, last + 1):
             self.ready_at.setdefault(k, now)
+        if not final and last - self.next + 1 < e.online.batch:
+            return None   # wait for a few: each stretch cut out and indexed costs as much as a fit
         a0 = max(0.0, self.next * e.stride - e.online.context)
-        a1 = min(arc[-1], (last * e.stride + 2 * e.window) + self.reach + e.corridor)
+        a1 = min(arc[-1], (last * e.stride + 2 * e.window) + self.reach + 0.5)   # + poses past it
         t0, t1 = np.interp([a0, a1], arc, stamps)
         pair = pipe.terrain(t0, t1)
-        first = int(np.searchsorted(stamps, t0))
-        est = Estimator(pair, e, self.settings.sim, arc0=float(arc[first]))
+        arc0 = float(arc[np.searchsorted(stamps, t0)])
+        # the windows the estimator will place on this stretch (Estimator: start and plan_windows)
+        start = (math.ceil(arc0 / e.stride - 1e-9) * e.stride - arc0) if arc0 > 0 else 0.0
+        specs = plan_windows(float(path_arc(pair.poses)[-1]), e.window, e.stride, start)
+        index = [int(round((w.s0 + arc0) / e.stride)) for w in specs]
+        take = [k for k in index if self.next <= k <= last]
+        if final:   # the drive ends here: no later window can be fitted
+            self.next = max(self.next, last + 1)
+        if not take:
+            return None
+        self.next = max(self.next, take[-1] + 1)
+        return pair, arc0, index, take[0], take[-1], {k: self.ready_at.pop(k, now) for k in take}
+
+    def _fit(self, pair, arc0: float, index: list[int], first: int, last: int, ready: dict) -> list[LiveWindow]:
+        """Fit windows `first`..`last` (indices along the drive) on the stretch `pair`, each
+        warm-started from the one before (jobs run one at a time, in order)."""
+        e = self.settings.estimator
+        est = Estimator(pair, e, self.settings.sim, arc0=arc0)
         if self.theta is None and self.last_row is not None:
             self.theta = est.free_from_row(self.last_row)
         out = []
-        index = [int(round((w.s0 + est.arc0) / e.stride)) for w in est.windows]
-        j0 = next((j for j, k in enumerate(index) if k >= self.next), len(index))
-        j1 = next((j for j, k in enumerate(index) if k > last), len(index))
-        for j, o in enumerate(est.run(start=j0, theta=self.theta, stop=j1), start=j0):
-            k = index[j]
+        for j, o in enumerate(est.run(start=index.index(first), theta=self.theta, stop=index.index(last) + 1),
+                              start=index.index(first)):
             if o.fit is not None:
                 self.theta = o.fit.theta
             dist = None
             if o.data is not None:
                 i0, i1, j0, j1 = o.data.crop
                 dist = np.abs(est.index.s[i0:i1, j0:j1] - o.data.spec.centre)
-            out.append(LiveWindow(k, o, pair, self.ready_at.pop(k, now), time.perf_counter(), dist))
-            self.next = k + 1
-        if final:   # the drive ends here: no later window can be fitted
-            self.next = max(self.next, last + 1)
+            out.append(LiveWindow(index[j], o, pair, ready[index[j]], time.perf_counter(), dist))
         return out
 
     def resume(self, rows: list[dict]) -> None:
@@ -154,10 +189,20 @@ class LiveEstimator:
         self.last_row = fitted[-1] if fitted else None
 
     def finish(self) -> list[LiveWindow]:
-        """The end of the recording: the pipeline flushed and the last windows fitted."""
+        """The end of the recording: the pipeline flushed, the last windows fitted, every queued
+        window returned and the worker thread stopped."""
         self.pipeline.finish()
-        return self.poll(final=True)
+        out = self.poll(final=True)
+        self.close()
+        return out
 
+    def close(self) -> None:
+        """Stop the worker thread (queued fits are dropped)."""
+        if self.worker is not None:
+            for f in self.pending:
+                f.cancel()
+            self.worker.shutdown(wait=True)
+            self.worker = None
 
 
 def play(bag, live: LiveEstimator, realtime: bool = False, progress=None):

@@ -238,6 +238,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
                       f"beta {r['beta']:5.1f} deg  latency {1e3 * (w.done - w.ready):4.0f} ms  {r['flags']}")
             bar.update(1)
     finally:
+        live.close()
         bar.close()
         tb.close()
     wall = time.perf_counter() - t_start

@@ -95,6 +95,12 @@ class OnlineConfig(Section):
                                               "one ahead, m (more: denser H_b, later rows)")
     context: float = Field(4.0, ge=0, description="ground before a window also cut out with it (map offset fit, "
                                                   "smoothing at the crop edge), m")
+    batch: int = Field(2, ge=1, description="windows fitted together on one stretch cut out of the tiles (more: "
+                                            "less set-up per window, later rows)")
+    background: bool = Field(True, description="windows fitted on a worker thread while the pipeline takes the "
+                                               "next sweeps (the same rows, sooner on two cores)")
+    max_pending: int = Field(8, ge=1, description="stretches queued for fitting at most; the pipeline waits "
+                                                  "when the fits fall this far behind (bounded memory)")
     spill: bool = Field(True, description="heightmap tiles far from the robot written to OUT/tiles (bounded memory)")
     max_cells: int = Field(3_000_000, ge=1, description="a drive whose terrain pair would hold more cells is left "
                                                         "as tiles (no terrain_pair.npz, simulated.npz, fig6)")

@@ -642,3 +642,46 @@ def within_range(points, max_range):
             out[u] = i
             u += 1
     return out[:u]
+
+
+# ---- heightmap tiles ----
+
+@njit(**_OPTS)
+def tile_sums(points, dx, size):
+    """Points (N, 3) -> the tiles of `size` x `size` lattice cells they fall in: keys (T, 2)
+    in order of first hit and per-tile sums (T, 3, size * size) of count, z and z^2 over each
+    cell (cell (I, J) centred at (I dx, J dx))."""
+    n = points.shape[0]
+    keys = np.empty((16, 2), np.int64)
+    slot = np.empty(n, np.int64)
+    cell = np.empty(n, np.int64)
+    t = 0
+    last = -1
+    for i in range(n):
+        ci = np.int64(np.rint(points[i, 0] / dx))
+        cj = np.int64(np.rint(points[i, 1] / dx))
+        a, b = ci // size, cj // size
+        if last < 0 or keys[last, 0] != a or keys[last, 1] != b:
+            last = -1
+            for u in range(t):
+                if keys[u, 0] == a and keys[u, 1] == b:
+                    last = u
+                    break
+            if last < 0:
+                if t == keys.shape[0]:
+                    grown = np.empty((2 * t, 2), np.int64)
+                    grown[:t] = keys
+                    keys = grown
+                keys[t, 0], keys[t, 1] = a, b
+                last = t
+                t += 1
+        slot[i] = last
+        cell[i] = (ci - a * size) * size + (cj - b * size)
+    sums = np.zeros((t, 3, size * size))
+    for i in range(n):
+        z = points[i, 2]
+        s, c = slot[i], cell[i]
+        sums[s, 0, c] += 1.0
+        sums[s, 1, c] += z
+        sums[s, 2, c] += z * z
+    return keys[:t].copy(), sums

@@ -17,6 +17,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
+from torchsoil.pipeline import _kernels as _k
 
 
 class Heightmap(NamedTuple):
@@ -92,20 +93,9 @@ class Tiles:
         """Add (N, 3) world points [m]."""
         if len(points) == 0:
             return
-        ij = np.round(points[:, :2] / self.dx).astype(np.int64)
-        key = ij // self.size
-        local = ij - key * self.size
-        tid = (key[:, 0] << 32) + (key[:, 1] & 0xFFFFFFFF)
-        _, first, slot = np.unique(tid, return_index=True, return_inverse=True)
-        n = self.size * self.size
-        cells, inv = np.unique(slot * n + local[:, 0] * self.size + local[:, 1], return_inverse=True)
-        z = points[:, 2]
-        sums = np.stack([np.bincount(inv, weights=w, minlength=len(cells)) for w in (None, z, z * z)])
-        which, cell = np.divmod(cells, n)
-        for u, i in enumerate(first):
-            tile = self._tile((int(key[i, 0]), int(key[i, 1])), create=True)
-            sel = which == u
-            tile.reshape(3, n)[:, cell[sel]] += sums[:, sel]
+        keys, sums = _k.tile_sums(np.ascontiguousarray(points, dtype=np.float64), float(self.dx), self.size)
+        for (a, b), add in zip(keys.tolist(), sums, strict=True):
+            self._tile((a, b), create=True).reshape(3, -1)[:] += add
 
     def _path(self, k: tuple[int, int]) -> str:
         return f"{self.spill_dir}/tile_{k[0]}_{k[1]}.npy"

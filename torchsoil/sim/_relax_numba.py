@@ -91,10 +91,10 @@ def _backward_py(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
 
 
 # One batch element: serial (a thread pool only costs there); several: one thread each.
-_forward_serial = njit(cache=True)(_forward_py)
-_forward_parallel = njit(parallel=True, cache=True)(_forward_py)
-_backward_serial = njit(cache=True)(_backward_py)
-_backward_parallel = njit(parallel=True, cache=True)(_backward_py)
+_forward_serial = njit(cache=True, nogil=True)(_forward_py)
+_forward_parallel = njit(parallel=True, cache=True, nogil=True)(_forward_py)
+_backward_serial = njit(cache=True, nogil=True)(_backward_py)
+_backward_parallel = njit(parallel=True, cache=True, nogil=True)(_backward_py)
 
 
 def _forward(h, *args):
