@@ -613,21 +613,33 @@ def _now() -> str:
     return datetime.now(timezone.utc).isoformat(timespec="seconds")
 
 
+def _absolute(path: str | Path | None, existing: bool = False) -> str | None:
+    """An absolute path (workers, on this machine or a cluster's, need not share the working
+    directory); with `existing`, only a path that exists (otherwise a shipped robot's name)."""
+    if path is None or (existing and not Path(path).exists()):
+        return None if path is None else str(path)
+    return str(Path(path).expanduser().absolute())
+
+
 def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: list[str], overrides: list[str],
          robot: str | None, extrinsics: dict | None, tensorboard: bool,
          overwrite: bool) -> tuple[list[Task], list[dict]]:
     """The tasks to run, and the fleet.csv rows of recordings not to run: skipped (complete,
     `complete`; the row of the earlier run kept, its figures read again from the outputs) or
-    failed before starting (settings or robot unusable)."""
+    failed before starting (settings or robot unusable). A recording whose last task failed
+    (its fleet.csv row says error) may replace what that attempt left in its folder, even if
+    it was made from another input or settings (the recording mended, a setting corrected);
+    other folders of another run are refused unless `overwrite` (provenance.claim)."""
     from torchsoil.settings import load_settings
 
     tasks, early = [], []
     for rec in recs:
         row = {"name": rec.name, "job": job, "input": rec.input, "out": str(out / rec.name)}
         try:
-            task = Task(job, rec.name, rec.input, str(out / rec.name), str(out / LOGS / f"{rec.name}.log"),
+            task = Task(job, rec.name, _absolute(rec.input), _absolute(out / rec.name),
+                        _absolute(out / LOGS / f"{rec.name}.log"),
                         load_settings(*configs, *rec.config, overrides=[*overrides, *rec.overrides]),
-                        rec.robot or robot, dict(extrinsics or {}), tensorboard, overwrite)
+                        _absolute(rec.robot or robot, existing=True), dict(extrinsics or {}), tensorboard, overwrite)
         except Exception as e:
             early.append({**row, "status": "error", "error": one_line(e), "finished": _now()})
             continue
@@ -635,9 +647,12 @@ def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: lis
             done = complete(task) and summarize(job, Path(task.out))
         except Exception:                       # e.g. a missing input: the task itself reports it
             done = None
+        before = log.previous(rec.name) or {}
         if done:
-            early.append({**(log.previous(rec.name) or {}), **done, **row, "status": "skipped", "error": ""})
+            early.append({**before, **done, **row, "status": "skipped", "error": ""})
         else:
+            # what a failed attempt left (e.g. of a recording since mended) is replaced, not refused
+            task.overwrite = overwrite or before.get("status") == "error"
             tasks.append(task)
     return tasks, early
 
