@@ -153,8 +153,7 @@ def test_a_killed_worker_is_replaced_and_its_task_retried(tmp_path):
 
 def test_estimate_many_on_the_local_engine_then_rerun(drives, tmp_path, capsys):
     """The command with three recordings, one broken: exit 1, the good ones as single runs, the
-    broken one's error in fleet.csv; a rerun touches only the broken one; once it is mended,
-    it alone runs."""
+    broken one's error in fleet.csv; a rerun runs only the broken one again."""
     root, single = drives
     out = tmp_path / "season"
     cmd = ["estimate", *(str(root / f"{n}.npz") for n in ("north", "south", "broken")), "--out", str(out),
@@ -173,22 +172,15 @@ def test_estimate_many_on_the_local_engine_then_rerun(drives, tmp_path, capsys):
         assert float(r["d1"]) == pytest.approx(sum(float(p["d1"]) for p in params) / len(params), rel=1e-5)
         assert float(r["peak_mb"]) > 50 and float(r["seconds"]) > 0
     before = mtimes(out, ["north", "south"])
-    first_try = table["broken"]["finished"]
+    (out / "logs" / "broken.log").unlink()
 
     assert main(cmd) == 1
+    assert "1 recording(s) to run" in capsys.readouterr().out
     table = fleet_rows(out)
     assert {n: r["status"] for n, r in table.items()} == {"north": "skipped", "south": "skipped", "broken": "error"}
     assert mtimes(out, ["north", "south"]) == before
+    assert (out / "logs" / "broken.log").exists()                        # the broken one ran again
     assert table["north"]["d1"] and table["north"]["seconds"]            # the earlier run's figures are kept
-
-    (tmp_path / "broken.npz").write_bytes((root / "south.npz").read_bytes())      # the recording mended
-    cmd[3] = str(tmp_path / "broken.npz")
-    assert main(cmd) == 0
-    table = fleet_rows(out)
-    assert {n: r["status"] for n, r in table.items()} == {"north": "skipped", "south": "skipped", "broken": "ok"}
-    assert table["broken"]["finished"] >= first_try
-    assert mtimes(out, ["north", "south"]) == before
-    assert_same_as_single(out / "broken", single["south"])
 
 
 def test_diagnose_many_on_the_local_engine(tmp_path):
@@ -212,6 +204,9 @@ def test_diagnose_many_on_the_local_engine(tmp_path):
 
 # ---------------------------------------------------------------------------- the Ray engine
 def test_estimate_many_on_ray_then_rerun_retries_only_the_broken(drives, tmp_path, ray_instance, capsys):
+    """Three recordings (a glob), one broken, on a local Ray instance: outputs as single runs,
+    the broken one's error in fleet.csv; a rerun retries only the broken one; once it is
+    mended, it alone runs, over what its failed attempt left."""
     root, single = drives
     import torchsoil
 
@@ -228,11 +223,24 @@ def test_estimate_many_on_ray_then_rerun_retries_only_the_broken(drives, tmp_pat
         assert float(table[name]["chi"]) > 0 and table[name]["host"]
     before = mtimes(out, ["north", "south"])
     capsys.readouterr()
+
     assert main(cmd) == 1
     assert "1 recording(s) to run" in capsys.readouterr().out
     table = fleet_rows(out)
     assert {n: r["status"] for n, r in table.items()} == {"north": "skipped", "south": "skipped", "broken": "error"}
     assert mtimes(out, ["north", "south"]) == before
+
+    mended = tmp_path / "mended"
+    mended.mkdir()
+    for name in ("north", "south"):
+        (mended / f"{name}.npz").write_bytes((root / f"{name}.npz").read_bytes())
+    (mended / "broken.npz").write_bytes((root / "south.npz").read_bytes())      # the recording mended
+    cmd[1] = str(mended / "*.npz")
+    assert main(cmd) == 0                              # copies of the same recordings: still complete
+    table = fleet_rows(out)
+    assert {n: r["status"] for n, r in table.items()} == {"north": "skipped", "south": "skipped", "broken": "ok"}
+    assert mtimes(out, ["north", "south"]) == before
+    assert_same_as_single(out / "broken", single["south"])
 
 
 def test_ray_records_a_killed_worker_and_refuses_a_task_no_node_holds(ray_instance):
@@ -263,19 +271,32 @@ def _without_time(table: str) -> str:
     return "\n".join(line for line in table.splitlines() if not line.startswith("time per case"))
 
 
-def test_study_on_the_engines_gives_the_serial_table(tmp_path, ray_instance):
+def test_study_on_ray_gives_the_serial_table(tmp_path, ray_instance):
     from torchsoil.diagnosis.study import run_study
 
     cases = [(f"tiny {k}", {**TINY, "name": f"tiny{k}"}, k, "adequate", None) for k in range(3)]
     settings = load_settings(overrides=["diagnosis.n_fit=0", *FAST])
     serial = run_study(cases, tmp_path / "serial", settings)
-    with make_engine("local", workers=2) as eng:
-        local = run_study(cases, tmp_path / "local", settings, engine=eng)
-    assert _without_time(local) == _without_time(serial)
     (tmp_path / "ray").mkdir()
     (tmp_path / "ray" / "cases.jsonl").write_text((tmp_path / "serial" / "cases.jsonl").read_text().splitlines()[1]
                                                   + "\n")                  # one case done: resumed, not rerun
     with make_engine("ray") as eng:
         on_ray = run_study(cases, tmp_path / "ray", settings, engine=eng)
     assert _without_time(on_ray) == _without_time(serial)
-    assert len((tmp_path / "ray" / "cases.jsonl").read_text().splitlines()) == 3
+    done = [json.loads(line)["case"] for line in (tmp_path / "ray" / "cases.jsonl").read_text().splitlines()]
+    assert done[0] == "tiny 1" and sorted(done[1:]) == ["tiny 0", "tiny 2"]
+
+
+def test_foreign_study_command_on_the_local_engine(tmp_path, capsys):
+    from torchsoil.diagnosis.study import run_foreign
+
+    pair, _ = sim_pair(length=3.6, seed=3)
+    pair.save(tmp_path / "drive.npz")
+    (tmp_path / "drive_truth.json").write_text(json.dumps({"expected": {"verdict": "adequate",
+                                                                        "missing_physics": None}, "windows": []}))
+    sets = ["diagnosis.n_fit=0", *FAST]
+    serial = run_foreign(tmp_path, tmp_path / "serial", load_settings(overrides=sets))
+    assert main(["study", "--foreign", str(tmp_path), "--out", str(tmp_path / "local"), "--engine", "local",
+                 "--workers", "1", *(a for s in sets for a in ("--set", s))]) == 0
+    assert "[1/1] drive:" in capsys.readouterr().out
+    assert _without_time((tmp_path / "local" / "confusion.md").read_text()) == _without_time(serial)

@@ -393,18 +393,27 @@ def _peak_mb() -> float:
 
 @contextmanager
 def _threads(n: int):
-    """torch intra-op and numba threads = n within the block (numba: at most its pool's size)."""
-    import numba
-    import torch
-
-    old_t, old_n = torch.get_num_threads(), numba.get_num_threads()
-    torch.set_num_threads(n)
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    """torch intra-op and numba threads = n within the block (numba: at most its pool's size).
+    In a worker that has not started torch or numba yet, their thread counts are set through
+    the environment they read when they start (OMP_NUM_THREADS, NUMBA_NUM_THREADS), so a task
+    that uses neither does not pay for importing them."""
+    torch, numba = sys.modules.get("torch"), sys.modules.get("numba")
+    if torch is None:
+        os.environ["OMP_NUM_THREADS"] = str(n)
+    if numba is None:
+        os.environ.setdefault("NUMBA_NUM_THREADS", str(n))
+    old = (torch.get_num_threads() if torch else None, numba.get_num_threads() if numba else None)
+    if torch:
+        torch.set_num_threads(n)
+    if numba:
+        numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
     try:
         yield
     finally:
-        torch.set_num_threads(old_t)
-        numba.set_num_threads(old_n)
+        if torch:
+            torch.set_num_threads(old[0])
+        if numba:
+            numba.set_num_threads(old[1])
 
 
 def call(fn: Callable, args: tuple, cpus: int = 1) -> Outcome:
@@ -419,11 +428,6 @@ def call(fn: Callable, args: tuple, cpus: int = 1) -> Outcome:
     except Exception as e:
         value, error = None, one_line(e)
     return Outcome(value, error, time.perf_counter() - t0, _peak_mb(), socket.gethostname())
-
-
-def _init_worker(cpus: int) -> None:
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    os.environ.setdefault("NUMBA_NUM_THREADS", str(cpus))
 
 
 def available_mb() -> float:
@@ -477,13 +481,12 @@ class LocalEngine:
 
         requests = requests or [self.fleet] * len(calls)
         n = min(self.workers or default_workers(self.fleet, len(calls)), max(1, len(calls)))
-        cpus = max([r.cpus_per_task for r in requests], default=1)
         ctx = mp.get_context("spawn")
         todo, idle, running, tries = deque(range(len(calls))), [], {}, [0] * len(calls)
         try:
             while todo or running:
                 while todo and len(running) < n:
-                    pool = idle.pop() if idle else ProcessPoolExecutor(1, ctx, _init_worker, (cpus,))
+                    pool = idle.pop() if idle else ProcessPoolExecutor(1, ctx)
                     i = todo.popleft()
                     tries[i] += 1
                     running[pool.submit(call, fn, calls[i], requests[i].cpus_per_task)] = (i, pool)
