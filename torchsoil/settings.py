@@ -552,7 +552,7 @@ class FleetConfig(Section):
     engine starts at most as many workers as the cores and available memory hold."""
 
     cpus_per_task: int = Field(1, ge=1, description="CPU cores per task, also its torch and numba threads, cores")
-    memory_mb_per_task: int = Field(3000, ge=0, description="memory reserved per task (Ray's `memory` resource; "
+    memory_mb_per_task: int = Field(2000, ge=0, description="memory reserved per task (Ray's `memory` resource; "
                                                             "local workers <= available memory / this), MiB; "
                                                             "0: no reservation")
     retries: int = Field(0, ge=0, description="times a task whose worker process died is started again (an "
