@@ -136,6 +136,32 @@ def test_complete_means_same_input_robot_and_settings_and_finished(drives):
         os.utime(summary, ns=(stamp, stamp))
 
 
+def test_a_failed_attempt_is_replaced_but_a_finished_run_is_not(drives, tmp_path):
+    """A recording whose last task failed may overwrite its folder (mended since), unless the
+    folder holds a finished run of other settings: that stays refused, rerun after rerun."""
+    import shutil
+
+    from torchsoil.fleet import plan
+
+    root, single = drives
+    out = tmp_path / "out"
+    shutil.copytree(single["north"], out / "north")
+    log = FleetLog(out / "fleet.csv")
+    log.start([{"name": "north", "status": "error", "error": "OutputMismatch: ..."}], running=[])
+    rec = [Recording(str(root / "north.npz"), "north")]
+
+    def planned(overrides):
+        return plan("estimate", rec, out, log, [], overrides, None, None, False, False)
+
+    (task,), early = planned(["estimator.max_iter=9"])                  # finished with max_iter=8
+    assert not early and not task.overwrite
+    tasks, (row,) = planned(FAST)
+    assert not tasks and row["status"] == "skipped"
+    (out / "north" / "summary.md").unlink()                             # an unfinished attempt
+    (task,), _ = planned(["estimator.max_iter=9"])
+    assert task.overwrite
+
+
 # ---------------------------------------------------------------------------- the local engine
 def test_a_killed_worker_takes_only_its_task_down():
     got = dict(LocalEngine(2).imap(value_or_kill, [(0,), (1,), (2,), (3,)]))

@@ -183,18 +183,23 @@ def expected_record(task: Task) -> dict:
     return json.loads(json.dumps(record))
 
 
+def finished(job: str, out: Path) -> bool:
+    """True when `out` holds a run of `job` that finished: its last output (LAST) was written
+    after its run.json (whatever input and settings made it)."""
+    meta, last = Path(out) / "run.json", Path(out) / LAST[job]
+    return meta.is_file() and last.is_file() and last.stat().st_mtime_ns >= meta.stat().st_mtime_ns
+
+
 def complete(task: Task) -> bool:
     """True when task.out holds a finished run of this very task: its run.json names the same
     job, input (content key), robot and settings, and the job's last output (LAST) was written
     after it (an interrupted or failed run leaves it missing or older)."""
     from torchsoil import provenance
 
-    out = Path(task.out)
-    meta, last = out / provenance.RUN_FILE, out / LAST[task.job]
-    if not (meta.is_file() and last.is_file()) or last.stat().st_mtime_ns < meta.stat().st_mtime_ns:
+    if not finished(task.job, Path(task.out)):
         return False
     try:
-        old = json.loads(meta.read_text())
+        old = json.loads((Path(task.out) / provenance.RUN_FILE).read_text())
     except (OSError, json.JSONDecodeError):
         return False
     return not provenance.differences(old, expected_record(task))
@@ -631,8 +636,9 @@ def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: lis
     `complete`; the row of the earlier run kept, its figures read again from the outputs) or
     failed before starting (settings or robot unusable). A recording whose last task failed
     (its fleet.csv row says error) may replace what that attempt left in its folder, even if
-    it was made from another input or settings (the recording mended, a setting corrected);
-    other folders of another run are refused unless `overwrite` (provenance.claim)."""
+    it was made from another input or settings (the recording mended, a setting corrected),
+    unless the folder holds a finished run; other folders of another run are refused unless
+    `overwrite` (provenance.claim)."""
     from torchsoil.settings import load_settings
 
     tasks, early = [], []
@@ -655,7 +661,7 @@ def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: lis
             early.append({**before, **done, **row, "status": "skipped", "error": ""})
         else:
             # what a failed attempt left (e.g. of a recording since mended) is replaced, not refused
-            task.overwrite = overwrite or before.get("status") == "error"
+            task.overwrite = overwrite or (before.get("status") == "error" and not finished(job, Path(task.out)))
             tasks.append(task)
     return tasks, early
 
