@@ -1,11 +1,13 @@
-"""Many-recordings benchmark: four short synthetic drives (terrain pairs of 8 m straight drives,
+"""Many-recordings benchmark: four short synthetic drives (terrain pairs of 16 m straight drives,
 4 m with quick=True) estimated with default settings on the local engine, by 1 worker and by 2
 workers. Wall time of each whole run [s], including the workers' start (spawned processes
-that import torch), and fleet_speedup_4 = time with 1 worker / time with 2 workers (at most 2
-on 2 cores; less when the machine is busy or the start-up dominates short drives)."""
+that import torch), mean task time [s], and fleet_speedup_4 = time with 1 worker / time with 2
+workers (at most 2 on 2 cores; less when other jobs share the cores, fleet_loadavg = the
+1-minute load average before the runs, or when the start-up dominates short drives)."""
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -34,7 +36,8 @@ def run(quick: bool = False) -> dict[str, float]:
     out: dict[str, float] = {}
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
-        recs = drives(root, 4, 4.0 if quick else 8.0)
+        recs = drives(root, 4, 4.0 if quick else 16.0)
+        out["fleet_loadavg"] = os.getloadavg()[0]
         for workers in (1, 2):
             t0 = time.perf_counter()
             rows = run_fleet("estimate", recs, root / f"workers{workers}", workers=workers, tensorboard=False,

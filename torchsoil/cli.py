@@ -60,8 +60,9 @@ def _job_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-tensorboard", action="store_true")
 
 
-def _engine_options(p: argparse.ArgumentParser) -> None:
-    """Where the tasks of many recordings (or study drives) run (torchsoil.fleet)."""
+def _engine_options(p: argparse.ArgumentParser):
+    """Where the tasks of many recordings (or study drives) run (torchsoil.fleet); returns the
+    option group."""
     g = p.add_argument_group("many recordings", "one task per recording, each writing OUT/<name>/ as a single run "
                                                 "would, and OUT/fleet.csv (README, Many recordings)")
     g.add_argument("--engine", choices=["local", "ray"], default=None,
@@ -72,11 +73,11 @@ def _engine_options(p: argparse.ArgumentParser) -> None:
                                                             "fleet.memory_mb_per_task each)")
     g.add_argument("--ray-address", metavar="ADDR", help="a running Ray cluster, e.g. ray://head:10001 or auto "
                                                          "(default: start a local Ray instance)")
+    return g
 
 
 def _fleet_options(p: argparse.ArgumentParser) -> None:
-    _engine_options(p)
-    p.add_argument("--manifest", metavar="CSV", help="recordings listed in a CSV: columns input, and optionally "
+    _engine_options(p).add_argument("--manifest", metavar="CSV", help="recordings listed in a CSV: columns input, and optionally "
                                                      "name, robot, config, set (several values separated by ;)")
 
 

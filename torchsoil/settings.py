@@ -569,7 +569,8 @@ class Settings(Section):
     diagnosis: DiagnosisConfig = DiagnosisConfig()
     env: EnvConfig = EnvConfig()
     synth: SynthConfig = SynthConfig()
-    fleet: FleetConfig = FleetConfig()
+    fleet: FleetConfig = Field(FleetConfig(), description="per task of a many-recordings run: cpus_per_task "
+                                                          "cores, memory_mb_per_task MiB, retries")
 
     def to_yaml(self, sections: Iterable[str] | None = None) -> str:
         """The settings as YAML, each leaf with its description (unit) as a comment."""
