@@ -77,8 +77,9 @@ def _engine_options(p: argparse.ArgumentParser):
 
 
 def _fleet_options(p: argparse.ArgumentParser) -> None:
-    _engine_options(p).add_argument("--manifest", metavar="CSV", help="recordings listed in a CSV: columns input, and optionally "
-                                                     "name, robot, config, set (several values separated by ;)")
+    _engine_options(p).add_argument("--manifest", metavar="CSV",
+                                    help="recordings listed in a CSV: columns input, and optionally name, robot, "
+                                         "config, set (several values separated by ;)")
 
 
 def _robot_option(p: argparse.ArgumentParser, required: bool = False, extra: str = "") -> None:
