@@ -1,11 +1,12 @@
 """The `torchsoil` command: one subcommand per job, each a thin layer over one library call.
 
     torchsoil estimate [INPUT] [--robot NAME|PATH] [--out DIR] [--config YAML] [--set KEY=VALUE]
+    torchsoil estimate INPUT... | --manifest CSV [--engine local|ray] [--workers N] [--out DIR]
     torchsoil process-bag BAG --robot NAME|PATH --out DIR
-    torchsoil diagnose INPUT --out DIR
+    torchsoil diagnose INPUT... | --manifest CSV --out DIR [--engine local|ray]
     (each command that takes a bag also: --front-topic, --back-topic, --imu-topic, --extrinsic)
     torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]] [--convention C] [--no-imu]
-    torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR]
+    torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR] [--engine local|ray]
     torchsoil rollout --out DIR
     torchsoil bench [--only sim estimator] [--quick]
     torchsoil settings [SECTION ...]          # the effective settings as YAML
@@ -50,12 +51,35 @@ def _bag_options(p: argparse.ArgumentParser) -> None:
                         "the recording's and the robot YAML's (repeatable)")
 
 
-def _job_options(p: argparse.ArgumentParser, threads: int | None = 1) -> None:
-    p.add_argument("--threads", type=int, default=threads,
-                   help=f"torch intra-op threads for the run (default {threads})")
+def _job_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch intra-op threads for the run (default 1; with many recordings: per recording, "
+                        "= --set fleet.cpus_per_task=N)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the outputs of another run in --out (otherwise refused)")
     p.add_argument("--no-tensorboard", action="store_true")
+
+
+def _engine_options(p: argparse.ArgumentParser):
+    """Where the tasks of many recordings (or study drives) run (torchsoil.fleet); returns the
+    option group."""
+    g = p.add_argument_group("many recordings", "one task per recording, each writing OUT/<name>/ as a single run "
+                                                "would, and OUT/fleet.csv (README, Many recordings)")
+    g.add_argument("--engine", choices=["local", "ray"], default=None,
+                   help="local: a process pool on this machine (default); ray: a Ray cluster (--ray-address) or a "
+                        "local Ray instance (pip install 'torchsoil[fleet]')")
+    g.add_argument("--workers", type=int, metavar="N", help="tasks at once (default: as many as the cores and "
+                                                            "memory hold, fleet.cpus_per_task and "
+                                                            "fleet.memory_mb_per_task each)")
+    g.add_argument("--ray-address", metavar="ADDR", help="a running Ray cluster, e.g. ray://head:10001 or auto "
+                                                         "(default: start a local Ray instance)")
+    return g
+
+
+def _fleet_options(p: argparse.ArgumentParser) -> None:
+    _engine_options(p).add_argument("--manifest", metavar="CSV",
+                                    help="recordings listed in a CSV: columns input, and optionally name, robot, "
+                                         "config, set (several values separated by ;)")
 
 
 def _robot_option(p: argparse.ArgumentParser, required: bool = False, extra: str = "") -> None:
@@ -72,10 +96,12 @@ def parser() -> argparse.ArgumentParser:
                        description="Estimate (d_1..d_T, chi, beta) window by window. Writes OUT/params.csv, "
                                    "reference.csv, simulated.npz, summary.md, run.json, figures and TensorBoard "
                                    "events.")
-    p.add_argument("input", nargs="?", help="rosbag (ROS 2 directory or ROS 1 .bag) or terrain-pair .npz "
-                                            "(default: the bundled demo recording of a source checkout)")
+    p.add_argument("input", nargs="*", help="rosbag (ROS 2 directory or ROS 1 .bag) or terrain-pair .npz "
+                                            "(default: the bundled demo recording of a source checkout); several "
+                                            "paths, globs or CSV manifests: one task each (--engine)")
     _robot_option(p, extra=" (default: the demo's, or the pair's own wheels)")
-    p.add_argument("--out", help="output directory (default: out/<input name>)")
+    p.add_argument("--out", help="output directory (default: out/<input name>; many recordings: OUT/<name>/, "
+                                 "default out/)")
     _bag_options(p)
     p.add_argument("--grad", choices=["autograd", "fd"], help="= --set estimator.grad=...")
     p.add_argument("--merged-sinkage", action="store_true", help="ablation: one sinkage for all tracks")
@@ -84,6 +110,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--realtime", action="store_true", help="play the recording at its own pace, as on the robot, "
                                                            "printing each window's estimate and latency as it comes")
     _job_options(p)
+    _fleet_options(p)
 
     p = sub.add_parser("process-bag", help="lidar pipeline: a recording in, terrain pair and trajectory out")
     p.add_argument("bag", type=Path, help="ROS 2 bag directory or ROS 1 .bag file")
@@ -93,12 +120,14 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--no-reregister", action="store_true", help="ablation: rasterize with T_ref")
 
     p = sub.add_parser("diagnose", help="locate model mismatch, name the missing physics, show the fit improve")
-    p.add_argument("input", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("input", nargs="*", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag); "
+                                            "several paths, globs or CSV manifests: one task each (--engine)")
+    p.add_argument("--out", required=True, help="output directory (many recordings: OUT/<name>/)")
     _robot_option(p, extra=" (needed for a recording; default for a pair: its own wheels)")
     _bag_options(p)
     p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
     _job_options(p)
+    _fleet_options(p)
 
     p = sub.add_parser("record", help="write a synthetic recording (bag + truth) or only its terrain pair")
     shipped = ", ".join(sorted(f.stem for f in (Path(__file__).parent / "configs" / "scenarios").glob("*.yaml")))
@@ -155,11 +184,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
     p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
     _settings_options(p)
-    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1)")
+    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default 1; with --engine: "
+                                                             "per drive, = --set fleet.cpus_per_task=N)")
+    _engine_options(p)
 
     p = sub.add_parser("settings", help="print the effective settings as YAML (defaults + --config + --set)")
     p.add_argument("sections", nargs="*", help="only these sections (sim, estimator, pipeline, diagnosis, env, "
-                                               "synth)")
+                                               "synth, fleet)")
     _settings_options(p)
     return ap
 
@@ -169,12 +200,14 @@ def main(argv: list[str] | None = None) -> int:
     # before torch or numba start their OpenMP runtimes: threads that spin while waiting starve
     # the other pool (3-10x slower on 2 busy cores)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    from torchsoil.fleet import EngineError
     from torchsoil.provenance import OutputMismatch
     from torchsoil.settings import SettingsError
 
     try:
         return COMMANDS[args.command](args)
-    except (SettingsError, OutputMismatch, FileNotFoundError, FileExistsError, ValueError, KeyError) as e:
+    except (SettingsError, OutputMismatch, EngineError, FileNotFoundError, FileExistsError, ValueError,
+            KeyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
 
@@ -185,11 +218,14 @@ def _settings(args, extra: list[str] = ()):
     return load_settings(*args.config, overrides=[*args.set, *extra])
 
 
-def _bag_settings(args, extra: list[str] = ()):
-    """Settings with the topic options applied, and the --extrinsic poses {frame or topic:
-    [x, y, z, roll, pitch, yaw]} (m, rad), of a command with `_bag_options`."""
-    topics = [f"pipeline.read.{k}_topic={v}" for k in ("front", "back", "imu")
-              if (v := getattr(args, f"{k}_topic")) is not None]
+def _topics(args) -> list[str]:
+    """The topic options of a command with `_bag_options`, as settings overrides."""
+    return [f"pipeline.read.{k}_topic={v}" for k in ("front", "back", "imu")
+            if (v := getattr(args, f"{k}_topic")) is not None]
+
+
+def _extrinsics(args) -> dict[str, list[float]]:
+    """The --extrinsic poses {frame or topic: [x, y, z, roll, pitch, yaw]} (m, rad)."""
     given = {}
     for name, *values in args.extrinsic:
         try:
@@ -197,7 +233,44 @@ def _bag_settings(args, extra: list[str] = ()):
         except ValueError:
             raise ValueError(f"--extrinsic {name}: X Y Z ROLL PITCH YAW must be numbers (m, rad), got "
                              f"{' '.join(values)}") from None
-    return _settings(args, [*topics, *extra]), given
+    return given
+
+
+def _bag_settings(args, extra: list[str] = ()):
+    """Settings with the topic options applied, and the --extrinsic poses {frame or topic:
+    [x, y, z, roll, pitch, yaw]} (m, rad), of a command with `_bag_options`."""
+    given = _extrinsics(args)
+    return _settings(args, [*_topics(args), *extra]), given
+
+
+def _many(args) -> bool:
+    """Whether a command with `_fleet_options` runs many recordings: several inputs, a glob or
+    a manifest, or an engine option."""
+    inputs = args.input or []
+    return (len(inputs) > 1 or any(c in i for i in inputs for c in "*?[") or any(i.endswith(".csv") for i in inputs)
+            or any(getattr(args, k) is not None for k in ("manifest", "engine", "workers", "ray_address")))
+
+
+def _run_many(job: str, args, extra: list[str], out: str) -> int:
+    """`job` on every recording of args.input and --manifest (torchsoil.fleet.run_fleet);
+    exit status 1 when some failed (their errors are in OUT/fleet.csv)."""
+    from torchsoil.fleet import recordings, run_fleet
+
+    if getattr(args, "resume", False) or getattr(args, "realtime", False):
+        raise ValueError("--resume and --realtime take one recording (many recordings: a rerun of the same command "
+                         "skips the finished ones and runs the others again)")
+    recs = recordings(args.input, args.manifest)
+    if not recs:
+        raise FileNotFoundError("no recordings given (paths, globs, or --manifest CSV)")
+    threads = [f"fleet.cpus_per_task={args.threads}"] if args.threads is not None else []
+    rows = run_fleet(job, recs, out, configs=args.config, overrides=[*args.set, *_topics(args), *extra, *threads],
+                     robot=args.robot, extrinsics=_extrinsics(args), engine=args.engine or "local",
+                     workers=args.workers, address=args.ray_address, tensorboard=not args.no_tensorboard,
+                     overwrite=args.overwrite)
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "skipped", "error")}
+    print(f"wrote {Path(out) / 'fleet.csv'}: {counts['ok']} done, {counts['skipped']} already complete (skipped), "
+          f"{counts['error']} failed")
+    return 1 if counts["error"] else 0
 
 
 def _robot(name_or_path):
@@ -228,10 +301,12 @@ def cmd_estimate(args) -> int:
     extra = [f"estimator.grad={args.grad}"] if args.grad else []
     extra += ["estimator.merged_sinkage=true"] if args.merged_sinkage else []
     extra += [f"sim.fixed_iter={args.capped}"] if args.capped else []
+    if _many(args):
+        return _run_many("estimate", args, extra, args.out or "out")
     settings, given = _bag_settings(args, extra)
     robot_arg = args.robot
     if args.input:
-        source = Path(args.input)
+        source = Path(args.input[0])
     else:
         demo = find_demo()
         if demo is None:
@@ -242,7 +317,7 @@ def cmd_estimate(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     out = Path(args.out) if args.out else Path("out") / (source.stem if args.input else "demo")
     estimate(source, out, settings, robot=_robot(robot_arg), resume=args.resume, overwrite=args.overwrite,
-             tensorboard=not args.no_tensorboard, robot_yaml=_robot_yaml(robot_arg), threads=args.threads,
+             tensorboard=not args.no_tensorboard, robot_yaml=_robot_yaml(robot_arg), threads=args.threads or 1,
              extrinsics=given, realtime=args.realtime)
     print(f"wrote {out}: params.csv, summary.md, fig4_parameters.png, fig6_difference_maps.png, tensorboard/")
     print((out / "summary.md").read_text())
@@ -269,11 +344,17 @@ def cmd_process_bag(args) -> int:
 def cmd_diagnose(args) -> int:
     from torchsoil.diagnosis.job import diagnose_input
 
-    settings, given = _bag_settings(args, [f"diagnosis.n_fit={args.n_fit}"] if args.n_fit is not None else [])
-    if not Path(args.input).exists():
-        raise FileNotFoundError(f"input not found: {args.input}")
-    summary = diagnose_input(args.input, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
-                             overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads,
+    extra = [f"diagnosis.n_fit={args.n_fit}"] if args.n_fit is not None else []
+    if _many(args):
+        return _run_many("diagnose", args, extra, args.out)
+    if not args.input:
+        raise FileNotFoundError("no input given: a recording or terrain pair, several, or --manifest CSV")
+    settings, given = _bag_settings(args, extra)
+    source = args.input[0]
+    if not Path(source).exists():
+        raise FileNotFoundError(f"input not found: {source}")
+    summary = diagnose_input(source, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
+                             overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads or 1,
                              extrinsics=given)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
@@ -367,20 +448,26 @@ def cmd_ablation(args) -> int:
 
 
 def cmd_study(args) -> int:
+    from contextlib import nullcontext
+
     from torchsoil.diagnosis.study import run_foreign, run_study
     from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases
+    from torchsoil.fleet import make_engine
     from torchsoil.runner import torch_threads
 
-    settings = _settings(args)
-    with torch_threads(args.threads):
+    on_engine = any(getattr(args, k) is not None for k in ("engine", "workers", "ray_address"))
+    settings = _settings(args, [f"fleet.cpus_per_task={args.threads}"] if on_engine and args.threads else [])
+    engine = make_engine(args.engine or "local", args.workers, args.ray_address, settings.fleet) if on_engine \
+        else nullcontext()
+    with torch_threads(args.threads or 1), engine as eng:
         if args.foreign is not None:
-            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings))
+            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings, engine=eng))
         elif args.randomized is not None:
             cases = randomized_cases(args.randomized, args.null, args.seed)
-            print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings))
+            print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings, engine=eng))
         else:
             cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
-            print(run_study(cases, Path(args.out or "out/diagnosis_study"), settings))
+            print(run_study(cases, Path(args.out or "out/diagnosis_study"), settings, engine=eng))
     return 0
 
 

@@ -4,7 +4,7 @@
     est = Estimator(pair, settings.estimator, settings.sim)
 
 One frozen pydantic model per stage, combined in `Settings` (sections sim, estimator,
-pipeline, diagnosis, env, synth). Defaults live here and nowhere else; YAML files and
+pipeline, diagnosis, env, synth, fleet). Defaults live here and nowhere else; YAML files and
 `section.key=value` overrides only change them. Unknown keys and wrong types are refused
 with the key named (`SettingsError`). Each stage receives its own section, never the tree.
 `torchsoil settings` prints the effective tree as YAML, with units as comments.
@@ -551,6 +551,20 @@ class SynthConfig(Section):
         return self.replace(**REALISTIC)
 
 
+# ---------------------------------------------------------------------------- many recordings
+class FleetConfig(Section):
+    """What each task of a many-recordings run (torchsoil.fleet) asks of a machine: one task per
+    recording (or per study drive). A Ray cluster schedules tasks by these requests; the local
+    engine starts at most as many workers as the cores and available memory hold."""
+
+    cpus_per_task: int = Field(1, ge=1, description="CPU cores per task, also its torch and numba threads, cores")
+    memory_mb_per_task: int = Field(2000, ge=0, description="memory reserved per task (Ray's `memory` resource; "
+                                                            "local workers <= available memory / this), MiB; "
+                                                            "0: no reservation")
+    retries: int = Field(0, ge=0, description="times a task whose worker process died is started again (an "
+                                              "error raised by the task is not retried; rerun the command), -")
+
+
 # ---------------------------------------------------------------------------- the tree
 class Settings(Section):
     """All of torchsoil's settings, one section per part."""
@@ -561,6 +575,8 @@ class Settings(Section):
     diagnosis: DiagnosisConfig = DiagnosisConfig()
     env: EnvConfig = EnvConfig()
     synth: SynthConfig = SynthConfig()
+    fleet: FleetConfig = Field(FleetConfig(), description="per task of a many-recordings run: cpus_per_task "
+                                                          "cores, memory_mb_per_task MiB, retries")
 
     def to_yaml(self, sections: Iterable[str] | None = None) -> str:
         """The settings as YAML, each leaf with its description (unit) as a comment."""

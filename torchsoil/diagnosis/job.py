@@ -20,13 +20,15 @@ OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covar
 def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
                    robot: Robot | None = None, progress: bool = True, tensorboard: bool = True,
                    overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None,
-                   extrinsics: dict[str, list[float]] | None = None) -> dict:
+                   extrinsics: dict[str, list[float]] | None = None, rows: list | None = None) -> dict:
     """Diagnose a terrain pair (.npz) or a recording (bag, through the lidar pipeline).
 
     Writes out_dir/run.json (what made the folder; another run's folder is refused unless
     `overwrite`), diagnosis.json, report.md, figures and TensorBoard events; returns the
     diagnosis.json dict. robot_yaml (`lidars:`) and extrinsics ({frame or topic: [x, y, z,
-    roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's."""
+    roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's. rows: a list that
+    receives the base model's window rows (params.csv rows: s [m], d1..dT [m], chi, beta [deg],
+    costs [m], flags), for summaries of many diagnoses (torchsoil.fleet)."""
     settings = settings or Settings()
     out = Path(out_dir)
     pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
@@ -38,5 +40,7 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
                                       disable=not progress) as bar:
         diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar)
         bar.update(bar.total - bar.n)
+    if rows is not None:
+        rows.extend(diag.base.rows)
     write_all(diag, pair, out, Path(input_path).name, tb=tensorboard)
     return diag.summary

@@ -7,15 +7,20 @@
   with the estimator's model error against the noise-free surfaces.
 
 Both append one JSON line per drive to OUT/cases.jsonl (drives already there are skipped:
-an interrupted study resumes) and write OUT/confusion.md.
+an interrupted study resumes) and write OUT/confusion.md. With an `engine`
+(torchsoil.fleet.make_engine: a local process pool or a Ray cluster) each drive is one task,
+its line appended as it finishes; a drive whose task fails is reported and left for the next
+run. The table lists the drives in the order of the cases, however they finished.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import sys
 import time
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -47,31 +52,57 @@ def _record(name: str, summary: dict, want_verdict: str, want_id: str | None, se
             "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds, **extra}
 
 
-def run_study(cases, out: Path, settings: Settings | None = None) -> str:
-    """Diagnose every (name, scenario, seed, verdict, id) case; append results to
-    out/cases.jsonl (cases already there are skipped) and return the confusion table (markdown).
-    Each record also holds the world's effect law, the tyre and measurement draws and the
-    drive's length [m]."""
+def study_case(case: tuple, settings: Settings) -> dict:
+    """The record of one (name, scenario, seed, verdict, id) case: its drive made and
+    diagnosed, with the world's effect law, the tyre and measurement draws and the drive's
+    length [m]."""
+    name, scn, seed, want_verdict, want_id = case
+    t0 = time.perf_counter()
+    data = make_terrain_pair(scn, seed=seed)
+    pair = TerrainPair.from_mapping(data)
+    s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
+    xy = pair.poses[:, 1:3]
+    return _record(name, s, want_verdict, want_id, time.perf_counter() - t0, seed=seed,
+                   law=scn.get("effects", {}) if isinstance(scn, dict) else {},
+                   nuisances=json.loads(str(data["nuisances"])),
+                   length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
+
+
+def _each(fn, calls: list[tuple], engine, desc: str) -> Iterator[dict]:
+    """fn(*call) for every call, in order in this process (engine None) or as tasks of
+    `engine` as they finish; a failed task is printed and skipped."""
     from tqdm import tqdm
 
+    if engine is None:
+        for c in tqdm(calls, desc=desc, unit="case"):
+            yield fn(*c)
+        return
+    for k, (i, o) in enumerate(engine.imap(fn, calls)):
+        if o.ok:
+            print(f"[{k + 1}/{len(calls)}] {o.value['case']}: {o.seconds:.0f} s", flush=True)
+            yield o.value
+        else:
+            print(f"[{k + 1}/{len(calls)}] case {i} failed (run again to retry): {o.error}", file=sys.stderr,
+                  flush=True)
+
+
+def _in_order(done: dict[str, dict], names: list[str]) -> list[dict]:
+    """The records of `names` in that order, then any others the results file holds."""
+    return [done[n] for n in names if n in done] + [r for n, r in done.items() if n not in set(names)]
+
+
+def run_study(cases, out: Path, settings: Settings | None = None, engine=None) -> str:
+    """Diagnose every (name, scenario, seed, verdict, id) case (`study_case`), in this process
+    or as tasks of `engine` (torchsoil.fleet); append results to out/cases.jsonl (cases already
+    there are skipped) and return the confusion table (markdown)."""
     out = Path(out)
     done = _resume(out)
     settings = settings or Settings()
-    for name, scn, seed, want_verdict, want_id in tqdm(cases, desc="study", unit="case"):
-        if name in done:
-            continue
-        t0 = time.perf_counter()
-        data = make_terrain_pair(scn, seed=seed)
-        pair = TerrainPair.from_mapping(data)
-        s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
-        xy = pair.poses[:, 1:3]
-        rec = _record(name, s, want_verdict, want_id, time.perf_counter() - t0, seed=seed,
-                      law=scn.get("effects", {}) if isinstance(scn, dict) else {},
-                      nuisances=json.loads(str(data["nuisances"])),
-                      length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
-        done[name] = rec
+    calls = [(tuple(c), settings) for c in cases if c[0] not in done]
+    for rec in _each(study_case, calls, engine, "study"):
+        done[rec["case"]] = rec
         _append(out, rec)
-    table = confusion(list(done.values()))
+    table = confusion(_in_order(done, [c[0] for c in cases]))
     (out / "confusion.md").write_text(table)
     return table
 
@@ -199,32 +230,37 @@ def truth_coefficients(truth: dict) -> dict[str, float]:
     return {}
 
 
-def run_foreign(directory: Path, out: Path, settings: Settings | None = None, names: list[str] | None = None) -> str:
-    """Diagnose every foreign pair in `directory` and measure the estimator's model error:
-    the mean |simulated H_b - noise-free H_b| [mm] where the ground changed (CHANGED), fitted
-    to the pair and fitted to the noise-free surfaces themselves; plus prediction cost over
-    noise floor and the fitted coefficients against the truth's. Appends to out/cases.jsonl
-    (drives already there are skipped), writes out/confusion.md and returns it."""
-    from tqdm import tqdm
+def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
+    """The record of one foreign pair: its diagnosis, the truth's coefficients and, with
+    noise-free surfaces, the model error fitted to the pair and to the surfaces [mm]."""
+    t0 = time.perf_counter()
+    pair, clean, truth = load_foreign(directory, name)
+    exp = truth["expected"]
+    s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
+    extra = {"truth_parameters": truth_coefficients(truth)}
+    if clean is not None:
+        extra["model_error_mm"] = 1e3 * model_error(simulated_back(pair, settings), clean)
+        extra["model_error_clean_mm"] = 1e3 * model_error(simulated_back(clean, settings), clean)
+    return _record(name, s, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0, **extra)
 
+
+def run_foreign(directory: Path, out: Path, settings: Settings | None = None, names: list[str] | None = None,
+                engine=None) -> str:
+    """Diagnose every foreign pair in `directory` (`foreign_case`, in this process or as tasks
+    of `engine`) and measure the estimator's model error: the mean |simulated H_b - noise-free
+    H_b| [mm] where the ground changed (CHANGED), fitted to the pair and fitted to the
+    noise-free surfaces themselves; plus prediction cost over noise floor and the fitted
+    coefficients against the truth's. Appends to out/cases.jsonl (drives already there are
+    skipped), writes out/confusion.md and returns it."""
     out = Path(out)
     done = _resume(out)
     settings = settings or Settings()
-    for name in tqdm(names or foreign_names(directory), desc="foreign", unit="drive"):
-        if name in done:
-            continue
-        t0 = time.perf_counter()
-        pair, clean, truth = load_foreign(directory, name)
-        exp = truth["expected"]
-        s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
-        extra = {"truth_parameters": truth_coefficients(truth)}
-        if clean is not None:
-            extra["model_error_mm"] = 1e3 * model_error(simulated_back(pair, settings), clean)
-            extra["model_error_clean_mm"] = 1e3 * model_error(simulated_back(clean, settings), clean)
-        rec = _record(name, s, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0, **extra)
-        done[name] = rec
+    names = names or foreign_names(directory)
+    calls = [(Path(directory), name, settings) for name in names if name not in done]
+    for rec in _each(foreign_case, calls, engine, "foreign"):
+        done[rec["case"]] = rec
         _append(out, rec)
-    records = list(done.values())
+    records = _in_order(done, names)
     table = confusion(records) + "\n" + model_error_table(records)
     (out / "confusion.md").write_text(table)
     return table

@@ -1,0 +1,704 @@
+"""Many recordings at once: a season of field logs estimated or diagnosed on a process pool or a
+Ray cluster.
+
+    recs = recordings(["season/*.bag", "extra.npz"], manifest="season.csv")
+    rows = run_fleet("estimate", recs, "out/season", robot="paper_platform", engine="ray")
+
+Each recording is one task that calls the function a single run calls (`runner.estimate`,
+`diagnosis.job.diagnose_input`), so OUT/<name>/ holds exactly what `torchsoil estimate INPUT
+--out OUT/<name>` writes; the task's printed output goes to OUT/logs/<name>.log. OUT/fleet.csv
+gets one row per recording as its task finishes (`FleetLog`). A task that fails is recorded
+with its error and the others go on; a rerun skips the recordings whose outputs are complete
+and were made from the same input, robot and settings (`complete`) and runs the rest.
+
+Engines (`make_engine`): `local`, single-worker process pools on this machine (spawned, so a
+killed worker takes only its own task down), or `ray`, Ray tasks on a running cluster or a
+local Ray instance, each asking for the `fleet` settings' CPUs and memory. The same engines run
+the diagnosis studies (`diagnosis.study.run_study(..., engine=...)`). Ray is optional
+(`pip install torchsoil[fleet]`) and imported only by the Ray engine.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import math
+import os
+import socket
+import sys
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+ENGINES = ("local", "ray")
+SUMMARY = "fleet.csv"
+LOGS = "logs"
+# the settings sections each job records in run.json (runner.estimate, diagnosis.job.diagnose_input)
+SECTIONS = {"estimate": ("sim", "estimator"), "diagnose": ("sim", "estimator", "diagnosis")}
+# the output each job writes last: present and newer than run.json = the run completed
+LAST = {"estimate": "summary.md", "diagnose": "report.md"}
+MANIFEST_COLUMNS = ("input", "name", "robot", "config", "set")
+GLOB_CHARS = "*?["
+
+
+class EngineError(RuntimeError):
+    """An engine that cannot run here (Ray not installed, no node large enough for a task)."""
+
+
+# ---------------------------------------------------------------------------- inputs
+@dataclass(frozen=True)
+class Recording:
+    """One input of a many-recordings run: its path (bag or terrain pair), the name of its
+    output folder, and its own robot (name or YAML path), settings YAMLs and `section.key=value`
+    overrides, applied after the command's."""
+
+    input: str
+    name: str
+    robot: str | None = None
+    config: tuple[str, ...] = ()
+    overrides: tuple[str, ...] = ()
+
+
+def _stem(path: Path) -> str:
+    return path.name if path.is_dir() else path.stem
+
+
+def _expand(item: str | Path) -> list[Path]:
+    """A path, or the sorted matches of a glob (`**` recursive); a glob matching nothing is an error."""
+    text = str(item)
+    if not any(c in text for c in GLOB_CHARS):
+        return [Path(text)]
+    found = sorted(Path(p) for p in glob.glob(text, recursive=True))
+    if not found:
+        raise FileNotFoundError(f"no recording matches {text}")
+    return found
+
+
+def _split(cell: str | None) -> list[str]:
+    return [part.strip() for part in (cell or "").split(";") if part.strip()]
+
+
+def _beside(value: str, base: Path) -> str:
+    p = Path(value).expanduser()
+    return str(p if p.is_absolute() else base / p)
+
+
+def read_manifest(path: str | Path) -> list[Recording]:
+    """The recordings of a CSV manifest: a header naming some of `input` (required), `name`,
+    `robot`, `config`, `set`; one row per recording (an input may be a glob, then without a
+    name). `config` and `set` hold several values separated by `;`. Relative paths (input,
+    config, a robot ending in .yaml/.yml) are relative to the manifest's folder; a robot
+    without such a suffix is a shipped name. Lines starting with `#` are skipped."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"manifest not found: {path}")
+    base = path.parent
+    with path.open(newline="") as f:
+        reader = csv.DictReader(line for line in f if line.strip() and not line.lstrip().startswith("#"))
+        columns = [c.strip() for c in reader.fieldnames or []]
+        unknown = sorted(set(columns) - set(MANIFEST_COLUMNS))
+        if "input" not in columns or unknown:
+            raise ValueError(f"{path}: a manifest's header names `input` and any of name, robot, config, set"
+                             + (f" (unknown: {', '.join(unknown)})" if unknown else " (no `input` column)"))
+        rows = [{k.strip(): (v or "").strip() for k, v in row.items() if k is not None} for row in reader]
+    out = []
+    for n, row in enumerate(rows, start=2):
+        robot = row.get("robot") or None
+        if robot and Path(robot).suffix in (".yaml", ".yml"):
+            robot = _beside(robot, base)
+        extra = {"robot": robot, "config": tuple(_beside(c, base) for c in _split(row.get("config"))),
+                 "overrides": tuple(_split(row.get("set")))}
+        paths = _expand(_beside(row["input"], base))
+        if row.get("name") and len(paths) > 1:
+            raise ValueError(f"{path} line {n}: a name for a glob of {len(paths)} recordings")
+        out += [Recording(str(p), row.get("name") or _stem(p), **extra) for p in paths]
+    return out
+
+
+def recordings(inputs: Iterable[str | Path] = (), manifest: str | Path | None = None) -> list[Recording]:
+    """The recordings of paths, globs and CSV manifests (`read_manifest`; an input ending in
+    .csv is one too), each with a unique output name: the input's stem, prefixed by its
+    folder's name where two stems collide, or the manifest's `name`."""
+    found: list[tuple[Recording, bool]] = []          # (recording, name derived from the path)
+    for item in [*inputs, *([manifest] if manifest else [])]:
+        if str(item).endswith(".csv"):
+            found += [(r, False) for r in read_manifest(item)]
+        else:
+            found += [(Recording(str(p), _stem(p)), True) for p in _expand(item)]
+    return _unique(found)
+
+
+def _unique(found: list[tuple[Recording, bool]]) -> list[Recording]:
+    out = list(dict.fromkeys(found))                   # the same recording twice: once
+    names = [r.name for r, _ in out]
+    for i, (rec, derived) in enumerate(out):
+        if derived and names.count(rec.name) > 1:
+            parent = Path(rec.input).resolve().parent.name
+            out[i] = (Recording(rec.input, f"{parent}_{rec.name}", rec.robot, rec.config, rec.overrides), derived)
+    names = [r.name for r, _ in out]
+    clash = sorted({n for n in names if names.count(n) > 1})
+    if clash:
+        raise ValueError(f"two recordings would write to the same folder ({', '.join(clash)}): give them "
+                         "names in a manifest (`name` column)")
+    bad = [n for n in names if n in ("", ".", "..", LOGS) or "/" in n or "\\" in n]
+    if bad:
+        raise ValueError(f"recording name(s) {bad} cannot be an output folder name")
+    return [r for r, _ in out]
+
+
+# ---------------------------------------------------------------------------- tasks
+@dataclass
+class Task:
+    """One recording's job: `job` (estimate or diagnose) on `input` into `out`, with its own
+    settings (a `settings.Settings`), robot (name or YAML path) and extrinsics ({frame or topic:
+    [x, y, z, roll, pitch, yaw]}, m, rad); its printed output goes to `log`."""
+
+    job: str
+    name: str
+    input: str
+    out: str
+    log: str
+    settings: Any
+    robot: str | None = None
+    extrinsics: dict = field(default_factory=dict)
+    tensorboard: bool = True
+    overwrite: bool = False
+
+
+def expected_record(task: Task) -> dict:
+    """The run.json a single run of this task writes (input identity, robot, settings used)."""
+    from torchsoil.robot import load_robot, robot_path
+    from torchsoil.runner import pipeline_settings, run_record
+
+    robot = load_robot(task.robot) if task.robot else None
+    pipeline = pipeline_settings(task.settings, robot_path(task.robot) if task.robot else None, task.extrinsics)
+    record = run_record(task.job, task.input, task.settings, pipeline, robot, SECTIONS[task.job])
+    return json.loads(json.dumps(record))
+
+
+def finished(job: str, out: Path) -> bool:
+    """True when `out` holds a run of `job` that finished: its last output (LAST) was written
+    after its run.json (whatever input and settings made it)."""
+    meta, last = Path(out) / "run.json", Path(out) / LAST[job]
+    return meta.is_file() and last.is_file() and last.stat().st_mtime_ns >= meta.stat().st_mtime_ns
+
+
+def complete(task: Task) -> bool:
+    """True when task.out holds a finished run of this very task: its run.json names the same
+    job, input (content key), robot and settings, and the job's last output (LAST) was written
+    after it (an interrupted or failed run leaves it missing or older)."""
+    from torchsoil import provenance
+
+    if not finished(task.job, Path(task.out)):
+        return False
+    try:
+        old = json.loads((Path(task.out) / provenance.RUN_FILE).read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return not provenance.differences(old, expected_record(task))
+
+
+def run_task(task: Task) -> dict:
+    """Run one task (in a worker): the single-run function with the task's arguments, its
+    printed output (and a traceback) in task.log; returns `summarize` of its outputs."""
+    from torchsoil.robot import load_robot, robot_path
+
+    Path(task.log).parent.mkdir(parents=True, exist_ok=True)
+    threads = task.settings.fleet.cpus_per_task
+    rows: list | None = None
+    with open(task.log, "w") as log, redirect_stdout(log), redirect_stderr(log):
+        try:
+            robot = load_robot(task.robot) if task.robot else None
+            robot_yaml = robot_path(task.robot) if task.robot else None
+            common = {"robot": robot, "overwrite": task.overwrite, "tensorboard": task.tensorboard,
+                      "progress": False, "robot_yaml": robot_yaml, "threads": threads,
+                      "extrinsics": task.extrinsics}
+            if task.job == "estimate":
+                from torchsoil.runner import estimate
+
+                estimate(task.input, task.out, task.settings, **common)
+            else:
+                from torchsoil.diagnosis.job import diagnose_input
+
+                rows = []
+                diagnose_input(task.input, task.out, task.settings, rows=rows, **common)
+        except Exception:
+            traceback.print_exc()
+            raise
+    return summarize(task.job, Path(task.out), rows)
+
+
+# ---------------------------------------------------------------------------- summaries
+def _read_csv(path: Path) -> list[dict]:
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _num(v) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def _nanmean(values) -> float:
+    vals = [x for x in (_num(v) for v in values) if math.isfinite(x)]
+    return sum(vals) / len(vals) if vals else math.nan
+
+
+def window_stats(rows: list[dict], floor: float = math.nan) -> dict:
+    """fleet.csv's window columns from params.csv rows: windows, fitted (finite residual),
+    flagged (any flag), the mean of each of d1..dT [m], chi [-] and beta [deg] over the
+    windows, and mean prediction cost / `floor` (the mean noise floor, m)."""
+    out: dict = {"windows": len(rows), "fitted": sum(math.isfinite(_num(r.get("residual"))) for r in rows),
+                 "flagged": sum(bool(r.get("flags")) for r in rows)}
+    k = 1
+    while rows and f"d{k}" in rows[0]:
+        out[f"d{k}"] = _nanmean(r[f"d{k}"] for r in rows)
+        k += 1
+    for name in ("chi", "beta"):
+        out[name] = _nanmean(r.get(name) for r in rows)
+    if math.isfinite(floor) and floor > 0:
+        out["prediction_floor"] = _nanmean(r.get("prediction") for r in rows) / floor
+    return out
+
+
+def summarize(job: str, out: Path, rows: list[dict] | None = None) -> dict:
+    """A finished run's fleet.csv columns, from its outputs: for an estimate, params.csv and
+    reference.csv (`window_stats`); for a diagnosis, diagnosis.json (verdict, missing physics,
+    prediction cost / noise floor of the base and of the extended model) and, when given, the
+    base model's window rows."""
+    out = Path(out)
+    if job == "estimate":
+        floor = _nanmean(r.get("floor") for r in _read_csv(out / "reference.csv"))
+        return window_stats(_read_csv(out / "params.csv"), floor)
+    d = json.loads((out / "diagnosis.json").read_text())
+    floor = _num(d.get("noise_floor"))
+    res = window_stats(rows) if rows is not None else {}
+    res.update({"verdict": d["verdict"], "missing_physics": d.get("missing_physics") or ""})
+    if math.isfinite(floor) and floor > 0:
+        res["prediction_floor"] = _num(d["cost_before"]["prediction"]) / floor
+        res["prediction_floor_after"] = _num(d["cost_after"]["prediction"]) / floor
+    return res
+
+
+HEAD = ["name", "job", "status", "input", "windows", "fitted", "flagged"]
+TAIL = ["chi", "beta", "prediction_floor", "verdict", "missing_physics", "prediction_floor_after", "seconds",
+        "peak_mb", "host", "finished", "error", "out"]
+
+
+def _columns(keys: Iterable[str]) -> list[str]:
+    keys = set(keys)
+    d = sorted((k for k in keys if k[:1] == "d" and k[1:].isdigit()), key=lambda k: int(k[1:]))
+    rest = sorted(keys - set(HEAD) - set(TAIL) - set(d))
+    return [*HEAD, *d, *TAIL, *rest]
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return "" if math.isnan(v) else f"{v:.6g}"
+    return "" if v is None else str(v)
+
+
+class FleetLog:
+    """OUT/fleet.csv: one row per recording, in the order their tasks finish. Rows of an earlier
+    run are kept for recordings not run again; a row with a column the file lacks (a robot with
+    more tracks) rewrites the file with it, atomically (write, then rename)."""
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self.rows: dict[str, dict] = {}
+        if self.path.is_file():
+            self.rows = {r["name"]: r for r in _read_csv(self.path) if r.get("name")}
+        self.columns = _columns(k for r in self.rows.values() for k in r)
+
+    def previous(self, name: str) -> dict | None:
+        return self.rows.get(name)
+
+    def start(self, rows: list[dict], running: list[str]) -> None:
+        """Before the tasks: drop the old rows of `running`, set `rows` (skipped, failed to start)."""
+        for name in [*running, *(r["name"] for r in rows)]:
+            self.rows.pop(name, None)
+        for r in rows:
+            self.rows[r["name"]] = r
+        self._rewrite()
+
+    def add(self, row: dict) -> None:
+        """One finished task's row: appended (the file rewritten if it brings a new column)."""
+        self.rows.pop(row["name"], None)
+        self.rows[row["name"]] = row
+        if not set(row) <= set(self.columns):
+            self._rewrite()
+            return
+        with self.path.open("a", newline="") as f:
+            csv.DictWriter(f, self.columns).writerow({k: _fmt(row.get(k)) for k in self.columns})
+
+    def _rewrite(self) -> None:
+        self.columns = _columns(k for r in self.rows.values() for k in r)
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, self.columns)
+            w.writeheader()
+            for r in self.rows.values():
+                w.writerow({k: _fmt(r.get(k)) for k in self.columns})
+        os.replace(tmp, self.path)
+
+
+# ---------------------------------------------------------------------------- engines
+@dataclass
+class Outcome:
+    """What a task gave back: its value, or its error (one line); wall time [s], the worker's
+    peak resident memory during the task [MiB] and the worker's host name."""
+
+    value: Any = None
+    error: str = ""
+    seconds: float = math.nan
+    peak_mb: float = math.nan
+    host: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return not self.error
+
+
+def one_line(e: BaseException, limit: int = 400) -> str:
+    text = " ".join(str(e).split())
+    text = f"{type(e).__name__}: {text}" if text else type(e).__name__
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def _reset_peak() -> None:
+    try:            # Linux: clear the peak resident set size (VmHWM) of this process
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def _peak_mb() -> float:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    import resource
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2 ** 20 if sys.platform == "darwin" else peak / 1024
+
+
+@contextmanager
+def _threads(n: int):
+    """torch intra-op and numba threads = n within the block (numba: at most its pool's size).
+    In a worker that has not started torch or numba yet, their thread counts are set through
+    the environment they read when they start (OMP_NUM_THREADS, NUMBA_NUM_THREADS), so a task
+    that uses neither does not pay for importing them."""
+    torch, numba = sys.modules.get("torch"), sys.modules.get("numba")
+    if torch is None:
+        os.environ["OMP_NUM_THREADS"] = str(n)
+    if numba is None:
+        os.environ.setdefault("NUMBA_NUM_THREADS", str(n))
+    old = (torch.get_num_threads() if torch else None, numba.get_num_threads() if numba else None)
+    if torch:
+        torch.set_num_threads(n)
+    if numba:
+        numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        if torch:
+            torch.set_num_threads(old[0])
+        if numba:
+            numba.set_num_threads(old[1])
+
+
+def call(fn: Callable, args: tuple, cpus: int = 1) -> Outcome:
+    """fn(*args) in a worker with `cpus` torch and numba threads, timed, its peak memory
+    measured and any exception turned into Outcome.error."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")   # a worker process: before torch starts OpenMP
+    _reset_peak()
+    t0 = time.perf_counter()
+    try:
+        with _threads(cpus):
+            value, error = fn(*args), ""
+    except Exception as e:
+        value, error = None, one_line(e)
+    return Outcome(value, error, time.perf_counter() - t0, _peak_mb(), socket.gethostname())
+
+
+def available_mb() -> float:
+    """Memory available for new processes on this machine, MiB (inf when unknown)."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return math.inf
+
+
+def default_workers(fleet, n_tasks: int | None = None) -> int:
+    """Local workers: as many tasks as the cores (fleet.cpus_per_task each) and the available
+    memory (fleet.memory_mb_per_task each) hold, at least 1, at most n_tasks."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    n = max(1, cores // fleet.cpus_per_task)
+    if fleet.memory_mb_per_task > 0:
+        n = min(n, max(1, int(available_mb() // fleet.memory_mb_per_task)))
+    return max(1, min(n, n_tasks)) if n_tasks else n
+
+
+class LocalEngine:
+    """Tasks on this machine: `workers` single-worker process pools (spawn start method, so
+    each worker imports torch afresh and a killed worker breaks only its own pool). A worker
+    is kept for the next task; one that died is replaced, its task recorded as failed (or
+    started again, fleet.retries times)."""
+
+    name = "local"
+
+    def __init__(self, workers: int | None = None, fleet=None):
+        from torchsoil.settings import FleetConfig
+
+        self.fleet = fleet or FleetConfig()
+        self.workers = workers
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None) -> Iterator[tuple[int, Outcome]]:
+        """fn(*calls[i]) for every i, yielding (i, Outcome) as each finishes; requests: one
+        FleetConfig per call (its cpus_per_task = the call's threads), default the engine's."""
+        import multiprocessing as mp
+        from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+        from concurrent.futures.process import BrokenProcessPool
+
+        requests = requests or [self.fleet] * len(calls)
+        n = min(self.workers or default_workers(self.fleet, len(calls)), max(1, len(calls)))
+        ctx = mp.get_context("spawn")
+        todo, idle, running, tries = deque(range(len(calls))), [], {}, [0] * len(calls)
+        try:
+            while todo or running:
+                while todo and len(running) < n:
+                    pool = idle.pop() if idle else ProcessPoolExecutor(1, ctx)
+                    i = todo.popleft()
+                    tries[i] += 1
+                    running[pool.submit(call, fn, calls[i], requests[i].cpus_per_task)] = (i, pool)
+                done, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    i, pool = running.pop(fut)
+                    try:
+                        out = fut.result()
+                        idle.append(pool)
+                    except BrokenProcessPool:
+                        pool.shutdown(wait=False)
+                        if tries[i] <= requests[i].retries:
+                            todo.append(i)
+                            continue
+                        out = Outcome(error="WorkerDied: the worker process died while running this task "
+                                            "(killed, or out of memory)", host=socket.gethostname())
+                    except Exception as e:          # the call or its result could not be pickled
+                        idle.append(pool)
+                        out = Outcome(error=one_line(e))
+                    yield i, out
+        finally:
+            for _, pool in running.values():
+                for p in list(getattr(pool, "_processes", {}).values()):
+                    p.terminate()
+            for pool in [*idle, *(p for _, p in running.values())]:
+                pool.shutdown(wait=True, cancel_futures=True)
+
+
+def import_ray():
+    try:
+        import ray
+    except ImportError:
+        raise EngineError("--engine ray needs Ray: pip install 'torchsoil[fleet]' (or 'ray>=2.9'); "
+                          "--engine local needs nothing more") from None
+    return ray
+
+
+class RayEngine:
+    """Tasks on a Ray cluster (`address`, e.g. ray://head:10001 or auto) or, without one, on a
+    local Ray instance with `workers` x fleet.cpus_per_task CPUs (default: all cores), shut
+    down after. Each task asks for fleet.cpus_per_task CPUs and fleet.memory_mb_per_task MiB
+    of Ray's memory resource, so the cluster runs no more at once than its nodes hold; with
+    `workers`, at most that many are submitted at once. A task whose worker dies is retried
+    fleet.retries times by Ray, then recorded with Ray's error. In an already initialised Ray
+    session (ray.is_initialized()), that session is used and left running."""
+
+    name = "ray"
+
+    def __init__(self, address: str | None = None, workers: int | None = None, fleet=None):
+        from torchsoil.settings import FleetConfig
+
+        self.address, self.workers, self.fleet = address, workers, fleet or FleetConfig()
+        self.started = False
+
+    def __enter__(self):
+        ray = import_ray()
+        if not ray.is_initialized():
+            if self.address:
+                ray.init(address=self.address, log_to_driver=False)
+            else:
+                os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+                cpus = self.workers * self.fleet.cpus_per_task if self.workers else None
+                ray.init(num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+                         object_store_memory=256 * 2 ** 20)
+            self.started = True
+        return self
+
+    def __exit__(self, *exc):
+        if self.started:
+            import_ray().shutdown()
+            self.started = False
+        return False
+
+    def check(self, requests: list) -> None:
+        """Refuse tasks no alive node can hold (Ray would wait for such a node for ever)."""
+        ray = import_ray()
+        nodes = [n.get("Resources", {}) for n in ray.nodes() if n.get("Alive")]
+        cpus = max((r.cpus_per_task for r in requests), default=1)
+        mem = max((r.memory_mb_per_task for r in requests), default=0)
+        if not any(n.get("CPU", 0) >= cpus and n.get("memory", 0) >= mem * 2 ** 20 for n in nodes):
+            most = max(nodes, key=lambda n: n.get("CPU", 0), default={})
+            raise EngineError(f"no node of the Ray cluster offers {cpus} CPUs and {mem} MiB for one task (largest: "
+                              f"{most.get('CPU', 0):g} CPUs, {most.get('memory', 0) / 2 ** 20:.0f} MiB); lower "
+                              "fleet.cpus_per_task or fleet.memory_mb_per_task")
+
+    def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None) -> Iterator[tuple[int, Outcome]]:
+        """As LocalEngine.imap, each call a Ray task with its request's CPUs and memory."""
+        ray = import_ray()
+        requests = requests or [self.fleet] * len(calls)
+        if calls:
+            self.check(requests)
+        remote = ray.remote(call)
+        todo, refs = deque(range(len(calls))), {}
+        limit = self.workers or len(calls)
+        while todo or refs:
+            while todo and len(refs) < limit:
+                i = todo.popleft()
+                r = requests[i]
+                opts = {"num_cpus": r.cpus_per_task, "max_retries": r.retries, "retry_exceptions": False}
+                if r.memory_mb_per_task:
+                    opts["memory"] = r.memory_mb_per_task * 2 ** 20
+                refs[remote.options(**opts).remote(fn, calls[i], r.cpus_per_task)] = i
+            done, _ = ray.wait(list(refs), num_returns=1)
+            for ref in done:
+                i = refs.pop(ref)
+                try:
+                    out = ray.get(ref)
+                except ray.exceptions.RayError as e:
+                    first = (str(e).strip().splitlines() or [""])[0]
+                    out = Outcome(error=f"{type(e).__name__}: {first}"[:400])
+                yield i, out
+
+
+def make_engine(kind: str = "local", workers: int | None = None, address: str | None = None, fleet=None):
+    """An engine (a context manager with imap): `local` or `ray` (address: a running cluster)."""
+    if kind == "local":
+        if address:
+            raise ValueError("--ray-address goes with --engine ray")
+        return LocalEngine(workers, fleet)
+    if kind == "ray":
+        return RayEngine(address, workers, fleet)
+    raise ValueError(f"unknown engine {kind!r}; known: {', '.join(ENGINES)}")
+
+
+# ---------------------------------------------------------------------------- the run
+def _now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def _absolute(path: str | Path | None, existing: bool = False) -> str | None:
+    """An absolute path (workers, on this machine or a cluster's, need not share the working
+    directory); with `existing`, only a path that exists (otherwise a shipped robot's name)."""
+    if path is None or (existing and not Path(path).exists()):
+        return None if path is None else str(path)
+    return str(Path(path).expanduser().absolute())
+
+
+def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: list[str], overrides: list[str],
+         robot: str | None, extrinsics: dict | None, tensorboard: bool,
+         overwrite: bool) -> tuple[list[Task], list[dict]]:
+    """The tasks to run, and the fleet.csv rows of recordings not to run: skipped (complete,
+    `complete`; the row of the earlier run kept, its figures read again from the outputs) or
+    failed before starting (settings or robot unusable). A recording whose last task failed
+    (its fleet.csv row says error) may replace what that attempt left in its folder, even if
+    it was made from another input or settings (the recording mended, a setting corrected),
+    unless the folder holds a finished run; other folders of another run are refused unless
+    `overwrite` (provenance.claim)."""
+    from torchsoil.settings import load_settings
+
+    tasks, early = [], []
+    for rec in recs:
+        row = {"name": rec.name, "job": job, "input": rec.input, "out": str(out / rec.name)}
+        try:
+            task = Task(job, rec.name, _absolute(rec.input), _absolute(out / rec.name),
+                        _absolute(out / LOGS / f"{rec.name}.log"),
+                        load_settings(*configs, *rec.config, overrides=[*overrides, *rec.overrides]),
+                        _absolute(rec.robot or robot, existing=True), dict(extrinsics or {}), tensorboard, overwrite)
+        except Exception as e:
+            early.append({**row, "status": "error", "error": one_line(e), "finished": _now()})
+            continue
+        try:
+            done = complete(task) and summarize(job, Path(task.out))
+        except Exception:                       # e.g. a missing input: the task itself reports it
+            done = None
+        before = log.previous(rec.name) or {}
+        if done:
+            early.append({**before, **done, **row, "status": "skipped", "error": ""})
+        else:
+            # what a failed attempt left (e.g. of a recording since mended) is replaced, not refused
+            task.overwrite = overwrite or (before.get("status") == "error" and not finished(job, Path(task.out)))
+            tasks.append(task)
+    return tasks, early
+
+
+def run_fleet(job: str, recs: list[Recording], out: str | Path, *, configs: Iterable[str] = (),
+              overrides: Iterable[str] = (), robot: str | None = None, extrinsics: dict | None = None,
+              engine: str = "local", workers: int | None = None, address: str | None = None,
+              tensorboard: bool = True, overwrite: bool = False, echo: Callable[[str], Any] = print) -> list[dict]:
+    """Run `job` (estimate or diagnose) on every recording, each into OUT/<name>/, on `engine`.
+
+    Settings of a recording: defaults, `configs`, its own config YAMLs, `overrides`, its own
+    overrides. robot: the robot (name or YAML path) of recordings without their own; extrinsics
+    ({frame or topic: [x, y, z, roll, pitch, yaw]}, m, rad) apply to all. Recordings whose
+    outputs are complete and match (`complete`) are skipped; the others run, also after a
+    failure. Returns the fleet.csv rows of `recs` (status ok, skipped or error)."""
+    from torchsoil.settings import load_settings
+
+    if job not in SECTIONS:
+        raise ValueError(f"unknown job {job!r}; known: {', '.join(SECTIONS)}")
+    configs, overrides = list(configs), list(overrides)
+    base = load_settings(*configs, overrides=overrides)       # the command's own settings: refused at once
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = FleetLog(out / SUMMARY)
+    tasks, early = plan(job, recs, out, log, configs, overrides, robot, extrinsics, tensorboard, overwrite)
+    log.start(early, [t.name for t in tasks])
+    for r in early:
+        echo(f"{r['name']}: {r['status']}" + (f" ({r['error']})" if r["error"] else " (complete, same settings)"))
+    if tasks:
+        echo(f"{len(tasks)} recording(s) to run on the {engine} engine")
+        with make_engine(engine, workers, address, base.fleet) as eng:
+            for k, (i, o) in enumerate(eng.imap(run_task, [(t,) for t in tasks], [t.settings.fleet for t in tasks])):
+                t = tasks[i]
+                row = {**(o.value or {}), "name": t.name, "job": job, "input": t.input, "out": t.out,
+                       "status": "ok" if o.ok else "error", "error": o.error, "seconds": o.seconds,
+                       "peak_mb": o.peak_mb, "host": o.host, "finished": _now()}
+                log.add(row)
+                echo(f"[{k + 1}/{len(tasks)}] {t.name}: {row['status']} in {o.seconds:.1f} s, peak "
+                     f"{o.peak_mb:.0f} MiB" + (f": {o.error}" if o.error else ""))
+    return [log.rows[r.name] for r in recs]
