@@ -77,8 +77,8 @@ def test_messages_fed_one_by_one_give_the_same_rows(streamed):
     """The robot-side API: TF, PointCloud2 and Imu messages as a node's callbacks get them,
     fitted in the caller's thread, give the rows `play` got from the worker thread."""
     bag, robot, settings, _, rows, _ = streamed
-    assert settings.estimator.online.background
-    settings = load_settings(overrides=["pipeline.raster.max_range=8", "estimator.online.background=false"])
+    assert settings.estimator.online.worker == "thread"
+    settings = load_settings(overrides=["pipeline.raster.max_range=8", "estimator.online.worker=none"])
     live = LiveEstimator(robot, settings)
     r = settings.pipeline.read
     got = []
@@ -125,17 +125,14 @@ def test_an_interrupted_streamed_run_resumes_without_refitting(streamed, tmp_pat
             assert abs(float(a["d1"]) - float(b["d1"])) < 0.002
 
 
-def test_a_failed_fit_reaches_the_caller(streamed):
-    """A window fit that fails on the worker thread raises in the caller's thread (at a poll or
-    at finish), not silently."""
-    bag, robot, settings, _, _, _ = streamed
+@pytest.mark.parametrize("worker", ["thread", "none"])
+def test_a_failed_fit_reaches_the_caller(streamed, worker):
+    """A window fit that fails in the worker (here: too few untouched cells to fit the map
+    offset on) raises in the caller's thread with its own message, not silently."""
+    bag, robot, _, _, _, _ = streamed
+    settings = load_settings(overrides=[f"estimator.online.worker={worker}", "estimator.nuisance.min_cells=10000000"])
     live = LiveEstimator(robot, settings)
-
-    def broken(*args):
-        raise RuntimeError("fit failed")
-
-    live._fit = broken
-    with pytest.raises(RuntimeError, match="fit failed"):
+    with pytest.raises(ValueError, match="untouched cells"):
         for _ in play(bag, live):
             pass
     live.close()

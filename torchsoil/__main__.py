@@ -2,4 +2,5 @@
 
 from torchsoil.cli import main
 
-raise SystemExit(main())
+if __name__ == "__main__":   # a worker process (spawned) imports this module again
+    raise SystemExit(main())

@@ -11,8 +11,11 @@ estimator in one object, fed message by message (what a ROS 2 node's callbacks c
 
 A window is fitted as soon as the back lidar has rasterized its ground and the next
 window's (for the prediction cost) `estimator.online.lag` m behind the rear wheels' margin.
-It is cut out of the tiles with `estimator.online.context` m of ground before it and fitted
-by `Estimator` on that stretch (map offset included), warm-started from the window before.
+Windows are taken `estimator.online.batch` at a time: cut out of the tiles with
+`estimator.online.context` m of ground before them and fitted by `Estimator` on that stretch
+(map offset included), each warm-started from the window before. The fitting runs on a worker
+thread (`WindowFitter`), so the pipeline takes the next sweeps meanwhile (on two cores, both
+busy); the rows are the same as when fitted in the caller's thread (`worker: none`).
 """
 
 from __future__ import annotations
@@ -58,8 +61,6 @@ class LiveEstimator:
         self.rec = rec if rec is not None else Recording([], [])
         self.pipeline = OnlinePipeline(robot, settings.pipeline, self.rec, spill_dir)
         self.next = 0                      # next window index
-        self.theta: torch.Tensor | None = None
-        self.last_row: dict | None = None  # warm start of a resumed run (a params.csv row)
         self.polled = -np.inf              # pipeline.ground_stamp at the last poll
         self.ready_at: dict[int, float] = {}
         self.edges: dict[str, tuple] = {}
@@ -70,8 +71,10 @@ class LiveEstimator:
         self.behind = abs(float(robot.wheels[:, 0].min())) + robot.wheel_width / 2 \
             + settings.pipeline.raster.wheel_margin + e.online.lag
         self.reach = np.abs(robot.wheels[:, 0]).max() + robot.wheel_width
-        self.pending: list = []            # jobs queued or running, in window order
-        self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit") if e.online.background else None
+        self.last_row: dict | None = None  # warm start of a resumed run (a params.csv row)
+        self.fitter = WindowFitter(settings)
+        self.pending: list[tuple] = []     # (future, pair) of the stretches queued or being fitted, in order
+        self.worker: ThreadPoolExecutor | None = None   # with estimator.online.worker=thread
 
     # ---------------------------------------------------------------- input
     def add_message(self, topic: str, msg, msgtype: str = "sensor_msgs/msg/PointCloud2") -> None:
@@ -104,27 +107,32 @@ class LiveEstimator:
     def poll(self, final: bool = False) -> list[LiveWindow]:
         """Windows fitted since the last call, in order. Every window whose ground is now complete
         (with `final`: all that are left) is cut out and queued for fitting; with
-        `estimator.online.background` the fitting runs on a worker thread while the caller feeds
+        `estimator.online.worker` = thread (the default) the fitting runs on a worker thread while the caller feeds
         the next sweeps, and its windows come out of a later call (`finish` waits for them all)."""
         job = self._job(final)
         if job is not None:
-            if self.worker is None:
-                self.pending.append(Future())
-                self.pending[-1].set_result(self._fit(*job))
+            if self.settings.estimator.online.worker == "none":
+                done = Future()
+                done.set_result(self.fitter(*job))
+                self.pending.append((done, job[0]))
             else:
                 if len(self.pending) >= self.settings.estimator.online.max_pending:
-                    wait(self.pending[:1])          # bounded queue: the oldest job first (taken below)
-                self.pending.append(self.worker.submit(self._fit, *job))
+                    wait([self.pending[0][0]])      # bounded queue: the oldest stretch first (taken below)
+                if self.worker is None:
+                    self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit")
+                self.pending.append((self.worker.submit(self.fitter, *job), job[0]))
         out = []
-        while self.pending and (final or self.pending[0].done()):
-            out += self.pending.pop(0).result()   # a failed fit raises here, in the caller's thread
+        while self.pending and (final or self.pending[0][0].done()):
+            future, pair = self.pending.pop(0)
+            out += [w._replace(pair=pair) for w in future.result()]   # a failed fit raises here
         now = time.perf_counter()
         return [w._replace(done=now) for w in out]
 
     def _job(self, final: bool) -> tuple | None:
-        """(pair, arc0, indices, ready) of the windows whose ground became complete: the stretch
-        cut out of the tiles, its first pose's arc length along the drive, the windows' indices
-        along the drive, and when each became ready (wall clock); None when there are none."""
+        """The WindowFitter arguments of the windows whose ground became complete (the stretch cut
+        out of the tiles, its first pose's arc length along the drive, the indices along the drive
+        of its windows, the first and last to fit, when each became ready, the warm start of a
+        resumed run); None when there are none."""
         pipe, e = self.pipeline, self.settings.estimator
         if pipe.L is None or pipe.mapper is None or (not final and pipe.ground_stamp == self.polled):
             return None   # no new ground since the last call: nothing can have become ready
@@ -160,26 +168,7 @@ class LiveEstimator:
         if not take:
             return None
         self.next = max(self.next, take[-1] + 1)
-        return pair, arc0, index, take[0], take[-1], {k: self.ready_at.pop(k, now) for k in take}
-
-    def _fit(self, pair, arc0: float, index: list[int], first: int, last: int, ready: dict) -> list[LiveWindow]:
-        """Fit windows `first`..`last` (indices along the drive) on the stretch `pair`, each
-        warm-started from the one before (jobs run one at a time, in order)."""
-        e = self.settings.estimator
-        est = Estimator(pair, e, self.settings.sim, arc0=arc0)
-        if self.theta is None and self.last_row is not None:
-            self.theta = est.free_from_row(self.last_row)
-        out = []
-        for j, o in enumerate(est.run(start=index.index(first), theta=self.theta, stop=index.index(last) + 1),
-                              start=index.index(first)):
-            if o.fit is not None:
-                self.theta = o.fit.theta
-            dist = None
-            if o.data is not None:
-                i0, i1, j0, j1 = o.data.crop
-                dist = np.abs(est.index.s[i0:i1, j0:j1] - o.data.spec.centre)
-            out.append(LiveWindow(index[j], o, pair, ready[index[j]], time.perf_counter(), dist))
-        return out
+        return pair, arc0, index, take[0], take[-1], {k: self.ready_at.pop(k, now) for k in take}, self.last_row
 
     def resume(self, rows: list[dict]) -> None:
         """Continue after the windows of `rows` (params.csv rows of an interrupted run, in order):
@@ -199,10 +188,41 @@ class LiveEstimator:
     def close(self) -> None:
         """Stop the worker thread (queued fits are dropped)."""
         if self.worker is not None:
-            for f in self.pending:
-                f.cancel()
+            for future, _ in self.pending:
+                future.cancel()
             self.worker.shutdown(wait=True)
             self.worker = None
+
+
+class WindowFitter:
+    """Fits the windows of the stretches LiveEstimator cuts out, one stretch after the other,
+    each window warm-started from the one before (state: `theta`, the last fitted parameters)."""
+
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.theta: torch.Tensor | None = None
+
+    def __call__(self, pair, arc0: float, index: list[int], first: int, last: int, ready: dict,
+                 last_row: dict | None = None) -> list[LiveWindow]:
+        """Windows `first`..`last` (indices along the drive; `index`: of every window the estimator
+        places on the stretch `pair`, whose first pose lies at arc length arc0 [m] along the drive);
+        ready: wall time at which each became ready; last_row: a params.csv row to start from
+        when nothing was fitted yet (a resumed run). The windows come without their pair."""
+        e = self.settings.estimator
+        est = Estimator(pair, e, self.settings.sim, arc0=arc0)
+        if self.theta is None and last_row is not None:
+            self.theta = est.free_from_row(last_row)
+        out = []
+        j0, j1 = index.index(first), index.index(last) + 1
+        for j, o in enumerate(est.run(start=j0, theta=self.theta, stop=j1), start=j0):
+            if o.fit is not None:
+                self.theta = o.fit.theta
+            dist = None
+            if o.data is not None:
+                i0, i1, c0, c1 = o.data.crop
+                dist = np.abs(est.index.s[i0:i1, c0:c1] - o.data.spec.centre)
+            out.append(LiveWindow(index[j], o, None, ready[index[j]], time.perf_counter(), dist))
+        return out
 
 
 def play(bag, live: LiveEstimator, realtime: bool = False, progress=None):

@@ -97,8 +97,9 @@ class OnlineConfig(Section):
                                                   "smoothing at the crop edge), m")
     batch: int = Field(2, ge=1, description="windows fitted together on one stretch cut out of the tiles (more: "
                                             "less set-up per window, later rows)")
-    background: bool = Field(True, description="windows fitted on a worker thread while the pipeline takes the "
-                                               "next sweeps (the same rows, sooner on two cores)")
+    worker: Literal["thread", "none"] = Field(
+        "thread", description="windows fitted on a worker thread while the pipeline takes the next sweeps, "
+                              "or none: in the caller's thread, between sweeps (the same rows either way)")
     max_pending: int = Field(8, ge=1, description="stretches queued for fitting at most; the pipeline waits "
                                                   "when the fits fall this far behind (bounded memory)")
     spill: bool = Field(True, description="heightmap tiles far from the robot written to OUT/tiles (bounded memory)")
