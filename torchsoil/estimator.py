@@ -21,7 +21,7 @@ from torchsoil.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import ParamSpec, simulate
-from torchsoil.windows import WindowData, WindowSpec, path_index, plan_windows, prepare_window, smooth_heightmap
+from torchsoil.windows import WindowData, WindowSpec, drive_windows, path_index, prepare_window, smooth_heightmap
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -96,8 +96,7 @@ class Estimator:
         if self.nuisance is not None:
             self.h_back = self.h_back - self.nuisance.field
         self.arc0 = arc0
-        start = (math.ceil(arc0 / est.stride - 1e-9) * est.stride - arc0) if arc0 > 0 else 0.0
-        self.windows: list[WindowSpec] = plan_windows(float(self.index.arc[-1]), est.window, est.stride, start)
+        self.windows: list[WindowSpec] = drive_windows(float(self.index.arc[-1]), est.window, est.stride, arc0)
         ratio = est.window / est.stride
         self.ahead = int(round(ratio)) if abs(ratio - round(ratio)) < 1e-6 else None
         self.names = self.spec.names

@@ -382,14 +382,22 @@ def _reset_peak() -> None:
         pass
 
 
-def _peak_mb() -> float:
+def _proc_mb(path: str, key: str) -> float | None:
+    """The `key` line (in kB) of a /proc file, MiB; None where there is no such file or line."""
     try:
-        with open("/proc/self/status") as f:
+        with open(path) as f:
             for line in f:
-                if line.startswith("VmHWM:"):
+                if line.startswith(key):
                     return int(line.split()[1]) / 1024
     except OSError:
         pass
+    return None
+
+
+def _peak_mb() -> float:
+    hwm = _proc_mb("/proc/self/status", "VmHWM:")
+    if hwm is not None:
+        return hwm
     import resource
 
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
@@ -437,14 +445,8 @@ def call(fn: Callable, args: tuple, cpus: int = 1) -> Outcome:
 
 def available_mb() -> float:
     """Memory available for new processes on this machine, MiB (inf when unknown)."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return math.inf
+    found = _proc_mb("/proc/meminfo", "MemAvailable:")
+    return math.inf if found is None else found
 
 
 def default_workers(fleet, n_tasks: int | None = None) -> int:

@@ -34,7 +34,7 @@ from torchsoil.io.stream import SweepStream
 from torchsoil.pipeline.online import OnlinePipeline
 from torchsoil.robot import Robot
 from torchsoil.settings import Settings
-from torchsoil.windows import path_arc, plan_windows
+from torchsoil.windows import drive_windows, path_arc
 
 
 class LiveWindow(NamedTuple):
@@ -158,9 +158,7 @@ class LiveEstimator:
         t0, t1 = np.interp([a0, a1], arc, stamps)
         pair = pipe.terrain(t0, t1)
         arc0 = float(arc[np.searchsorted(stamps, t0)])
-        # the windows the estimator will place on this stretch (Estimator: start and plan_windows)
-        start = (math.ceil(arc0 / e.stride - 1e-9) * e.stride - arc0) if arc0 > 0 else 0.0
-        specs = plan_windows(float(path_arc(pair.poses)[-1]), e.window, e.stride, start)
+        specs = drive_windows(float(path_arc(pair.poses)[-1]), e.window, e.stride, arc0)   # as Estimator places them
         index = [int(round((w.s0 + arc0) / e.stride)) for w in specs]
         take = [k for k in index if self.next <= k <= last]
         if final:   # the drive ends here: no later window can be fitted

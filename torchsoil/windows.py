@@ -3,6 +3,7 @@ which cells its cost counts, and the cropped, simulation-ready data of one windo
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -99,6 +100,14 @@ def plan_windows(length: float, window: float, stride: float, start: float = 0.0
         raise ValueError(f"window ({window}) and stride ({stride}) must be positive lengths in metres")
     n = int(np.floor((length - start - window) / stride + 1e-9)) + 1
     return [WindowSpec(k, start + k * stride, start + k * stride + window) for k in range(max(n, 0))]
+
+
+def drive_windows(length: float, window: float, stride: float, arc0: float = 0.0) -> list[WindowSpec]:
+    """The windows of a stretch `length` m long whose first pose lies at arc length arc0 [m]
+    along a longer drive: placed where the whole drive's windows are (every `stride` m from its
+    start), s0/s1 relative to the stretch."""
+    start = (math.ceil(arc0 / stride - 1e-9) * stride - arc0) if arc0 > 0 else 0.0
+    return plan_windows(length, window, stride, start)
 
 
 class WindowData(NamedTuple):
