@@ -54,10 +54,35 @@ def test_flat_ground_is_degenerate_and_prediction_kept():
 
 
 def test_voxel_downsample_is_centroid_per_voxel():
-    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.05, 0.07], [1.05, 0.0, 0.0]])
-    out = icp.voxel_downsample(pts, 0.1)
-    assert len(out) == 2
-    np.testing.assert_allclose(sorted(out[:, 0]), [0.02, 1.05])
+    pts = np.array([[0.01, 0.01, 0.01], [0.03, 0.04, -0.04], [1.03, 0.0, 0.0], [1.07, 0.0, 0.0]])
+    out = icp.voxel_downsample(pts, 0.1)   # voxels centred on multiples of 0.1: [-0.05, 0.05), ...
+    assert len(out) == 3
+    np.testing.assert_allclose(sorted(out[:, 0]), [0.02, 1.03, 1.07])
+
+
+def test_points_on_the_origin_planes_do_not_straddle_voxels():
+    """A lidar column at azimuth zero on the robot's symmetry plane gives points with y = 0
+    exactly; a nanometre either way must not move them to another voxel."""
+    p = np.array([[4.78, 0.0, -0.008], [4.78, 1e-9, -0.008], [4.78, -1e-9, -0.008]])
+    assert len(set(icp.voxel_keys(p, 0.2).tolist())) == 1
+    assert len(set(icp.voxel_keys(p.astype(np.float32), 0.2).tolist())) == 1
+
+
+def test_thinning_is_stable_when_one_voxel_comes_or_goes():
+    """Taking every k-th voxel, one more voxel shifts every pick after it; the hashed pick
+    changes at most one besides the voxel itself."""
+    rng = np.random.default_rng(0)
+    vox = icp.voxel_downsample(rng.uniform(-20, 20, (20000, 3)), 0.2)
+    a = icp.thin(vox, 3000, 0.2)
+    b = icp.thin(np.delete(vox, len(vox) // 3, axis=0), 3000, 0.2)
+    assert len(a) == len(b) == 3000
+    common = {tuple(p) for p in a} & {tuple(p) for p in b}
+    assert len(common) >= 2998
+    assert len(icp.thin(vox[:100], 3000, 0.2)) == 100
+    evenly = vox[np.linspace(0, len(vox) - 1, 3000).astype(np.int64)]   # the old way, for contrast
+    shifted = np.delete(vox, len(vox) // 3, axis=0)
+    old_b = shifted[np.linspace(0, len(shifted) - 1, 3000).astype(np.int64)]
+    assert len({tuple(p) for p in evenly} & {tuple(p) for p in old_b}) < 2500
 
 
 def test_far_face_seen_after_passing_does_not_pull_the_fit_back():

@@ -29,11 +29,11 @@ def brute_reference(points, views, center, radius, normal_radius):
 
 
 def test_oldest_point_kept_per_voxel():
-    ref = ReferenceMap(voxel=1.0, normal_radius=0.6)
-    ref.add(np.array([[0.1, 0.1, 0.1], [0.9, 0.9, 0.9], [1.5, 0.5, 0.5]]), np.array([0.0, 0, 0]))
-    ref.add(np.array([[0.5, 0.5, 0.5], [2.5, 0.5, 0.5], [2.6, 0.6, 0.6], [1.2, 0.2, 0.2]]), np.array([9.0, 0, 0]))
+    ref = ReferenceMap(voxel=1.0, normal_radius=0.6)   # voxels centred on whole metres
+    ref.add(np.array([[0.1, 0.1, 0.1], [0.4, 0.4, 0.4], [1.0, 0.2, 0.2]]), np.array([0.0, 0, 0]))
+    ref.add(np.array([[-0.3, 0.3, 0.3], [2.0, 0.2, 0.2], [2.1, 0.1, 0.1], [0.8, 0.1, 0.1]]), np.array([9.0, 0, 0]))
     pts, views = ref.global_map()
-    np.testing.assert_array_equal(pts, [[0.1, 0.1, 0.1], [1.5, 0.5, 0.5], [2.5, 0.5, 0.5]])
+    np.testing.assert_array_equal(pts, [[0.1, 0.1, 0.1], [1.0, 0.2, 0.2], [2.0, 0.2, 0.2]])
     np.testing.assert_array_equal(views, [[0, 0, 0], [0, 0, 0], [9, 0, 0]])
 
 
@@ -65,7 +65,7 @@ def test_forget_drops_exactly_the_far_voxels():
     assert dropped == int((d > 6.0).sum()) > 0
     assert ref.forget(keep_xy, 6.0) == 0
     # a forgotten voxel can be filled again, a held one not
-    ref.add(np.array([[15.05, 15.05, 0.05], np.floor(after[0] / 0.2) * 0.2 + 0.1]), np.zeros(3))
+    ref.add(np.array([[15.05, 15.05, 0.05], np.round(after[0] / 0.2) * 0.2]), np.zeros(3))
     assert len(ref) == len(after) + 1
     # memory follows what is held
     assert ref.forget(np.array([[100.0, 100.0]]), 1.0) == len(after) + 1
@@ -152,7 +152,7 @@ def test_voxel_grouping_equals_unique():
     rng = np.random.default_rng(6)
     pts = rng.uniform(-3, 3, (5000, 3))
     keys = icp.voxel_keys(pts, 0.25)
-    k = np.floor(pts / 0.25).astype(np.int64) + (1 << 20)
+    k = np.floor(pts / 0.25 + 0.5).astype(np.int64) + (1 << 20)   # centred on multiples
     np.testing.assert_array_equal(keys, k[:, 0] + (k[:, 1] << 21) + (k[:, 2] << 42))
     _, first, inv, cnt = np.unique(keys, return_index=True, return_inverse=True, return_counts=True)
     np.testing.assert_array_equal(icp.voxel_first(pts, 0.25), first)

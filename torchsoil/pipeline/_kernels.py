@@ -21,9 +21,9 @@ def voxel_keys(points, voxel):
     n = points.shape[0]
     out = np.empty(n, np.int64)
     for i in range(n):
-        a = np.int64(math.floor(points[i, 0] / voxel)) + _OFFSET
-        b = np.int64(math.floor(points[i, 1] / voxel)) + _OFFSET
-        c = np.int64(math.floor(points[i, 2] / voxel)) + _OFFSET
+        a = np.int64(math.floor(points[i, 0] / voxel + 0.5)) + _OFFSET
+        b = np.int64(math.floor(points[i, 1] / voxel + 0.5)) + _OFFSET
+        c = np.int64(math.floor(points[i, 2] / voxel + 0.5)) + _OFFSET
         out[i] = a + (b << 21) + (c << 42)
     return out
 

@@ -159,11 +159,14 @@ class VoxelIndex:
 
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
     """(N, 3) points -> (N,) int64 key of the cubic voxel of edge `voxel` m holding each
-    (exact within +/- 2^20 voxels of the origin)."""
+    (exact within +/- 2^20 voxels of the origin). Voxels are centred on multiples of the edge,
+    so points on a plane through the origin (a lidar's azimuth-zero column on a robot's
+    symmetry plane, flat ground at z = 0) lie mid-voxel, not on a boundary where the
+    slightest change of a point switches its voxel."""
     points = np.asarray(points)
     if points.dtype == np.float64 and points.ndim == 2 and points.shape[1] == 3:
         return _k.voxel_keys(np.ascontiguousarray(points), float(voxel))
-    k = np.floor(points / voxel).astype(np.int64) + (1 << 20)
+    k = np.floor(points / voxel + 0.5).astype(np.int64) + (1 << 20)
     return k[:, 0] + (k[:, 1] << 21) + (k[:, 2] << 42)
 
 
@@ -213,11 +216,26 @@ def pca_normals(points: np.ndarray, tree: cKDTree, query: np.ndarray, k: int = 1
     return n, good
 
 
-def thin(points: np.ndarray, max_points: int) -> np.ndarray:
-    """At most `max_points` of (N, 3) points, evenly spaced in their order (deterministic)."""
+def thin(points: np.ndarray, max_points: int, voxel: float) -> np.ndarray:
+    """At most `max_points` of the (N, 3) voxel points (one per cubic voxel of edge `voxel` m),
+    in their order: those whose voxel key hashes lowest. The pick is deterministic and stable:
+    a voxel that appears or vanishes changes at most one other pick, where taking every k-th
+    point would shift all picks after it (and a sweep moved by a nanometre could register on
+    a different subset)."""
     if len(points) <= max_points:
         return points
-    return points[np.linspace(0, len(points) - 1, max_points).astype(np.int64)]
+    h = _mix(voxel_keys(points, voxel).view(np.uint64))
+    keep = np.sort(np.argpartition(h, max_points)[:max_points])
+    return points[keep]
+
+
+def _mix(x: np.ndarray) -> np.ndarray:
+    """splitmix64 finaliser: (N,) uint64 -> well-spread (N,) uint64."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * np.uint64(0xBF58476D1CE4E5B9)
+    x = x ^ (x >> np.uint64(27))
+    x = x * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
 
 
 def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -307,7 +307,7 @@ class Mapper:
             return [self._register(len(self.stamps) - 1, sweep)]
         self.held.append(sweep)
         usable = [s for s in self.held if len(s.points) >= 50]
-        if usable and sweep.stamp - usable[0].stamp > self.cfg.startup_baseline + 1e-9 and len(usable) >= 2:
+        if usable and sweep.stamp - usable[0].stamp > self.cfg.startup_baseline + self.period / 4 and len(usable) >= 2:
             return self._start()
         return []
 
@@ -325,7 +325,8 @@ class Mapper:
         cfg, held = self.cfg, self.held
         base = len(self.stamps) - len(held)
         usable = [k for k, s in enumerate(held) if len(s.points) >= 50]
-        later = [k for k in usable[1:] if held[k].stamp - held[usable[0]].stamp <= cfg.startup_baseline + 1e-9]
+        later = [k for k in usable[1:]
+                 if held[k].stamp - held[usable[0]].stamp <= cfg.startup_baseline + self.period / 4]
         k1 = later[-1] if later else usable[1]
         self.velocity = _startup_velocity(held[usable[0]], held[k1], held[k1].stamp - held[usable[0]].stamp,
                                           self.period, cfg)
@@ -351,7 +352,7 @@ class Mapper:
             return k
         pts = _prepare(sweep, self.velocity, self.period, cfg)
         gate = cfg.startup_dist if len(self.done) == 1 else cfg.max_dist
-        src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points)
+        src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points, cfg.source_voxel)
         res = icp.register(src, self.local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers,
                            ground_z=cfg.ground_z, one_sided=cfg.one_sided)
         self.fitness[k], self.rmse[k] = res.fitness, res.rmse
@@ -366,8 +367,9 @@ class Mapper:
         self.poses[k] = T
         self.done.append(k)
         stamps = np.asarray(self.stamps)
-        base = _baseline(self.done, stamps, cfg.velocity_window)
-        self.velocity = _velocity(self.poses[base], T, stamps[k] - stamps[base])
+        base = _baseline(self.done, stamps, cfg.velocity_window + self.period / 4)
+        if not self.flags[k] & DEGENERATE:   # a degenerate pose is partly the prediction: coast
+            self.velocity = _velocity(self.poses[base], T, stamps[k] - stamps[base])
         if len(self.done) > 64:
             del self.done[:-32]
         if np.linalg.norm(self.velocity[:3, 3]) < cfg.stationary_speed:
@@ -431,10 +433,12 @@ def rotate_world(maps: MappingResult, R: np.ndarray) -> MappingResult:
 
 def _baseline(done: list[int], stamps: np.ndarray, window: float) -> int:
     """Earliest registered sweep within `window` s before the newest one (at least the one
-    before it): the velocity over a longer baseline is steadier."""
+    before it): the velocity over a longer baseline is steadier. Callers pass the window with a
+    quarter period to spare: a window of whole periods would otherwise pick its baseline by
+    the stamps' last nanoseconds (jitter, or the rounding of another stamp convention)."""
     last = done[-1]
     j = len(done) - 2
-    while j > 0 and stamps[last] - stamps[done[j - 1]] <= window + 1e-9:
+    while j > 0 and stamps[last] - stamps[done[j - 1]] <= window:
         j -= 1
     return done[max(j, 0)]
 

@@ -65,7 +65,7 @@ def register_sweep(points: np.ndarray, t: np.ndarray, stamp: float, ref_stamps: 
     if not cfg.enabled:
         return pts, seed, np.nan, np.nan, True, False
     near = pts[_k.within_range(pts, float(cfg.max_range))]
-    src = icp.thin(icp.voxel_downsample(near, cfg.voxel), cfg.max_points)
+    src = icp.thin(icp.voxel_downsample(near, cfg.voxel), cfg.max_points, cfg.voxel)
     if len(src) < 50:
         return pts, seed, 0.0, np.inf, False, False
     res = icp.register(src, target, seed, cfg.max_dist, cfg.max_iter, one_sided=cfg.one_sided)
