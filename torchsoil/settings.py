@@ -259,6 +259,10 @@ class LevelConfig(Section):
         "auto", description="auto: the IMU if the bag has one, else the ground; imu; ground: the mean ground "
                             "plane near the start; none: not levelled")
     window: float = Field(2.0, gt=0, description="IMU samples averaged from the first sweep on, s")
+    bias_window: float = Field(60.0, ge=0, description="IMU samples of the first this many s also give the "
+                                                       "accelerometer's bias, told from gravity by the robot's "
+                                                       "turns; the map is then turned by the correction at that "
+                                                       "time or at the end, s (0: off)")
     radius: float = Field(6.0, gt=0, description="ground within this distance of the start is fitted, m")
 
 

@@ -62,7 +62,7 @@ def test_every_convention_gives_the_ouster_terrain(drive, convention):
     root, robot, ref = drive
     rewrite_recording(root / "ouster", root / convention, convention)
     res = process_bag(root / convention, robot)
-    assert res.problems == []
+    assert res.problems == ref.problems          # nothing new to say about the recording
     (med_f, rms_f, med_b, rms_b), traj = differences(res, ref)
     assert med_f < MEDIAN_M and med_b < MEDIAN_M, (med_f, med_b)
     assert rms_f < RMS_M and rms_b < RMS_M, (rms_f, rms_b)

@@ -54,7 +54,7 @@ def gravity_from_imu(stamps: np.ndarray, poses: np.ndarray, imu: ImuData, base_T
     h = min(0.5, (t1 - t0) / 3)
     if h <= 0:
         raise ValueError("the trajectory is too short to level by the IMU")
-    v0, v1 = (_velocity(stamps, poses, lo, lo + h) for lo in (t0, t1 - h))
+    v0, v1 = (_velocity(stamps, poses, lo, lo + h, base_T_imu[:3, 3]) for lo in (t0, t1 - h))
     a, b = t0 + h / 2, t1 - h / 2
     sel = (imu.t >= a) & (imu.t <= b)
     if sel.sum() < 10:
@@ -71,11 +71,58 @@ def gravity_from_imu(stamps: np.ndarray, poses: np.ndarray, imu: ImuData, base_T
     return g
 
 
-def _velocity(stamps: np.ndarray, poses: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """(3,) mean velocity [m/s] over [lo, hi] s: the slope of a line fitted to the positions
-    there (steadier than a difference of two poses)."""
+def gravity_and_bias(stamps: np.ndarray, poses: np.ndarray, imu: ImuData, base_T_imu: np.ndarray,
+                     span: float, segment: float = 1.0, min_turn: float = 30.0
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Gravity (3,) in the world frame and the accelerometer's bias (3,) in the IMU frame,
+    m/s^2, from the IMU samples of the trajectory's first `span` s; and the heading change over
+    them (degrees, max - min of yaw).
+
+    Over each `segment` s the mean world-frame reading R f = a - g + R b, with a the mean
+    acceleration from the lidar trajectory (velocity change over the segment). When the robot
+    turns by `min_turn` degrees or more, the segments' rotations differ enough to tell a
+    body-fixed bias from the world-fixed gravity: the bias's two components that are
+    horizontal in the world are fitted with gravity (a vertical one only scales |g|). On a
+    straighter drive a horizontal bias cannot be told from a tilt: the bias is 0 and gravity
+    is the segments' mean, as `gravity_from_imu` over the longer span. Arguments as there.
+    """
+    t0 = stamps[0]
+    t1 = min(t0 + span, stamps[-1], imu.t[-1])
+    h = 0.25
+    edges = np.arange(t0 + h, t1 - h + 1e-9, segment)
+    if len(edges) < 3:
+        raise ValueError(f"{imu.topic}: the trajectory and IMU overlap for less than {2 * segment + 2 * h:.1f} s")
+    v = np.array([_velocity(stamps, poses, e - h, e + h, base_T_imu[:3, 3]) for e in edges])
+    sel = (imu.t >= edges[0]) & (imu.t < edges[-1])
+    R = interpolate_poses(stamps, poses, imu.t[sel])[:, :3, :3] @ base_T_imu[:3, :3]
+    f_world = np.einsum("nij,nj->ni", R, imu.acc[sel])
+    seg = np.searchsorted(edges, imu.t[sel], side="right") - 1
+    Ms, rhs = [], []
+    for j in range(len(edges) - 1):
+        m = seg == j
+        if m.sum() >= 10:
+            Ms.append(R[m].mean(0))
+            rhs.append(f_world[m].mean(0) - (v[j + 1] - v[j]) / (edges[j + 1] - edges[j]))
+    if len(Ms) < 2:
+        raise ValueError(f"{imu.topic}: too few IMU samples along the trajectory's first {span:g} s")
+    inside = (stamps >= t0) & (stamps <= t1)
+    yaw = np.unwrap(np.arctan2(poses[inside, 1, 0], poses[inside, 0, 0]))
+    turn = float(np.degrees(yaw.max() - yaw.min()))
+    if turn < min_turn:
+        return -np.mean(rhs, axis=0), np.zeros(3), turn
+    B = np.mean(Ms, axis=0).T[:, :2]              # IMU-frame directions horizontal in the world
+    A = np.vstack([np.hstack([-np.eye(3), M @ B]) for M in Ms])
+    x = np.linalg.lstsq(A, np.concatenate(rhs), rcond=None)[0]
+    return x[:3], B @ x[3:], turn
+
+
+def _velocity(stamps: np.ndarray, poses: np.ndarray, lo: float, hi: float, at: np.ndarray) -> np.ndarray:
+    """(3,) mean velocity [m/s] over [lo, hi] s of the point `at` (3,) of base_link (the IMU's:
+    on a turn it moves otherwise than base_link's origin): the slope of a line fitted to its
+    positions there (steadier than a difference of two poses)."""
     t = np.linspace(lo, hi, 11)
-    p = interpolate_poses(stamps, poses, t)[:, :3, 3]
+    T = interpolate_poses(stamps, poses, t)
+    p = T[:, :3, 3] + T[:, :3, :3] @ at
     return np.polyfit(t - t.mean(), p, 1)[0]
 
 

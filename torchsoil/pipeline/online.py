@@ -61,6 +61,8 @@ class OnlinePipeline:
         self.fuse_flags: list[int] = []
         self.imu: list[ImuSample] = []
         self.L: np.ndarray | None = None                 # levelling (4, 4)
+        self.D = np.eye(3)                               # its later correction (gravity_and_bias)
+        self.refined = False
         self.ok_stamps: list[float] = []
         self.ok_poses: list[np.ndarray] = []
         self.tiles = {n: Tiles(cfg.raster.dx, spill_dir=None if spill_dir is None else f"{spill_dir}/{n}")
@@ -90,7 +92,7 @@ class OnlinePipeline:
         self._take(name, cloud)
 
     def add_imu(self, sample: ImuSample) -> None:
-        if self.L is None:
+        if not self.refined:
             self.imu.append(sample)
 
     def finish(self) -> None:
@@ -109,6 +111,7 @@ class OnlinePipeline:
         self.mapper.check_degenerate()
         self.timings["mapping"] += time.perf_counter() - t0
         self._level(final=True)
+        self._refine(final=True)
         self._reregister(final=True)
         self.finished = True
 
@@ -183,6 +186,7 @@ class OnlinePipeline:
         for k in done:
             self._final(k)
         self._level(final=False)
+        self._refine(final=False)
         self._reregister(final=False)
 
     def _final(self, k: int) -> None:
@@ -224,8 +228,35 @@ class OnlinePipeline:
         self.rec.problems.extend(notes)
         self.L = np.eye(4)
         self.L[:3, :3] = R
-        self.imu = []
+        if not use_imu or cfg.bias_window <= 0:
+            self.imu, self.refined = [], True
         self.timings["mapping"] += time.perf_counter() - t0
+
+    def _refine(self, final: bool) -> None:
+        """Gravity and the accelerometer's bias from the first `level.bias_window` s of IMU
+        samples (gravity.gravity_and_bias), once the trajectory covers them or at the end: the
+        correction D of the levelling turns the trajectory, P_ref and the heightmaps from then on."""
+        cfg = self.cfg.level
+        if self.refined or self.L is None or not self.imu:
+            return
+        if not final and self.ok_stamps[-1] < self.ok_stamps[0] + cfg.bias_window:
+            return
+        from torchsoil.pipeline.run import extrinsics_for
+
+        imu = imu_data(self.imu)
+        imu_T = extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
+        self.imu, self.refined = [], True
+        stamps, poses = np.asarray(self.ok_stamps), np.asarray(self.ok_poses)
+        try:
+            g, bias, turn = gravity.gravity_and_bias(stamps, poses, imu, imu_T, cfg.bias_window)
+        except ValueError:
+            return                                   # too short: the first levelling stands
+        self.D = gravity.levelling_rotation(g) @ self.L[:3, :3].T
+        if turn < 30.0:
+            self.rec.problems.append(
+                f"the robot turned by {turn:.0f} deg over the IMU's first {cfg.bias_window:g} s: too little to tell the "
+                "accelerometer's bias from a tilt, so the map is levelled to within its horizontal bias / g "
+                "(0.057 deg per mg; a turn early in the drive removes this)")
 
     def _reregister(self, final: bool) -> None:
         """Re-register and rasterize every queued sweep whose time the trajectory now covers."""
@@ -282,9 +313,16 @@ class OnlinePipeline:
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """T_ref so far, levelled: stamps (S,) s and poses (S, 4, 4) of the sweeps the mapper
         registered (not poor fits nor empty)."""
-        L = np.eye(4) if self.L is None else self.L
         poses = np.asarray(self.ok_poses).reshape(-1, 4, 4)
-        return np.asarray(self.ok_stamps), L @ poses
+        return np.asarray(self.ok_stamps), self._world() @ poses
+
+    def _world(self) -> np.ndarray:
+        """(4, 4) rotation from the mapper's world to the levelled one: D L (identity before
+        the first levelling)."""
+        W = np.eye(4)
+        if self.L is not None:
+            W[:3, :3] = self.D @ self.L[:3, :3]
+        return W
 
     def scan_flags(self) -> tuple[np.ndarray, np.ndarray]:
         """Stamps (S,) and flags (S,) of every mapped sweep: the mapper's, the fusion's and the
@@ -319,6 +357,11 @@ class OnlinePipeline:
         grid, mask = corridor(poses[:, :2, 3], rc.corridor_width, rc.dx)
         hf = self.tiles["front"].heightmap(grid, mask, rc.fill_radius)
         hb = self.tiles["back"].heightmap(grid, mask, rc.fill_radius)
+        if not np.array_equal(self.D, np.eye(3)):   # tiles hold heights levelled by L: turn by D
+            X, Y = np.meshgrid(*grid.centers(), indexing="ij")
+            d = self.D
+            hf, hb = (h._replace(h=(h.h + d[2, 0] * X + d[2, 1] * Y + (d[2, 2] - 1) * h.h).astype(np.float32))
+                      for h in (hf, hb))
         scan_stamps, flags = self.scan_flags()
         keep = (scan_stamps >= stamps[0] - 1.0) & (scan_stamps <= stamps[-1] + 1.0)
         extras = {"valid_front": hf.valid, "valid_back": hb.valid,
@@ -333,7 +376,7 @@ class OnlinePipeline:
     def mapping_result(self) -> mapping.MappingResult:
         """The mapper's result (P_ref as held), levelled."""
         res = self.mapper.result()
-        return mapping.rotate_world(res, np.eye(3) if self.L is None else self.L[:3, :3])
+        return mapping.rotate_world(res, self._world()[:3, :3])
 
     def grid_cells(self) -> int:
         """Cells of the whole drive's terrain pair so far (the corridor's bounding box)."""
