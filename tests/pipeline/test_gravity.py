@@ -6,8 +6,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from torchsoil.io.bag import ImuData
-from torchsoil.pipeline.gravity import (G, gravity_and_bias, gravity_from_ground, gravity_from_imu, level,
-                                       levelling_rotation, tilt_deg)
+from torchsoil.pipeline.gravity import (
+    G,
+    gravity_and_bias,
+    gravity_from_ground,
+    gravity_from_imu,
+    level,
+    levelling_rotation,
+    tilt_deg,
+)
 from torchsoil.settings import LevelConfig
 
 

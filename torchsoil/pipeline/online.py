@@ -252,10 +252,10 @@ class OnlinePipeline:
         except ValueError:
             return                                   # too short: the first levelling stands
         self.D = gravity.levelling_rotation(g) @ self.L[:3, :3].T
-        if turn < 30.0:
+        if not bias.any():                           # too straight a start to tell the bias
             self.rec.problems.append(
-                f"the robot turned by {turn:.0f} deg over the IMU's first {cfg.bias_window:g} s: too little to tell the "
-                "accelerometer's bias from a tilt, so the map is levelled to within its horizontal bias / g "
+                f"the robot turned by {turn:.0f} deg over the IMU's first {cfg.bias_window:g} s: too little to tell "
+                "the accelerometer's bias from a tilt, so the map is levelled to within its horizontal bias / g "
                 "(0.057 deg per mg; a turn early in the drive removes this)")
 
     def _reregister(self, final: bool) -> None:
