@@ -212,11 +212,7 @@ class OnlinePipeline:
             elif not use_imu and np.linalg.norm(self.ok_poses[-1][:2, 3]) < cfg.radius:
                 return
         t0 = time.perf_counter()
-        imu_T = None
-        if use_imu:
-            from torchsoil.pipeline.run import extrinsics_for
-
-            imu_T = extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
+        imu_T = self._imu_pose(imu) if use_imu else None
         pts, views = m.local.global_map()
         normals = np.zeros_like(pts)
         if cfg.source in ("auto", "ground") and not use_imu and len(pts):
@@ -241,10 +237,8 @@ class OnlinePipeline:
             return
         if not final and self.ok_stamps[-1] < self.ok_stamps[0] + cfg.bias_window:
             return
-        from torchsoil.pipeline.run import extrinsics_for
-
         imu = imu_data(self.imu)
-        imu_T = extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
+        imu_T = self._imu_pose(imu)
         self.imu, self.refined = [], True
         stamps, poses = np.asarray(self.ok_stamps), np.asarray(self.ok_poses)
         try:
@@ -257,6 +251,12 @@ class OnlinePipeline:
                 f"the robot turned by {turn:.0f} deg over the IMU's first {cfg.bias_window:g} s: too little to tell "
                 "the accelerometer's bias from a tilt, so the map is levelled to within its horizontal bias / g "
                 "(0.057 deg per mg; a turn early in the drive removes this)")
+
+    def _imu_pose(self, imu) -> np.ndarray:
+        """(4, 4) the IMU's pose in base_link, looked up like a lidar's."""
+        from torchsoil.pipeline.run import extrinsics_for
+
+        return extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
 
     def _reregister(self, final: bool) -> None:
         """Re-register and rasterize every queued sweep whose time the trajectory now covers."""
