@@ -176,3 +176,30 @@ def reversing_turn(name: str, v: float, yaw_rate: float, duration: float = 8.0) 
     x_body = np.column_stack([np.cos(psi), np.sin(psi), 0 * t])
     y_body = np.column_stack([-np.sin(psi), np.cos(psi), 0 * t])
     return _drive(name, t, p, x_body, -v * w * y_body, [0.0, 0.0, 1.0], v + 0 * t, 0 * t, w + 0 * t)
+
+
+def poses_from(t, x, y, yaw, roll=None, pitch=None):
+    """(N, 7) FORMATS.md poses from their columns (z = 0; roll, pitch 0 unless given)."""
+    z = np.zeros_like(t)
+    return np.column_stack([t, x, y, z, z if roll is None else roll, z if pitch is None else pitch, yaw])
+
+
+def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05):
+    """East along y = 0 for L, half circle left, west along y = 2R, half circle left, east again."""
+    pts = []
+    s = np.arange(0, 2 * L + 2 * math.pi * R + L / 2, v * dt)
+    for si in s:
+        if si < L:
+            pts.append((si, 0.0, 0.0))
+        elif si < L + math.pi * R:
+            a = (si - L) / R
+            pts.append((L + R * math.sin(a), R - R * math.cos(a), a))
+        elif si < 2 * L + math.pi * R:
+            pts.append((L - (si - L - math.pi * R), 2 * R, math.pi))
+        elif si < 2 * L + 2 * math.pi * R:
+            a = (si - 2 * L - math.pi * R) / R
+            pts.append((-R * math.sin(a), R + R * math.cos(a), math.pi + a))
+        else:
+            pts.append((si - 2 * L - 2 * math.pi * R, 0.0, 2 * math.pi))
+    p = np.array(pts)
+    return poses_from(s / v, p[:, 0], p[:, 1], p[:, 2])

@@ -7,7 +7,8 @@ import pytest
 from tests.synthetic_pair import sim_pair
 from torchsoil.estimator import Estimator
 from torchsoil.runner import estimate, simulated_error
-from torchsoil.settings import load_settings
+from torchsoil.settings import EstimatorConfig, load_settings
+from torchsoil.terrain import TerrainPair
 
 TRUE = dict(d1=0.03, d2=0.025, chi=0.8, beta_deg=35.0)
 
@@ -104,3 +105,32 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
         assert float(a["d1"]) == pytest.approx(float(b["d1"]), abs=3e-4)
     with pytest.raises(ValueError, match=r"settings differ \(estimator.window\)"):
         estimate(src, out, load_settings(overrides=["estimator.window=1.0"]), resume=True, progress=False)
+
+
+def test_a_first_view_of_revisited_ground_drives_every_visit():
+    """Out and back on the same ruts (a light-bulb turn), recorded by the synth world with H_f
+    the first view of every cell (a pipeline keeping the oldest height): the return leg's
+    ground shows two visits. Told from the maps, both are simulated and the return leg's d is
+    the soil's; simulating the last visit alone takes both ruts for one (about twice as deep)."""
+    from torchsoil.synth.scenario import make_terrain_pair
+
+    def seg(**k):
+        return {**k, "speed": 1.0}
+
+    sc = {"name": "out_and_back", "world": {"chunk": 0.1}, "measurement": {"first_view": 1.0},
+          "soil": {"base": {"d": 0.025, "chi": 0.2, "beta_deg": 30.0}},
+          "trajectory": {"accel_limit": 0.5, "segments": [
+              seg(straight=5.0), seg(arc=1.6, angle_deg=-60), seg(arc=1.6, angle_deg=300),
+              seg(arc=1.6, angle_deg=-60), seg(straight=5.0)]}}
+    pair = TerrainPair.from_mapping(make_terrain_pair(sc, seed=0))
+    returned = {}
+    for view in ("auto", "last_visit"):
+        e = Estimator(pair, EstimatorConfig(front_view=view))
+        rows = [o.row for o in e.run()]
+        s = np.array([r["s"] for r in rows])
+        d = np.array([(r["d1"] + r["d2"]) / 2 for r in rows])
+        returned[e.view] = float(np.nanmedian(d[s > e.index.arc[-1] - 4.0]))
+        assert abs(np.nanmedian(d[(s > 6.5) & (s < e.index.arc[-1] - 6.5)]) - 0.025) < 0.003   # the loop: once
+    assert set(returned) == {"first_view", "last_visit"}
+    assert abs(returned["first_view"] - 0.025) < 0.3 * 0.025
+    assert returned["last_visit"] > 1.6 * 0.025

@@ -1,10 +1,16 @@
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
+from tests.drive_by_hand import racetrack
 from tests.synthetic_pair import sim_pair
+from torchsoil.grid import Grid
+from torchsoil.robot import paper_platform
 from torchsoil.settings import EstimatorConfig
 from torchsoil.sim import SimConfig
-from torchsoil.windows import _stopped, path_index, plan_windows, prepare_window
+from torchsoil.sim.geometry import wheel_positions
+from torchsoil.terrain import TerrainPair
+from torchsoil.windows import _stopped, front_view, path_index, plan_windows, prepare_window
 
 
 def test_plan_windows():
@@ -83,3 +89,67 @@ def test_ground_driven_twice_belongs_to_the_last_pass(pair):
     straight = path_index(pair.grid, pair.poses, pair.robot, 1.6)  # one pass: nearest point
     i = np.argmin(abs(xs - 1.5))
     assert straight.s[i, j] == pytest.approx(1.5, abs=0.05)
+
+
+def _ruts(grid: Grid, poses: np.ndarray, robot, depth: float, sigma: float = 0.03) -> np.ndarray:
+    """(X, Y) Gaussian troughs `depth` m deep along every wheel path of the poses."""
+    w = wheel_positions(poses[:, [0, 1, 2, 6]], robot.wheels[:, :2]).reshape(-1, 2)
+    xs, ys = grid.centers()
+    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    dist = cKDTree(w).query(cells)[0].reshape(grid.shape)
+    return -depth * np.exp(-0.5 * (dist / sigma) ** 2)
+
+
+@pytest.fixture(scope="module")
+def lap_and_a_half():
+    """A racetrack driven once and then along its first 2 m again (tests.drive_by_hand), on
+    rough ground: H_b with 25 mm ruts everywhere; H_f either untouched (a first view) or
+    with the first lap's 15 mm ruts where the second lap comes back (the view before it)."""
+    robot, dx = paper_platform(), 0.02
+    poses = racetrack()
+    x0, y0 = poses[:, 1:3].min(0) - 1.2
+    x1, y1 = poses[:, 1:3].max(0) + 1.2
+    grid = Grid.covering(x0, y0, x1, y1, dx)
+    rng = np.random.default_rng(3)
+    ground = 0.004 * rng.standard_normal(grid.shape)
+    final = ground + _ruts(grid, poses, robot, 0.025)
+    arc = np.concatenate([[0], np.cumsum(np.linalg.norm(np.diff(poses[:, 1:3], axis=0), axis=1))])
+    first_lap = poses[arc < 2.5]                               # the ground the end comes back over
+    shown = ground + _ruts(grid, first_lap, robot, 0.015)
+
+    def pair(h_front):
+        noisy = h_front + 0.003 * rng.standard_normal(grid.shape)
+        return TerrainPair(dx, np.array(grid.origin), noisy.astype(np.float32),
+                           (final + 0.003 * rng.standard_normal(grid.shape)).astype(np.float32), poses,
+                           robot.wheels, robot.wheel_width)
+
+    return pair(ground), pair(shown), robot
+
+
+def test_front_view_is_told_from_the_maps(lap_and_a_half):
+    first, last, robot = lap_and_a_half
+    idx = path_index(first.grid, first.poses, robot, 1.6)
+    view, info = front_view(first, idx)
+    assert view == "first_view" and abs(info["ratio"]) < 0.15 and info["cells"] > 200
+    view, info = front_view(last, idx)
+    assert view == "last_visit" and 0.4 < info["ratio"] < 0.8          # 15 mm of 25 mm shown
+
+
+def test_a_single_pass_has_nothing_to_tell(pair):
+    view, info = front_view(pair, path_index(pair.grid, pair.poses, pair.robot, 1.6))
+    assert view == "last_visit" and info["cells"] == 0
+
+
+def test_a_first_view_window_drives_the_earlier_visit_first(lap_and_a_half):
+    first, _, robot = lap_and_a_half
+    idx = path_index(first.grid, first.poses, robot, 1.6)
+    arc_end = float(idx.arc[-1])
+    again = [w for w in plan_windows(arc_end, 0.8, 0.4) if w.s0 > arc_end - 1.5][0]   # back over the start
+    once = plan_windows(arc_end, 0.8, 0.4)[12]                                      # the far straight
+    for spec, n_earlier in ((again, 1), (once, 0)):
+        wd = prepare_window(first, idx, spec, EstimatorConfig(), SimConfig(), view="first_view")
+        assert len(wd.earlier) == n_earlier
+        t_own = wd.geom.poses[:, 0]
+        for g in wd.earlier:                                  # the first lap, long before
+            assert float(g.poses[:, 0].max()) < float(t_own.min()) - 5.0
+        assert prepare_window(first, idx, spec, EstimatorConfig(), SimConfig()).earlier == ()

@@ -21,7 +21,16 @@ from torchsoil.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import ParamSpec, simulate
-from torchsoil.windows import WindowData, WindowSpec, drive_windows, path_index, prepare_window, smooth_heightmap
+from torchsoil.sim.sinkage import reference_height
+from torchsoil.windows import (
+    WindowData,
+    WindowSpec,
+    drive_windows,
+    front_view,
+    path_index,
+    prepare_window,
+    smooth_heightmap,
+)
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -56,15 +65,18 @@ class Estimator:
         est: estimator settings (settings section `estimator`).
         sim: simulator settings (section `sim`).
         device: torch device (default: est.device).
-        modifiers: optional callable (WindowData, theta (B, P)) -> sim.Modifiers: a model
-            extension with fixed parameters (e.g. a sinkage factor per pose from the window's
-            speed), applied in every simulation of that window, fit and prediction alike.
+        modifiers: optional callable (WindowData, theta (B, P), geometry) -> sim.Modifiers: a
+            model extension with fixed parameters (e.g. a sinkage factor per pose from the
+            window's speed), applied in every simulation of that window, fit and prediction
+            alike; geometry is the visit simulated (the window's own, or an earlier one).
         index: the pair's windows.PathIndex for these settings, when already computed (it
             depends on the poses, robot and corridor only; repeated runs over one pair share it).
         nuisance: the pair's fitted map offset (`nuisance.MapNuisance`), when already computed
             (default: fitted here when est.nuisance.offset).
         arc0: arc length [m] of the pair's first pose along a longer drive (a stretch cut out of
             it): windows sit where the whole drive's would, and rows report the drive's arc length.
+        view: what H_f holds on revisited ground ("last_visit" or "first_view"), when already
+            told (default: est.front_view, "auto" told from the maps by `windows.front_view`).
 
     H_b is used net of the map offset and tilt (`self.nuisance`, fitted on untouched ground;
     `self.h_back`); each row reports the offset removed on the window's ground (`map_offset`, m).
@@ -77,7 +89,7 @@ class Estimator:
 
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
                  dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None,
-                 arc0: float = 0.0):
+                 arc0: float = 0.0, view: str | None = None):
         self.pair = pair
         self.modifiers = modifiers
         self.est = est = est or EstimatorConfig()
@@ -92,6 +104,8 @@ class Estimator:
         self.nuisance = nuisance if nuisance is not None else fit_map_nuisance(
             np.asarray(pair.h_front), np.asarray(pair.h_back), pair.grid, self.index, robot.wheel_width,
             est.floor_inner, est.corridor, est.nuisance)
+        view = view or est.front_view
+        self.view, self.view_info = (front_view(pair, self.index) if view == "auto" else (view, {}))
         self.h_back = np.asarray(pair.h_back, np.float64)
         if self.nuisance is not None:
             self.h_back = self.h_back - self.nuisance.field
@@ -131,10 +145,20 @@ class Estimator:
         return self._cache[k]
 
     def simulate(self, free: torch.Tensor, wd: WindowData):
-        """Simulate window wd for optimizer variables free (B, P_free)."""
+        """Simulate window wd for optimizer variables free (B, P_free): its earlier visits in
+        turn (`WindowData.earlier`), each settled and digging from the surface it finds (as
+        the recorder's world does), then its own; the result is that of its own visit."""
         theta = self.full_theta(free)
-        mods = self.modifiers(wd, theta) if self.modifiers is not None else None
-        return simulate(wd.h_front, wd.geom, theta, self.sim, self.spec, modifiers=mods, h_ref=wd.h_ref)
+        h, h_ref, again = wd.h_front, wd.h_ref, None
+        for g in wd.earlier:
+            h = simulate(h, g, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, g), h_ref=h_ref).h
+            again = g.domain if again is None else again | g.domain
+            h_ref = torch.where(again, reference_height(h, self.sim.ref_radius * g.radius, g.dx), wd.h_ref)
+        return simulate(h, wd.geom, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, wd.geom),
+                        h_ref=h_ref)
+
+    def _modifiers(self, wd: WindowData, theta: torch.Tensor, geom):
+        return self.modifiers(wd, theta, geom) if self.modifiers is not None else None
 
     def objective(self, wd: WindowData):
         def cost(free: torch.Tensor) -> torch.Tensor:
@@ -200,7 +224,8 @@ class Estimator:
 
     def _prepare(self, spec: WindowSpec) -> WindowData | None:
         return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
-                              h_start=self.h_start, h_back=self.h_back, extra_flags=self._registration_flags(spec))
+                              h_start=self.h_start, h_back=self.h_back, extra_flags=self._registration_flags(spec),
+                              view=self.view)
 
     def _registration_flags(self, spec: WindowSpec) -> tuple[str, ...]:
         """("registration",) when a sweep the lidar pipeline flagged was taken while the robot

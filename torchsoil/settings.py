@@ -145,6 +145,10 @@ class EstimatorConfig(Section):
                                                   "every N windows (0: none)")
     device: str = Field("auto", description="auto (cuda when present), cpu, cuda, cuda:N")
     nuisance: NuisanceConfig = Field(NuisanceConfig(), description="map offset and tilt removed from H_b")
+    front_view: Literal["auto", "last_visit", "first_view"] = Field(
+        "auto", description="what H_f holds on ground driven over more than once: the surface before the "
+                            "last visit (earlier ruts shown), the surface before the first (earlier visits "
+                            "are then simulated too), or auto: told from the maps")
     online: OnlineConfig = Field(OnlineConfig(), description="estimation while the recording streams in")
 
     @model_validator(mode="after")
@@ -506,6 +510,9 @@ class MeasurementConfig(Section):
     streaks: float = Field(0.0, ge=0, description="occlusion streaks (thin lost lines along the heading, "
                                                   "behind the robot) per m of path in each map, 1/m")
     streak_length: tuple[float, float] = Field((0.2, 0.8), description="range of the streak length, m")
+    first_view: float = Field(0.0, ge=0, le=1, description="probability that H_f holds the first view of "
+                                                          "revisited ground (a pipeline keeping each cell's "
+                                                          "oldest height), not the one before the last visit")
 
     @field_validator("dropout", "blob_radius", "streak_length")
     @classmethod
@@ -526,7 +533,7 @@ class MeasurementConfig(Section):
 # (offset, tilt), occlusions, blobs, dropouts, heavy-tailed noise, tyres unlike the model's
 REALISTIC = {
     "measurement": {"noise_dof": (3.0, 5.0), "offset": 0.002, "tilt_deg": 0.05, "dropout": (0.005, 0.015),
-                    "blobs": 1.0, "streaks": 2.0},
+                    "blobs": 1.0, "streaks": 2.0, "first_view": 0.5},
     "tyre": {"sections": SECTIONS, "width_scale": (0.85, 1.25)},
 }
 

@@ -121,7 +121,9 @@ class WindowData(NamedTuple):
     costs. weight: (X, Y) cost weight
     (window ground, measured before and after, near a wheel path). floor: (X, Y) bool cells
     beside the rut for the noise floor. ground: (X, Y) bool window ground. t, x, y: time [s]
-    and position [m] at the window centre. flags: reasons to distrust the window.
+    and position [m] at the window centre. flags: reasons to distrust the window. earlier:
+    wheel geometry of each earlier visit over the window's ground, in time order, when H_f
+    shows the ground before the first visit (`front_view`); the simulation drives them first.
     """
 
     spec: WindowSpec
@@ -139,6 +141,7 @@ class WindowData(NamedTuple):
     x: float
     y: float
     flags: tuple[str, ...]
+    earlier: tuple[WheelGeometry, ...] = ()
 
 
 def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
@@ -167,14 +170,86 @@ def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
     return best > duration
 
 
+def _wheel_samples(poses: np.ndarray, robot: Robot, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) wheel centres along the drive every `spacing` m or less, and (M,) base_link arc
+    length there, m."""
+    dense = resample_poses(poses[:, [0, 1, 2, 6]], robot.wheels[:, :2], spacing)
+    arc = np.interp(dense[:, 0], poses[:, 0], path_arc(poses))
+    w = wheel_positions(dense, robot.wheels[:, :2])
+    return w.reshape(-1, 2), np.tile(arc, len(w))
+
+
+def front_view(pair, index: PathIndex, min_cells: int = 50) -> tuple[str, dict]:
+    """What H_f holds on ground the wheels crossed more than once, told from the maps.
+
+    A pipeline that keeps the newest view of each cell shows the ruts of the earlier visits in
+    H_f ("last_visit", as FORMATS.md terrain pairs from torchsoil); one that keeps the first
+    view shows untouched ground there ("first_view"). On the rut centres of revisited ground
+    (within a quarter wheel width of an earlier visit's wheel and of the last one's), the
+    ratio of H_f's rut depth to H_b's (each height less its Gaussian mean over a wheel width)
+    tells them apart: about 0 on a first view, well above it when H_f shows the earlier ruts.
+    Returns (view, {"ratio", "cells"}); too few revisited cells, or ruts too shallow to
+    measure (< 1 mm), give "last_visit" (the two agree where nothing was revisited)."""
+    robot, dx = pair.robot, pair.dx
+    w = robot.wheel_width
+    gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + w)
+    rut = np.isfinite(index.s) & (index.wheel_dist <= w / 4)
+    cells = np.argwhere(rut)
+    info = {"ratio": float("nan"), "cells": 0}
+    if len(cells) < min_cells:
+        return "last_visit", info
+    pts, arc = _wheel_samples(np.asarray(pair.poses, np.float64), robot, dx / 2)
+    xs, ys = pair.grid.centers()
+    xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
+    s_last = index.s[cells[:, 0], cells[:, 1]]
+    hits = cKDTree(pts).query_ball_point(xy, w / 4)
+    before = np.fromiter((len(h) > 0 and arc[h].min() < s - gap for h, s in zip(hits, s_last, strict=True)),
+                         bool, len(cells))
+    info["cells"] = int(before.sum())
+    if before.sum() < min_cells:
+        return "last_visit", info
+    i, j = cells[before].T
+    dev = {}
+    for name, h in (("front", pair.h_front), ("back", pair.h_back)):
+        h = np.asarray(h, np.float64)
+        d = (h - smooth_heightmap(h, w / dx))[i, j]
+        dev[name] = float(np.nanmedian(d)) if np.isfinite(d).any() else float("nan")
+    if not (dev["back"] < -1e-3):
+        return "last_visit", info
+    info["ratio"] = dev["front"] / dev["back"]
+    return ("first_view" if info["ratio"] < 0.25 else "last_visit"), info
+
+
+def earlier_poses(pair, before: int, ground_xy: np.ndarray, reach: float) -> list[np.ndarray]:
+    """The earlier visits over some ground: runs of the poses before pose `before` that bring
+    a wheel within `reach` [m] of any of the (G, 2) ground points, each as its (n, 7) poses
+    (one more on each side), in time order."""
+    if before <= 0 or len(ground_xy) == 0:
+        return []
+    poses = np.asarray(pair.poses[:before], np.float64)
+    wheels = wheel_positions(poses[:, [0, 1, 2, 6]], pair.robot.wheels[:, :2])        # (K, N, 2)
+    dist, _ = cKDTree(ground_xy).query(wheels.reshape(-1, 2), distance_upper_bound=reach)
+    on = np.isfinite(dist).reshape(wheels.shape[:2]).any(0)
+    idx = np.flatnonzero(on)
+    if len(idx) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(idx) > 1)
+    starts, ends = np.r_[idx[0], idx[breaks + 1]], np.r_[idx[breaks], idx[-1]]
+    return [np.asarray(pair.poses[max(a - 1, 0):min(b + 2, before + 1)], np.float64)
+            for a, b in zip(starts, ends, strict=True)]
+
+
 def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfig, sim: SimConfig,
                    device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = (),
-                   h_start: np.ndarray | None = None, h_back: np.ndarray | None = None) -> WindowData | None:
+                   h_start: np.ndarray | None = None, h_back: np.ndarray | None = None,
+                   view: str = "last_visit") -> WindowData | None:
     """Crop, fill and index one window. Returns None when the window holds no ground at all.
 
     h_start: (X, Y) surface the simulation starts from (default: pair.h_front). h_back: (X, Y)
     measured surface after the wheels (default: pair.h_back; the estimator passes it net of
-    the map offset)."""
+    the map offset). view: what H_f holds on revisited ground (`front_view`); with
+    "first_view" the earlier visits over the window's ground are part of the window
+    (`WindowData.earlier`)."""
     robot = pair.robot
     w = robot.wheel_width
     ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est.corridor / 2)
@@ -194,8 +269,17 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     sel = (index.arc >= spec.s0 - reach) & (index.arc <= spec.s1 + reach)
     first, last = np.flatnonzero(sel)[[0, -1]]
     poses = pair.poses[max(first - 1, 0):last + 2]
-    geom = wheel_geometry(grid, poses, robot, pose_spacing=sim.pose_spacing, band_width=sim.band_width,
-                          relax_margin=sim.relax_margin, device=device, dtype=dtype)
+    gkw = dict(pose_spacing=sim.pose_spacing, band_width=sim.band_width, relax_margin=sim.relax_margin,
+               device=device, dtype=dtype)
+    geom = wheel_geometry(grid, poses, robot, **gkw)
+    earlier: tuple[WheelGeometry, ...] = ()
+    if view == "first_view":
+        xs, ys = pair.grid.centers()
+        ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
+        gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + w)      # travel between two visits
+        before = int(np.searchsorted(index.arc, spec.s0 - reach - gap))
+        runs = earlier_poses(pair, before, ground_xy, w / 2 + sim.relax_margin * w)
+        earlier = tuple(wheel_geometry(grid, p, robot, **gkw) for p in runs if len(p) >= 2)
 
     hf = np.asarray((pair.h_front if h_start is None else h_start)[sl], dtype=np.float64)
     raw = np.asarray(pair.h_front[sl], dtype=np.float64)
@@ -231,4 +315,5 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
         x=float(np.interp(c, index.arc, pair.poses[:, 1])),
         y=float(np.interp(c, index.arc, pair.poses[:, 2])),
         flags=tuple(flags),
+        earlier=earlier,
     )

@@ -5,13 +5,9 @@ import math
 import numpy as np
 import pytest
 
+from tests.drive_by_hand import poses_from, racetrack
 from torchsoil.diagnosis.covariates import DriveSignals, pose_signals, window_signals
 from torchsoil.robot import paper_platform
-
-
-def poses_from(t, x, y, yaw, roll=None, pitch=None):
-    z = np.zeros_like(t)
-    return np.column_stack([t, x, y, z, z if roll is None else roll, z if pitch is None else pitch, yaw])
 
 
 def test_circle_speed_turn_rate_and_lateral_accel():
@@ -37,27 +33,6 @@ def test_acceleration_and_traction_demand_with_climb():
     assert np.allclose(sig["traction"][mid], acc / 9.81 + math.sin(0.05), atol=1e-3)
 
 
-def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05):
-    """East along y = 0 for L, half circle left, west along y = 2R, half circle left, east again."""
-    pts = []
-    s = np.arange(0, 2 * L + 2 * math.pi * R + L / 2, v * dt)
-    for si in s:
-        if si < L:
-            pts.append((si, 0.0, 0.0))
-        elif si < L + math.pi * R:
-            a = (si - L) / R
-            pts.append((L + R * math.sin(a), R - R * math.cos(a), a))
-        elif si < 2 * L + math.pi * R:
-            pts.append((L - (si - L - math.pi * R), 2 * R, math.pi))
-        elif si < 2 * L + 2 * math.pi * R:
-            a = (si - 2 * L - math.pi * R) / R
-            pts.append((-R * math.sin(a), R + R * math.cos(a), math.pi + a))
-        else:
-            pts.append((si - 2 * L - 2 * math.pi * R, 0.0, 2 * math.pi))
-    p = np.array(pts)
-    return poses_from(s / v, p[:, 0], p[:, 1], p[:, 2])
-
-
 def test_passes_count_the_ground_driven_twice_only():
     robot = paper_platform()
     poses = racetrack()
@@ -72,6 +47,11 @@ def test_passes_count_the_ground_driven_twice_only():
     assert (drive.pose_passes(p4[again], robot) == 1).all()
     w = window_signals(drive, [(5.0, 5.8), (arc[-1] - 1.0, arc[-1])], robot)
     assert w["passes"][0] == 0 and w["passes"][1] == pytest.approx(1.0)
+    # counted before each pose's own visit (a simulation that drives every visit): the first
+    # lap's wheels found fresh ground, the second lap's the first lap's ruts
+    assert drive.pose_passes(p4[first], robot, before=True).max() == 0
+    assert (drive.pose_passes(p4[again], robot, before=True) == 1).all()
+    assert drive.pose_passes(p4[west], robot, before=True).max() == 0
 
 
 @pytest.mark.parametrize("bad, msg", [(np.zeros((10, 6)), "(N, 7)"), (np.zeros((2, 7)), "at least 3"),

@@ -78,14 +78,16 @@ def get(ext_id: str) -> Extension:
 
 
 def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.ndarray, k: float,
-                 reference: dict[str, float]) -> np.ndarray:
+                 reference: dict[str, float], before: bool = False) -> np.ndarray:
     """(K, N) sinkage factor of a depth term at (N, 4) resampled poses t, x, y, yaw.
 
-    reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed)."""
+    reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed). before:
+    count the passes before each pose's own (when earlier visits are simulated too), not all
+    but the last (DriveSignals.passes)."""
     K, N = len(robot.wheels), len(poses4)
     t = poses4[:, 0]
     if ext.id == "multi_pass_hardening":
-        x = drive.pose_passes(poses4, robot).astype(np.float64)
+        x = drive.pose_passes(poses4, robot, before=before).astype(np.float64)
     elif ext.id == "speed_dependent_sinkage":
         v0 = max(reference.get("speed", 1.0), 1e-3)
         x = np.broadcast_to(drive.at("speed", t) / v0 - 1.0, (K, N))
@@ -102,8 +104,10 @@ def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.n
 class ExtensionModel:
     """An extension with a fixed coefficient, applied to the windows of one drive.
 
-    `modifiers(wd, theta)` returns the sim.Modifiers for window data wd (torchsoil.windows)
-    and full parameters theta (B, P) [m, -, rad]; sinkage factors are cached per window."""
+    `modifiers(wd, theta, geom)` returns the sim.Modifiers for window data wd
+    (torchsoil.windows), full parameters theta (B, P) [m, -, rad] and the visit simulated
+    (geom: wd.geom, the default, or one of wd.earlier); sinkage factors are cached per visit.
+    When a window simulates earlier visits, passes count those before each pose."""
 
     def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot):
         lo, hi = ext.bounds
@@ -113,16 +117,18 @@ class ExtensionModel:
         self.reference = {"speed": float(np.mean(drive.signals["speed"]))}
         self._cache: dict[tuple, torch.Tensor] = {}
 
-    def modifiers(self, wd, theta: torch.Tensor) -> Modifiers:
+    def modifiers(self, wd, theta: torch.Tensor, geom=None) -> Modifiers:
         B = theta.shape[0]
         kw = dict(device=theta.device, dtype=theta.dtype)
+        geom = wd.geom if geom is None else geom
         if self.ext.kind == "depth":
-            key = (wd.spec.s0, wd.spec.s1, wd.crop, int(wd.geom.poses.shape[0]))
+            key = (wd.spec.s0, wd.spec.s1, wd.crop, int(geom.poses.shape[0]), float(geom.poses[0, 0]))
             if key not in self._cache:
-                poses4 = wd.geom.poses.cpu().numpy()
-                f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference)
+                poses4 = geom.poses.cpu().numpy()
+                f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference,
+                                 before=bool(getattr(wd, "earlier", ())))
                 self._cache[key] = torch.as_tensor(f, **kw)
-                if len(self._cache) > 32:          # the held-out offsets revisit windows up to 6 back
+                if len(self._cache) > 64:          # the held-out offsets revisit windows up to 6 back
                     self._cache.pop(next(iter(self._cache)))
             return Modifiers(depth_scale=self._cache[key][None].expand(B, -1, -1))
         if self.ext.kind == "radius":

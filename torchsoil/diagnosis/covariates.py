@@ -120,15 +120,17 @@ class DriveSignals:
             raise KeyError(f"unknown signal {name!r}; known: {sorted(self.signals)}")
         return np.interp(np.asarray(t, np.float64), self.signals["t"], self.signals[name])
 
-    def passes(self, points: np.ndarray, arc: np.ndarray) -> np.ndarray:
+    def passes(self, points: np.ndarray, arc: np.ndarray, before: bool = False) -> np.ndarray:
         """Passes before the last one over the ground at `points` (..., 2) [m]: distinct visits
         (separated by more than `gap` of base_link travel) of any wheel within `radius`, each
         weighted by its closest wheel's distance (1 within `inner`, falling linearly to 0 at
         `radius`), all but the last. A terrain pair holds the surface just before the last
         visit to each cell, so the deformation it shows there is that of the last pass, whose
         earlier passes these are, whichever pass the pose itself belongs to. arc: (...)
-        base_link arc length [m] (kept for the call signature; every visit counts). Returns a
-        float array of arc's shape (whole numbers where old tracks are driven exactly)."""
+        base_link arc length [m] of the pose at each point; before: count only the visits that
+        ended more than `gap` / 2 of travel before it (the passes before the pose's own, for a
+        simulation that drives every visit). Returns a float array of arc's shape (whole
+        numbers where old tracks are driven exactly)."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
         if self._tree is None:
             self._tree = cKDTree(self.wheel_points)
@@ -147,15 +149,20 @@ class DriveSignals:
         first = np.flatnonzero(np.r_[True, (i[1:] != i[:-1]) | (np.diff(a) > self.gap)])   # visit starts
         best = np.maximum.reduceat(share, first)                         # closest wheel of each visit
         owner = i[first]
-        earlier = np.r_[owner[1:] == owner[:-1], False]                  # every visit but a point's last
+        if before:
+            ends = np.maximum.reduceat(a, first)
+            earlier = ends < np.asarray(arc, np.float64).reshape(-1)[owner] - self.gap / 2
+        else:
+            earlier = np.r_[owner[1:] == owner[:-1], False]              # every visit but a point's last
         out += np.bincount(owner, weights=best * earlier, minlength=len(pts))
         return out.reshape(np.shape(points)[:-1])
 
-    def pose_passes(self, poses4: np.ndarray, robot: Robot) -> np.ndarray:
-        """(N, 4) poses t, x, y, yaw -> (K, N) earlier passes under each wheel (float)."""
+    def pose_passes(self, poses4: np.ndarray, robot: Robot, before: bool = False) -> np.ndarray:
+        """(N, 4) poses t, x, y, yaw -> (K, N) earlier passes under each wheel (float); before:
+        see `passes`."""
         w = wheel_positions(np.asarray(poses4, np.float64), robot.wheels[:, :2])
         arc = self.at("arc_length", poses4[:, 0])
-        return self.passes(w, np.broadcast_to(arc, w.shape[:2]))
+        return self.passes(w, np.broadcast_to(arc, w.shape[:2]), before)
 
 
 def window_signals(drive: DriveSignals, spans: list[tuple[float, float]], robot: Robot) -> dict[str, np.ndarray]:

@@ -33,7 +33,8 @@ class Pass:
     used to fit it); held_out: (W,) mean of all of them, the per-window held-out cost. Far
     offsets carry a fit across changes of a covariate, where a missing term shows. index: the
     windows.PathIndex the pass used (shared by the passes of one diagnosis); nuisance: the map
-    offset it removed from H_b (nuisance.MapNuisance or None; shared likewise)."""
+    offset it removed from H_b (nuisance.MapNuisance or None; shared likewise); view: what
+    H_f holds on revisited ground (Estimator.view; shared likewise)."""
 
     k: float
     rows: list[dict]
@@ -44,6 +45,7 @@ class Pass:
     backward: np.ndarray | None = None
     index: object = None
     nuisance: object = None
+    view: str | None = None
 
     @property
     def held_out(self) -> np.ndarray:
@@ -58,16 +60,16 @@ class Pass:
 def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
              profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
-             index=None, nuisance=None) -> Pass:
+             index=None, nuisance=None, view: str | None = None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
     on_window: optional callable(k, WindowOutput, estimator) called after every window.
     offsets: windows back (in strides) on whose ground each fit is also scored; use
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
-    recomputing it; nuisance likewise (Pass.nuisance)."""
+    recomputing it; nuisance and view likewise (Pass.nuisance, Pass.view)."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
-                          nuisance=nuisance)
+                          nuisance=nuisance, view=view)
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
@@ -99,7 +101,7 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     pred = np.array([r["prediction"] for r in rows], np.float64)
     return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
                 np.array(backward, np.float64).reshape(len(rows), len(offsets)), estimator.index,
-                estimator.nuisance)
+                estimator.nuisance, estimator.view)
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -163,7 +165,8 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
         if any(abs(k - q) < 1e-9 for q in passes):
             return
         passes[k] = run_pass(pair, est, sim, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
-                             theta0=theta0, offsets=offsets, index=base.index, nuisance=base.nuisance)
+                             theta0=theta0, offsets=offsets, index=base.index, nuisance=base.nuisance,
+                             view=base.view)
         if progress is not None:
             progress.update(1)
 

@@ -199,16 +199,20 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
     """Measured before/after heightmaps from the truth (FORMATS.md section 3).
 
     h_front: the surface before the last visit of the wheels to each cell (before the robot
-    for single passes); h_back: the final surface; each with the scenario's measurement
+    for single passes), or with probability measurement.first_view the surface before the
+    robot everywhere; h_back: the final surface; each with the scenario's measurement
     nuisances drawn from `seed` (synth.measurement; by default independent per-cell Gaussian
     noise of 3 mm only). noise: overrides measurement.noise, m. Extra keys: `n_visits`
     (X, Y), `scenario` (its name) and `nuisances` (JSON: the tyre and measurement draws)."""
     w = truth.world
-    last = np.maximum(w.n_visits - 1, 0)
+    cfg = truth.scenario.measurement
+    first_view = bool(np.random.default_rng(np.random.SeedSequence([int(seed), 19])).random() < cfg.first_view)
+    last = np.zeros_like(w.n_visits) if first_view else np.maximum(w.n_visits - 1, 0)
     h_pre = np.take_along_axis(w.states, last[None], 0)[0]
     half_width = float(np.abs(truth.robot.wheels[:, 1]).max()) + CORRIDOR / 2
-    h_front, h_back, drawn = apply_measurement(h_pre, w.h_after, w.grid, truth.traj.poses,
-                                               truth.scenario.measurement, seed, noise, half_width)
+    h_front, h_back, drawn = apply_measurement(h_pre, w.h_after, w.grid, truth.traj.poses, cfg, seed, noise,
+                                               half_width)
+    drawn["front_view"] = "first_view" if first_view else "last_visit"
     r = truth.robot
     return {
         "dx": np.float64(w.grid.dx),
