@@ -170,6 +170,12 @@ def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
     return best > duration
 
 
+def visit_gap(robot: Robot) -> float:
+    """base_link travel [m] after which the wheels coming back over some ground make a new
+    visit: twice the wheelbase plus a wheel width (as the recorder's world counts them)."""
+    return 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
+
+
 def _wheel_samples(poses: np.ndarray, robot: Robot, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     """(M, 2) wheel centres along the drive every `spacing` m or less, and (M,) base_link arc
     length there, m."""
@@ -191,8 +197,7 @@ def front_view(pair, index: PathIndex, min_cells: int = 50) -> tuple[str, dict]:
     Returns (view, {"ratio", "cells"}); too few revisited cells, or ruts too shallow to
     measure (< 1 mm), give "last_visit" (the two agree where nothing was revisited)."""
     robot, dx = pair.robot, pair.dx
-    w = robot.wheel_width
-    gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + w)
+    w, gap = robot.wheel_width, visit_gap(robot)
     rut = np.isfinite(index.s) & (index.wheel_dist <= w / 4)
     cells = np.argwhere(rut)
     info = {"ratio": float("nan"), "cells": 0}
@@ -276,8 +281,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     if view == "first_view":
         xs, ys = pair.grid.centers()
         ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
-        gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + w)      # travel between two visits
-        before = int(np.searchsorted(index.arc, spec.s0 - reach - gap))
+        before = int(np.searchsorted(index.arc, spec.s0 - reach - visit_gap(robot)))
         runs = earlier_poses(pair, before, ground_xy, w / 2 + sim.relax_margin * w)
         earlier = tuple(wheel_geometry(grid, p, robot, **gkw) for p in runs if len(p) >= 2)
 
