@@ -63,3 +63,28 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
     used = accept_in_order(fits, p, 0.05, 0.6)
     assert [f.accepted for f in fits] == [False, False, False]
     assert used[1] == pytest.approx(stats.norm.isf(0.01))
+
+
+def _straight_pair(section):
+    from torchsoil.synth.scenario import make_terrain_pair
+    from torchsoil.terrain import TerrainPair
+
+    scn = {"trajectory": {"segments": [{"straight": 5.0, "speed": 1.0}]},
+           "soil": {"base": {"d": 0.035, "chi": 0.2, "beta_deg": 30.0}},
+           "tyre": {"sections": [section]}, "world": {"chunk": 0.1}}
+    return TerrainPair.from_mapping(make_terrain_pair(scn, seed=3))
+
+
+@pytest.mark.parametrize(("section", "want"), [("flat", 0.85), ("taper", 0.0)])
+def test_tyre_section_is_fitted_as_a_nuisance(section, want):
+    # the world's flat tread (flat to |q| = 0.9, synth.world.section_profile) against a robot
+    # described with a cosine taper (f = 0); a taper world keeps the robot's section
+    from torchsoil.diagnosis.fit import fit_section
+    from torchsoil.settings import EstimatorConfig, SimConfig
+
+    pair = _straight_pair(section)
+    assert pair.wheel_flat_fraction == 0.0
+    f, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), (0.0, 0.4, 0.85))
+    assert f == want and set(costs) == {0.0, 0.4, 0.85}
+    assert costs[want] < min(c for k, c in costs.items() if k != want)
+    assert set(shared) == {"index", "nuisance", "view"} and pair.wheel_flat_fraction == 0.0   # not changed in place

@@ -108,8 +108,10 @@ def test_realistic_draws_stay_in_their_ranges_and_follow_the_seed():
         assert 0.005 < d["lost_front"] < 0.05
     tyres = [draw_tyre(TyreConfig(**REALISTIC["tyre"]), s) for s in range(40)]
     assert {t["section"] for t in tyres} == {"taper", "flat", "rounded", "crowned"}
-    assert all(0.85 <= t["width_scale"] <= 1.25 for t in tyres)
+    assert all(t["width_scale"] == 1.0 for t in tyres)     # a wider footprint is an effect, not a nuisance
     assert draw_tyre(TyreConfig(**REALISTIC["tyre"]), 7) == tyres[7]
+    wide = [draw_tyre(TyreConfig(width_scale=(0.85, 1.25)), s)["width_scale"] for s in range(40)]
+    assert all(0.85 <= w <= 1.25 for w in wide) and max(wide) - min(wide) > 0.2
     assert draw_tyre(TyreConfig(), 7) == {"section": "taper", "width_scale": 1.0}
 
 

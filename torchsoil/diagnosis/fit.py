@@ -10,6 +10,7 @@ so the extra parameter pays for itself only if it predicts ground it was not cho
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -104,6 +105,41 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
                 estimator.nuisance, estimator.view)
 
 
+def fit_section(pair, est: EstimatorConfig, sim: SimConfig, fractions: tuple[float, ...], every: int = 3,
+                progress=None, model: ExtensionModel | None = None, shared: dict | None = None
+                ) -> tuple[float, dict[float, float], dict]:
+    """The tyre section as a nuisance: the flat fraction f of the footprint taper
+    (sim.sinkage.taper; robot `wheel_flat_fraction`) that fits the drive best.
+
+    A robot description rarely knows its tyre's section (rounded, crowned, flat tread) or
+    how it flattens on a given soil; a wrong one leaves a systematic rut-shoulder residual
+    that a shape term (footprint_width) would otherwise be fitted to. The estimator runs on
+    every `every`-th window (with the default 0.8 m window and 0.4 m stride, every 3rd: ground
+    that does not overlap) once per candidate f, the robot's own and `fractions`; one
+    parameter for the whole drive against hundreds of cells per window, so the windows' own
+    residual (m) decides. model: an extension with a fixed coefficient to fit the section
+    under (a wider footprint and a flatter section both widen the rut: a footprint term must
+    beat the base model at its own best section, with the section it needs itself). shared:
+    run_pass's index, nuisance and view, when already known. Returns (best f, {f: mean
+    residual, m}, {index, nuisance, view}: run_pass's keywords for later passes)."""
+    candidates = sorted({float(pair.wheel_flat_fraction), *map(float, fractions)})
+    costs: dict[float, float] = {}
+    shared = dict(shared or {})
+    for f in candidates:
+        estimator = Estimator(dataclasses.replace(pair, wheel_flat_fraction=f), est, sim,
+                              modifiers=model.modifiers if model is not None else None, **shared)
+        shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view}
+        estimator.windows = estimator.windows[::max(1, every)]
+        res = [o.row["residual"] for o in estimator.run()]
+        costs[f] = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+        if progress is not None:
+            progress.set_postfix_str(f"tyre section f={f:.2f}")
+    best = min(candidates, key=lambda f: (costs[f], abs(f - pair.wheel_flat_fraction)))
+    if progress is not None:
+        progress.update(1)
+    return best, costs, shared
+
+
 def folds(n: int, block: int) -> np.ndarray:
     """(n,) fold label 0/1 of each window: alternating blocks of `block` windows."""
     return (np.arange(n) // max(1, block)) % 2
@@ -117,7 +153,8 @@ class CandidateFit:
     coefficient each fold was scored with (chosen on the other fold). prediction: (W,)
     cross-validated next-window cost per window [m]; held_out: the same for the mean of the
     next- and previous-window costs. improvement, se, z: paired per-window improvement of
-    held_out over the base model. passes: every pass run, by coefficient."""
+    held_out over the base model. passes: every pass run, by coefficient; flat_fraction: the
+    tyre section each was run with (fit_section), by coefficient."""
 
     ext: Extension
     k: float
@@ -130,6 +167,7 @@ class CandidateFit:
     passes: dict[float, Pass]
     held_out: np.ndarray | None = None
     accepted: bool = False
+    flat_fraction: dict[float, float] | None = None
 
 
 def _mean(x: np.ndarray, sel: np.ndarray) -> float:
@@ -154,19 +192,26 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
 
 def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, drive: DriveSignals, base: Pass,
                   block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
-                  offsets: tuple[int, ...] = (2, 4, 6)) -> CandidateFit:
+                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[float, ...] = ()) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
-    the base pass (which must have been scored with the same `offsets`)."""
+    the base pass (which must have been scored with the same `offsets`). sections: tyre flat
+    fractions (`fit_section`) a footprint term's passes choose their own from (the pair's
+    is the base model's)."""
     passes: dict[float, Pass] = {0.0: base}
+    shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view}
+    flat: dict[float, float] = {0.0: float(pair.wheel_flat_fraction)}
 
     def run(k: float) -> None:
         k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
-        passes[k] = run_pass(pair, est, sim, ExtensionModel(ext, k, drive, pair.robot), profiles=True,
-                             theta0=theta0, offsets=offsets, index=base.index, nuisance=base.nuisance,
-                             view=base.view)
+        model = ExtensionModel(ext, k, drive, pair.robot)
+        flat[k] = flat[0.0]
+        if ext.kind == "radius" and sections:
+            flat[k] = fit_section(pair, est, sim, sections, model=model, shared=shared)[0]
+        passes[k] = run_pass(dataclasses.replace(pair, wheel_flat_fraction=flat[k]), est, sim, model,
+                             profiles=True, theta0=theta0, offsets=offsets, **shared)
         if progress is not None:
             progress.update(1)
 
@@ -192,7 +237,8 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
             out[lab == f] = getattr(passes[k_best], src)[lab == f]
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
     imp, se, z = paired_improvement(base.held_out, held)
-    return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes, held)
+    return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes, held,
+                        flat_fraction=flat)
 
 
 def accept(fit: CandidateFit, z_crit: float) -> bool:

@@ -23,10 +23,16 @@ def _mm(x: float) -> str:
 
 def explain(diag) -> str:
     """One paragraph, plain language, from a Diagnosis; ends with what was removed from the
-    maps as measurement nuisance (offset, tilt) before anything was fitted."""
+    maps as measurement nuisance (offset, tilt) before anything was fitted, and the tyre
+    section the base model was given."""
     removed = diag.evidence.get("map_nuisance_text")
     note = (f" Removed from H_b before fitting, as measurement rather than physics: {removed}."
             if removed else " No map offset was removed (estimator.nuisance.offset is off).")
+    sec = diag.evidence.get("tyre_section")
+    if sec is not None:
+        note += (f" Tyre section fitted as a nuisance: flat fraction {sec['fitted']:.2f}"
+                 + (f" (the robot description says {sec['declared']:.2f})." if sec["fitted"] != sec["declared"]
+                    else ", as the robot description says."))
     return _explain(diag) + note
 
 

@@ -3,6 +3,7 @@ accept one only on held-out evidence, and give the verdict (FORMATS.md section 4
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import asdict, dataclass
 
@@ -11,7 +12,7 @@ from scipy import stats
 
 from torchsoil.diagnosis import catalogue
 from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, window_signals
-from torchsoil.diagnosis.fit import CandidateFit, Pass, accept, fit_extension, run_pass
+from torchsoil.diagnosis.fit import CandidateFit, Pass, accept, fit_extension, fit_section, run_pass
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
 from torchsoil.estimator import Stitcher
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
@@ -152,6 +153,12 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     estimator and simulator settings (their sections; defaults when None). progress:
     optional tqdm-like bar (update(n))."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
+    section, shared = None, {}
+    if cfg.flat_fractions:
+        declared = float(pair.wheel_flat_fraction)
+        f, costs, shared = fit_section(pair, est, sim, cfg.flat_fractions, progress=progress)
+        section = {"declared": declared, "fitted": f, "residual": costs}
+        pair = dataclasses.replace(pair, wheel_flat_fraction=f)
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
     window, stride = est.window, est.stride
@@ -167,7 +174,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         if progress is not None and k % 5 == 0:
             progress.set_postfix_str(f"base window {k}")
 
-    base = run_pass(pair, est, sim, profiles=True, on_window=keep, offsets=cfg.offsets)
+    base = run_pass(pair, est, sim, profiles=True, on_window=keep, offsets=cfg.offsets, **shared)
     if progress is not None:
         progress.update(1)
     rows = base.rows
@@ -194,7 +201,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
-                          theta0, progress, cfg.offsets)
+                          theta0, progress, cfg.offsets, cfg.flat_fractions)
         fits.append(f)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
                                               cfg.lead_share), strict=True))
@@ -254,6 +261,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "pairwise": pairwise,
                 "map_nuisance": base.nuisance.summary() if base.nuisance is not None else None,
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
+                "tyre_section": section,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
@@ -281,7 +289,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:
     """Upper bound on the estimator passes of one diagnosis (for a progress bar)."""
     cfg = cfg or DiagnosisConfig()
-    return 1 + cfg.n_fit * (3 + cfg.refine_steps)
+    return 1 + bool(cfg.flat_fractions) + cfg.n_fit * (3 + cfg.refine_steps)
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]
