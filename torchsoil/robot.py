@@ -18,12 +18,15 @@ class Robot:
         wheels: (K, 3) float64, contact centres in base_link x, y [m] and track index.
         wheel_flat_fraction: tyre cross-section shape f in [0, 1): 0 rounded, near 1 flat.
         names: K wheel names.
+        wheel_section_exponent: exponent e > 0 of the taper (sim.sinkage.taper; 1: the taper
+            FORMATS.md describes; the diagnosis fits it with f as a nuisance).
     """
 
     wheel_width: float
     wheels: np.ndarray
     wheel_flat_fraction: float = 0.0
     names: tuple[str, ...] = ()
+    wheel_section_exponent: float = 1.0
 
     def __post_init__(self):
         w = np.asarray(self.wheels, dtype=np.float64)
@@ -41,6 +44,8 @@ class Robot:
             raise ValueError(f"wheel_width must be a positive length in metres, got {self.wheel_width}")
         if not 0.0 <= self.wheel_flat_fraction < 1.0:
             raise ValueError(f"wheel_flat_fraction must be in [0, 1), got {self.wheel_flat_fraction}")
+        if not (np.isfinite(self.wheel_section_exponent) and self.wheel_section_exponent > 0):
+            raise ValueError(f"wheel_section_exponent must be positive, got {self.wheel_section_exponent}")
         object.__setattr__(self, "wheels", w)
         if not self.names:
             object.__setattr__(self, "names", tuple(f"wheel{i}" for i in range(len(w))))
@@ -74,6 +79,7 @@ class Robot:
                 wheels=np.array(wheels, dtype=np.float64),
                 wheel_flat_fraction=float(doc.get("wheel_flat_fraction", 0.0) or 0.0),
                 names=names,
+                wheel_section_exponent=float(doc.get("wheel_section_exponent", 1.0) or 1.0),
             )
         except (KeyError, TypeError) as e:
             raise ValueError(f"{source}: missing or malformed key {e} (see FORMATS.md section 2)") from None
@@ -82,10 +88,11 @@ class Robot:
     def from_npz(cls, data) -> Robot:
         """Robot from a terrain-pair npz mapping (keys `wheels`, `wheel_width`, `wheel_flat_fraction`)."""
         flat = float(data["wheel_flat_fraction"]) if "wheel_flat_fraction" in data else 0.0
-        return cls(float(data["wheel_width"]), np.asarray(data["wheels"]), flat)
+        e = float(data["wheel_section_exponent"]) if "wheel_section_exponent" in data else 1.0
+        return cls(float(data["wheel_width"]), np.asarray(data["wheels"]), flat, wheel_section_exponent=e)
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "wheel_width": float(self.wheel_width),
             "wheel_flat_fraction": float(self.wheel_flat_fraction),
             "wheels": [
@@ -93,6 +100,9 @@ class Robot:
                 for n, (x, y, t) in zip(self.names, self.wheels, strict=True)
             ],
         }
+        if self.wheel_section_exponent != 1.0:
+            out["wheel_section_exponent"] = float(self.wheel_section_exponent)
+        return out
 
 
 ROBOT_DIR = Path(__file__).resolve().parent / "configs" / "robot"

@@ -297,11 +297,14 @@ class DiagnosisConfig(Section):
     refine_steps: int = Field(2, ge=0, description="parabolic refinements of a candidate's coefficient")
     offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "
                                                             "each fit is also scored")
-    flat_fractions: tuple[float, ...] = Field(
-        (0.0, 0.3, 0.6, 0.85), description="tyre flat fractions (sim.sinkage.taper) tried besides the robot's "
-                                           "own; the best fit on the drive's windows is the base model's tyre "
-                                           "section, a nuisance (a wrong section is not a footprint effect); "
-                                           "(): the robot's as described, -")
+    sections: tuple[tuple[float, float], ...] = Field(
+        ((0.0, 1.0), (0.3, 1.0), (0.6, 1.0), (0.85, 1.0), (0.0, 0.5), (0.0, 0.25), (0.5, 0.5)),
+        description="tyre sections (flat fraction f, taper exponent e; sim.sinkage.taper) tried besides the "
+                    "robot's own; the best fit on the drive's windows is the base model's section, a nuisance "
+                    "(a rounded or crowned tyre is not missing physics); (): the robot's as described, -")
+    footprint_sections: int = Field(3, ge=1, description="a footprint term's passes choose their own section "
+                                                         "among this many best for the base model and "
+                                                         "the robot's own")
     min_spread: dict[str, float] = Field(
         default_factory=lambda: {"speed": 0.05, "traction": 0.004, "lateral_load": 0.004, "passes": 0.05},
         description="smallest spread (std over windows) of a covariate for its term to be testable, in "

@@ -21,7 +21,7 @@ from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 
 REQUIRED = ("dx", "origin", "h_front", "h_back", "poses", "wheels", "wheel_width")
-KNOWN = (*REQUIRED, "wheel_flat_fraction")
+KNOWN = (*REQUIRED, "wheel_flat_fraction", "wheel_section_exponent")
 
 
 @dataclass
@@ -37,6 +37,7 @@ class TerrainPair:
         wheels: (K, 3) float64 wheel contact centres in base_link x, y [m] and track index.
         wheel_width: m.
         wheel_flat_fraction: tyre taper f in [0, 1).
+        wheel_section_exponent: exponent e > 0 of the taper (Robot; 1 unless fitted).
         extras: other arrays stored alongside (name -> array).
     """
 
@@ -49,6 +50,7 @@ class TerrainPair:
     wheel_width: float
     wheel_flat_fraction: float = 0.0
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    wheel_section_exponent: float = 1.0
 
     def __post_init__(self):
         self.validate()
@@ -91,12 +93,14 @@ class TerrainPair:
         self.poses = poses
         try:
             robot = Robot(float(np.asarray(self.wheel_width)), np.asarray(self.wheels),
-                          float(np.asarray(self.wheel_flat_fraction)))
+                          float(np.asarray(self.wheel_flat_fraction)),
+                          wheel_section_exponent=float(np.asarray(self.wheel_section_exponent)))
         except ValueError as e:
             fail("wheels/wheel_width/wheel_flat_fraction", str(e))
         self.wheels = robot.wheels
         self.wheel_width = robot.wheel_width
         self.wheel_flat_fraction = robot.wheel_flat_fraction
+        self.wheel_section_exponent = robot.wheel_section_exponent
         for key, value in self.extras.items():
             if key in KNOWN:
                 fail(key, "is a standard key and cannot also be an extra")
@@ -109,7 +113,8 @@ class TerrainPair:
 
     @property
     def robot(self) -> Robot:
-        return Robot(self.wheel_width, self.wheels, self.wheel_flat_fraction)
+        return Robot(self.wheel_width, self.wheels, self.wheel_flat_fraction,
+                     wheel_section_exponent=self.wheel_section_exponent)
 
     @property
     def h_delta(self) -> np.ndarray:
@@ -128,6 +133,8 @@ class TerrainPair:
             "wheel_width": np.float64(self.wheel_width),
             "wheel_flat_fraction": np.float64(self.wheel_flat_fraction),
         }
+        if self.wheel_section_exponent != 1.0:
+            out["wheel_section_exponent"] = np.float64(self.wheel_section_exponent)
         out.update(self.extras)
         return out
 
@@ -161,6 +168,7 @@ class TerrainPair:
         pair.h_front, pair.h_back = data["h_front"], data["h_back"]
         pair.poses, pair.wheels = data["poses"], data["wheels"]
         pair.wheel_width, pair.wheel_flat_fraction = data["wheel_width"], flat
+        pair.wheel_section_exponent = data["wheel_section_exponent"] if "wheel_section_exponent" in data else 1.0
         pair.extras = extras
         pair.validate(source)
         return pair

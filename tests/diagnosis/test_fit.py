@@ -75,16 +75,19 @@ def _straight_pair(section):
     return TerrainPair.from_mapping(make_terrain_pair(scn, seed=3))
 
 
-@pytest.mark.parametrize(("section", "want"), [("flat", 0.85), ("taper", 0.0)])
+@pytest.mark.parametrize(("section", "want"), [("flat", (0.85, 1.0)), ("taper", (0.0, 1.0)),
+                                             ("rounded", (0.0, 0.25))])
 def test_tyre_section_is_fitted_as_a_nuisance(section, want):
-    # the world's flat tread (flat to |q| = 0.9, synth.world.section_profile) against a robot
-    # described with a cosine taper (f = 0); a taper world keeps the robot's section
+    # the world's flat tread (flat to |q| = 0.9) and elliptic section sqrt(1 - q^2)
+    # (synth.world.section_profile) against a robot described with a cosine taper (f = 0,
+    # e = 1); a taper world keeps the robot's section
     from torchsoil.diagnosis.fit import fit_section
     from torchsoil.settings import EstimatorConfig, SimConfig
 
     pair = _straight_pair(section)
-    assert pair.wheel_flat_fraction == 0.0
-    f, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), (0.0, 0.4, 0.85))
-    assert f == want and set(costs) == {0.0, 0.4, 0.85}
+    assert (pair.wheel_flat_fraction, pair.wheel_section_exponent) == (0.0, 1.0)
+    tried = ((0.0, 1.0), (0.4, 1.0), (0.85, 1.0), (0.0, 0.25))
+    best, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
+    assert best == want and set(costs) == set(tried)
     assert costs[want] < min(c for k, c in costs.items() if k != want)
     assert set(shared) == {"index", "nuisance", "view"} and pair.wheel_flat_fraction == 0.0   # not changed in place

@@ -105,36 +105,51 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
                 estimator.nuisance, estimator.view)
 
 
-def fit_section(pair, est: EstimatorConfig, sim: SimConfig, fractions: tuple[float, ...], every: int = 3,
-                progress=None, model: ExtensionModel | None = None, shared: dict | None = None
-                ) -> tuple[float, dict[float, float], dict]:
-    """The tyre section as a nuisance: the flat fraction f of the footprint taper
-    (sim.sinkage.taper; robot `wheel_flat_fraction`) that fits the drive best.
+Section = tuple[float, float]
+
+
+def section_of(pair) -> Section:
+    """The pair's tyre section (flat fraction f, taper exponent e) (sim.sinkage.taper)."""
+    return float(pair.wheel_flat_fraction), float(pair.wheel_section_exponent)
+
+
+def with_section(pair, section: Section):
+    """A copy of the pair whose robot has the tyre section (f, e)."""
+    return dataclasses.replace(pair, wheel_flat_fraction=section[0], wheel_section_exponent=section[1])
+
+
+def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int = 3, progress=None,
+                model: ExtensionModel | None = None, shared: dict | None = None
+                ) -> tuple[Section, dict[Section, float], dict]:
+    """The tyre section as a nuisance: the footprint taper (flat fraction f, exponent e;
+    sim.sinkage.taper) that fits the drive best.
 
     A robot description rarely knows its tyre's section (rounded, crowned, flat tread) or
-    how it flattens on a given soil; a wrong one leaves a systematic rut-shoulder residual
-    that a shape term (footprint_width) would otherwise be fitted to. The estimator runs on
-    every `every`-th window (with the default 0.8 m window and 0.4 m stride, every 3rd: ground
-    that does not overlap) once per candidate f, the robot's own and `fractions`; one
-    parameter for the whole drive against hundreds of cells per window, so the windows' own
-    residual (m) decides. model: an extension with a fixed coefficient to fit the section
-    under (a wider footprint and a flatter section both widen the rut: a footprint term must
-    beat the base model at its own best section, with the section it needs itself). shared:
-    run_pass's index, nuisance and view, when already known. Returns (best f, {f: mean
-    residual, m}, {index, nuisance, view}: run_pass's keywords for later passes)."""
-    candidates = sorted({float(pair.wheel_flat_fraction), *map(float, fractions)})
-    costs: dict[float, float] = {}
+    how it flattens on a given soil; a wrong one leaves a systematic residual on the rut
+    floor and shoulders that a shape term (footprint_width) would otherwise be fitted to, or
+    that reads as unexplained structure. The estimator runs on every `every`-th window (with
+    the default 0.8 m window and 0.4 m stride, every 3rd: ground that does not overlap) once
+    per candidate (f, e), the robot's own and `sections`; two numbers for the whole drive
+    against hundreds of cells per window, so the windows' own residual (m) decides. model: an
+    extension with a fixed coefficient to fit the section under (a wider footprint and a
+    fuller section both widen the rut: a footprint term must beat the base model at its
+    best section, with the section it needs itself). shared: run_pass's index, nuisance and
+    view, when already known. Returns (best (f, e), {(f, e): mean residual, m}, {index,
+    nuisance, view}: run_pass's keywords for later passes)."""
+    own = section_of(pair)
+    candidates = list(dict.fromkeys([own, *((float(f), float(e)) for f, e in sections)]))
+    costs: dict[Section, float] = {}
     shared = dict(shared or {})
-    for f in candidates:
-        estimator = Estimator(dataclasses.replace(pair, wheel_flat_fraction=f), est, sim,
+    for sec in candidates:
+        estimator = Estimator(with_section(pair, sec), est, sim,
                               modifiers=model.modifiers if model is not None else None, **shared)
         shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view}
         estimator.windows = estimator.windows[::max(1, every)]
         res = [o.row["residual"] for o in estimator.run()]
-        costs[f] = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+        costs[sec] = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
         if progress is not None:
-            progress.set_postfix_str(f"tyre section f={f:.2f}")
-    best = min(candidates, key=lambda f: (costs[f], abs(f - pair.wheel_flat_fraction)))
+            progress.set_postfix_str(f"tyre section f={sec[0]:.2f} e={sec[1]:.2f}")
+    best = min(candidates, key=lambda c: (costs[c], c != own))
     if progress is not None:
         progress.update(1)
     return best, costs, shared
@@ -153,8 +168,8 @@ class CandidateFit:
     coefficient each fold was scored with (chosen on the other fold). prediction: (W,)
     cross-validated next-window cost per window [m]; held_out: the same for the mean of the
     next- and previous-window costs. improvement, se, z: paired per-window improvement of
-    held_out over the base model. passes: every pass run, by coefficient; flat_fraction: the
-    tyre section each was run with (fit_section), by coefficient."""
+    held_out over the base model. passes: every pass run, by coefficient; sections: the tyre
+    section (f, e) each was run with (fit_section), by coefficient."""
 
     ext: Extension
     k: float
@@ -167,7 +182,7 @@ class CandidateFit:
     passes: dict[float, Pass]
     held_out: np.ndarray | None = None
     accepted: bool = False
-    flat_fraction: dict[float, float] | None = None
+    sections: dict[float, Section] | None = None
 
 
 def _mean(x: np.ndarray, sel: np.ndarray) -> float:
@@ -195,22 +210,22 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                   offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[float, ...] = ()) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
-    the base pass (which must have been scored with the same `offsets`). sections: tyre flat
-    fractions (`fit_section`) a footprint term's passes choose their own from (the pair's
-    is the base model's)."""
+    the base pass (which must have been scored with the same `offsets`). sections: tyre
+    sections (f, e) (`fit_section`) a footprint term's passes choose their own from (the
+    pair's is the base model's)."""
     passes: dict[float, Pass] = {0.0: base}
     shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view}
-    flat: dict[float, float] = {0.0: float(pair.wheel_flat_fraction)}
+    sec: dict[float, Section] = {0.0: section_of(pair)}
 
     def run(k: float) -> None:
         k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
         model = ExtensionModel(ext, k, drive, pair.robot)
-        flat[k] = flat[0.0]
+        sec[k] = sec[0.0]
         if ext.kind == "radius" and sections:
-            flat[k] = fit_section(pair, est, sim, sections, model=model, shared=shared)[0]
-        passes[k] = run_pass(dataclasses.replace(pair, wheel_flat_fraction=flat[k]), est, sim, model,
+            sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared)[0]
+        passes[k] = run_pass(with_section(pair, sec[k]), est, sim, model,
                              profiles=True, theta0=theta0, offsets=offsets, **shared)
         if progress is not None:
             progress.update(1)
@@ -238,7 +253,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
     imp, se, z = paired_improvement(base.held_out, held)
     return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes, held,
-                        flat_fraction=flat)
+                        sections=sec)
 
 
 def accept(fit: CandidateFit, z_crit: float) -> bool:

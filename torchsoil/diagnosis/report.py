@@ -30,8 +30,9 @@ def explain(diag) -> str:
             if removed else " No map offset was removed (estimator.nuisance.offset is off).")
     sec = diag.evidence.get("tyre_section")
     if sec is not None:
-        note += (f" Tyre section fitted as a nuisance: flat fraction {sec['fitted']:.2f}"
-                 + (f" (the robot description says {sec['declared']:.2f})." if sec["fitted"] != sec["declared"]
+        (f, e), (f0, e0) = sec["fitted"], sec["declared"]
+        note += (f" Tyre section fitted as a nuisance: taper flat to {f:.2f} of the radius, exponent {e:.2f}"
+                 + (f" (the robot description: {f0:.2f}, {e0:.2f})." if (f, e) != (f0, e0)
                     else ", as the robot description says."))
     return _explain(diag) + note
 

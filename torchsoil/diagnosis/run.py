@@ -3,7 +3,6 @@ accept one only on held-out evidence, and give the verdict (FORMATS.md section 4
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import asdict, dataclass
 
@@ -12,7 +11,16 @@ from scipy import stats
 
 from torchsoil.diagnosis import catalogue
 from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, window_signals
-from torchsoil.diagnosis.fit import CandidateFit, Pass, accept, fit_extension, fit_section, run_pass
+from torchsoil.diagnosis.fit import (
+    CandidateFit,
+    Pass,
+    accept,
+    fit_extension,
+    fit_section,
+    run_pass,
+    section_of,
+    with_section,
+)
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
 from torchsoil.estimator import Stitcher
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
@@ -153,12 +161,14 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     estimator and simulator settings (their sections; defaults when None). progress:
     optional tqdm-like bar (update(n))."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    section, shared = None, {}
-    if cfg.flat_fractions:
-        declared = float(pair.wheel_flat_fraction)
-        f, costs, shared = fit_section(pair, est, sim, cfg.flat_fractions, progress=progress)
-        section = {"declared": declared, "fitted": f, "residual": costs}
-        pair = dataclasses.replace(pair, wheel_flat_fraction=f)
+    section, shared, tried = None, {}, ()
+    if cfg.sections:
+        declared = section_of(pair)
+        best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress)
+        section = {"declared": list(declared), "fitted": list(best),
+                   "residual": [[f, e, c] for (f, e), c in costs.items()]}
+        tried = tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
+        pair = with_section(pair, best)
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
     window, stride = est.window, est.stride
@@ -201,7 +211,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
-                          theta0, progress, cfg.offsets, cfg.flat_fractions)
+                          theta0, progress, cfg.offsets, tried)
         fits.append(f)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
                                               cfg.lead_share), strict=True))
@@ -289,7 +299,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:
     """Upper bound on the estimator passes of one diagnosis (for a progress bar)."""
     cfg = cfg or DiagnosisConfig()
-    return 1 + bool(cfg.flat_fractions) + cfg.n_fit * (3 + cfg.refine_steps)
+    return 1 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]

@@ -54,6 +54,7 @@ class WheelGeometry(NamedTuple):
     n_bins:  deposition bins per wheel.
     radius:  nominal footprint radius (half the wheel width), m.
     flat_fraction: tyre taper f (FORMATS.md section 2).
+    section_exponent: exponent e of the taper (sim.sinkage.taper; 1: FORMATS.md's).
     dx:      cell edge, m.
     band_width: deposition band width, m.
     nominal: Footprint at the nominal radius, precomputed.
@@ -75,6 +76,7 @@ class WheelGeometry(NamedTuple):
     dx: float
     band_width: float
     nominal: Footprint
+    section_exponent: float = 1.0
 
     @property
     def n_tracks(self) -> int:
@@ -94,7 +96,7 @@ def footprint(geom: WheelGeometry, radius_scale: torch.Tensor | None = None,
     dist, lateral = geom.dist.to(dtype)[None], geom.lateral.to(dtype)[None]
     radius = geom.radius if radius_scale is None else geom.radius * radius_scale.to(dtype)[:, None]
     covered = dist <= radius
-    s = taper(lateral / radius, geom.flat_fraction)
+    s = taper(lateral / radius, geom.flat_fraction, geom.section_exponent)
     B = covered.shape[0]
     X, Y = geom.shape
     cell = geom.cell.expand(B, -1)
@@ -232,5 +234,6 @@ def wheel_geometry(
         dx=dx,
         band_width=band_width * dx,
         nominal=None,
+        section_exponent=robot.wheel_section_exponent,
     )
     return geom._replace(nominal=footprint(geom))

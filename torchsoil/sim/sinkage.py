@@ -12,14 +12,17 @@ import torch
 import torch.nn.functional as F
 
 
-def taper(q: torch.Tensor, flat_fraction: float = 0.0) -> torch.Tensor:
+def taper(q: torch.Tensor, flat_fraction: float = 0.0, exponent: float = 1.0) -> torch.Tensor:
     """Centrality factor s(q) in [0, 1] for q = lateral offset / footprint radius (any shape).
 
     s = 1 for |q| <= f, then (1 + cos(pi (|q| - f) / (1 - f))) / 2 down to 0 at |q| = 1,
-    0 beyond (FORMATS.md section 2).
+    0 beyond (FORMATS.md section 2); raised to `exponent` e (1: that taper; below 1 fuller
+    shoulders: about a rounded, elliptic section at f = 0, e = 0.2, a crowned, parabolic one
+    at f = 0.1, e = 0.5).
     """
     u = ((q.abs() - flat_fraction) / (1.0 - flat_fraction)).clamp(0.0, 1.0)
-    return 0.5 * (1.0 + torch.cos(math.pi * u))
+    s = 0.5 * (1.0 + torch.cos(math.pi * u))
+    return s if exponent == 1.0 else s.clamp(min=0.0) ** exponent
 
 
 def disc_offsets(radius_cells: float) -> list[tuple[int, int]]:
