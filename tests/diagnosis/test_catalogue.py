@@ -90,3 +90,5 @@ def test_coefficient_outside_bounds_is_named(setup):
     robot, drive, *_ = setup
     with pytest.raises(ValueError, match="k_width"):
         ExtensionModel(CATALOGUE["footprint_width"], 2.0, drive, robot)
+    with pytest.raises(ValueError, match="k_wall"):                    # walls looser than loose soil
+        ExtensionModel(CATALOGUE["cohesive_walls"], -0.2, drive, robot)

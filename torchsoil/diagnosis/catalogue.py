@@ -11,7 +11,7 @@ diagnosis must still name the term.
 | speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)) | k [-] |
 | slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
 | lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
-| cohesive_walls | dug cells settle at tan(beta) * (1 + k) | k [-] (> 0: steeper walls) |
+| cohesive_walls | dug cells settle at tan(beta) * (1 + k) | k >= 0 [-] (walls up to vertical) |
 | footprint_width | footprint radius x (1 + k) | k [-] |
 
 The per-window base parameters (d_1..d_T, chi, beta) are still fitted; the sinkage factors
@@ -63,7 +63,7 @@ CATALOGUE: dict[str, Extension] = {e.id: e for e in (
               "sinkage grows with traction demand (acceleration, climbing)"),
     Extension("lateral_load_transfer", "k_lateral", (-5.0, 8.0), (-1.5, 1.5, 3.0), "lateral_load", "rut_floor",
               "depth", "load, and so sinkage, shifts to the downhill or outer wheels with roll and turning"),
-    Extension("cohesive_walls", "k_wall", (-0.5, 4.0), (0.3, 0.8, 1.5), None, "rut_wall", "wall",
+    Extension("cohesive_walls", "k_wall", (0.0, 9.0), (0.5, 1.5, 4.0), None, "rut_wall", "wall",
               "rut walls stand steeper than the angle at which deposited soil settles"),
     Extension("footprint_width", "k_width", (-0.4, 0.45), (-0.2, 0.15, 0.3), None, "rut_wall", "radius",
               "the contact patch is wider or narrower than the nominal wheel width"),

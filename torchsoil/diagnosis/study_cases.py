@@ -207,6 +207,12 @@ def random_path(rng: np.random.Generator, kind: str) -> dict:
     return {"trajectory": {"segments": segs, "accel_limit": accel}, "relief": relief}
 
 
+# soil of a random drive (d m, chi -, beta_deg deg, moisture -), and where an effect needs
+# other soil to show at all: walls only stand steeper than the angle of repose where the dug
+# slope exceeds it (at most d pi / wheel_width for the cosine taper: 0.015 m ruts under the
+# 0.14 m wheel slope by 19 deg, nothing to slump at 30 deg; 0.035 m ones by 38 deg)
+SOIL = {"d": (0.015, 0.035), "chi": (0.1, 0.35), "beta_deg": (24.0, 34.0), "moisture": (0.0, 0.5)}
+SOIL_FOR = {"cohesive_walls": {"d": (0.035, 0.05), "beta_deg": (20.0, 28.0)}}
 PATH_FOR = {"speed_dependent_sinkage": ("speed_steps",), "slip_sinkage": ("slope_speed",),
             "lateral_load_transfer": ("s_turns",), "multi_pass_hardening": REVISITS}
 PATHS = ("speed_steps", "slope_speed", "s_turns", *REVISITS, "plain")
@@ -221,8 +227,8 @@ def random_case(seed: int, kind: str | None) -> tuple[str, dict, int, str, str |
     paths = PATH_FOR.get(kind, ("plain",)) if kind is not None else PATHS
     path_kind = str(rng.choice(paths))
     path = random_path(rng, path_kind)
-    base = {"d": float(rng.uniform(0.015, 0.035)), "chi": float(rng.uniform(0.1, 0.35)),
-            "beta_deg": float(rng.uniform(24.0, 34.0)), "moisture": float(rng.uniform(0.0, 0.5))}
+    ranges = {**SOIL, **SOIL_FOR.get(kind, {})}
+    base = {key: float(rng.uniform(*ranges[key])) for key in ("d", "chi", "beta_deg", "moisture")}
     patch = {"kind": "band_x", "center": float(rng.uniform(3.0, 10.0)), "sigma": float(rng.uniform(1.0, 3.0)),
              "delta": {"d": float(rng.uniform(0.005, 0.02) if kind == "footprint_width" else rng.uniform(-0.005, 0.02)),
                        "beta_deg": float(rng.uniform(-5.0, 5.0))}}
