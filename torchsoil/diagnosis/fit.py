@@ -207,7 +207,7 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
 
 def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, drive: DriveSignals, base: Pass,
                   block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
-                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[float, ...] = ()) -> CandidateFit:
+                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = ()) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
     the base pass (which must have been scored with the same `offsets`). sections: tyre
