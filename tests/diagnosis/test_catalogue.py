@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from tests.drive_by_hand import racetrack
 from torchsoil.diagnosis.catalogue import CATALOGUE, ExtensionModel, depth_factor
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.grid import Grid
@@ -92,3 +93,31 @@ def test_coefficient_outside_bounds_is_named(setup):
         ExtensionModel(CATALOGUE["footprint_width"], 2.0, drive, robot)
     with pytest.raises(ValueError, match="k_wall"):                    # walls looser than loose soil
         ExtensionModel(CATALOGUE["cohesive_walls"], -0.2, drive, robot)
+
+
+def test_hardening_counts_passes_as_the_pair_shows_them():
+    """A racetrack comes back over its start. From a first view every visit is simulated:
+    the first lap's wheels dig fresh ground (factor 1, although that ground is driven again
+    later), the second lap's the first lap's ruts (factor 1 + k). From a last-visit H_f only
+    the last visit is simulated, and every visit but the last is an earlier pass."""
+    robot = paper_platform()
+    poses = racetrack()
+    drive = DriveSignals.from_poses(poses, robot)
+    arc = drive.signals["arc_length"]
+    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
+    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+
+    def scale(view, sel):
+        model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, view)
+        geom = wheel_geometry(grid, poses[sel], robot, dtype=torch.float64)
+        return model.modifiers(Window(geom), theta).depth_scale
+
+    first = (arc > 0.5) & (arc < 1.5)                 # driven again at the end
+    again = arc > arc[-1] - 1.2
+    one, half = torch.ones((), dtype=torch.float64), torch.full((), 0.5, dtype=torch.float64)
+    assert torch.allclose(scale("first_view", first), one)
+    assert torch.allclose(scale("first_view", again), half)
+    assert torch.allclose(scale("last_visit", first), half)
+    assert torch.allclose(scale("last_visit", again), half)
+    with pytest.raises(ValueError, match="view"):
+        ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, "newest")

@@ -82,8 +82,8 @@ def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.n
     """(K, N) sinkage factor of a depth term at (N, 4) resampled poses t, x, y, yaw.
 
     reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed). before:
-    count the passes before each pose's own (when earlier visits are simulated too), not all
-    but the last (DriveSignals.passes)."""
+    count the passes before each pose's own (when every visit is simulated), not all but
+    the last (DriveSignals.passes)."""
     K, N = len(robot.wheels), len(poses4)
     t = poses4[:, 0]
     if ext.id == "multi_pass_hardening":
@@ -107,13 +107,20 @@ class ExtensionModel:
     `modifiers(wd, theta, geom)` returns the sim.Modifiers for window data wd
     (torchsoil.windows), full parameters theta (B, P) [m, -, rad] and the visit simulated
     (geom: wd.geom, the default, or one of wd.earlier); sinkage factors are cached per visit.
-    When a window simulates earlier visits, passes count those before each pose."""
 
-    def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot):
+    view: what the pair's H_f holds on revisited ground (`windows.front_view`). With
+    "first_view" every window simulates all the visits to its ground from untouched soil, so
+    passes count the visits before each simulated pose's own (a loop's first lap digs fresh
+    ground, although the drive comes back over it); with "last_visit" a window simulates the
+    last visit only, and passes count all visits but the last (DriveSignals.passes)."""
+
+    def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot, view: str = "last_visit"):
         lo, hi = ext.bounds
         if not (lo <= k <= hi):
             raise ValueError(f"{ext.id}: coefficient {ext.parameter} = {k} outside [{lo}, {hi}]")
-        self.ext, self.k, self.drive, self.robot = ext, float(k), drive, robot
+        if view not in ("first_view", "last_visit"):
+            raise ValueError(f"view must be 'first_view' or 'last_visit', got {view!r}")
+        self.ext, self.k, self.drive, self.robot, self.view = ext, float(k), drive, robot, view
         self.reference = {"speed": float(np.mean(drive.signals["speed"]))}
         self._cache: dict[tuple, torch.Tensor] = {}
 
@@ -126,7 +133,7 @@ class ExtensionModel:
             if key not in self._cache:
                 poses4 = geom.poses.cpu().numpy()
                 f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference,
-                                 before=bool(getattr(wd, "earlier", ())))
+                                 before=self.view == "first_view")
                 self._cache[key] = torch.as_tensor(f, **kw)
                 if len(self._cache) > 64:          # the held-out offsets revisit windows up to 6 back
                     self._cache.pop(next(iter(self._cache)))
