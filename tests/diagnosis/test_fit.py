@@ -37,6 +37,27 @@ def test_accept_needs_significance_and_agreeing_folds():
     assert not accept(fit_with(3.0, (-2.0, 4.0)), 2.1)       # folds disagree on the sign
 
 
+def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
+    """Cohesive walls under a flat or rounded tyre leave their mark on the berms: the slumped
+    soil that a steeper wall keeps in place is missing beside the rut. A shape term is fitted
+    when any of floor, wall or berm shows a residual beyond z_locate and materiality, and the
+    held-out test (not this gate) decides."""
+    from torchsoil.diagnosis.run import evidence_for
+    from torchsoil.settings import DiagnosisConfig
+
+    def zones(berm_z, berm_mean):
+        quiet = {"z": 0.5, "mean": 1e-5}
+        return {"rut_floor": quiet, "rut_wall": quiet, "outside": quiet, "berm": {"z": berm_z, "mean": berm_mean}}
+
+    rows = [{"d1": 0.03, "d2": 0.03}] * 8
+    args = (2, DiagnosisConfig(), np.zeros(8), 2)
+    walls = CATALOGUE["cohesive_walls"]
+    berm = evidence_for(walls, rows, {}, zones(-6.0, -4e-4), *args, z_locate=3.1, material=3e-4)
+    assert berm["testable"] and berm["p"] == pytest.approx(6 * stats.norm.sf(6.0))
+    assert not evidence_for(walls, rows, {}, zones(2.0, -4e-4), *args, z_locate=3.1, material=3e-4)["testable"]
+    assert not evidence_for(walls, rows, {}, zones(-6.0, -1e-4), *args, z_locate=3.1, material=3e-4)["testable"]
+
+
 def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
     from types import SimpleNamespace
 

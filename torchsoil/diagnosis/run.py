@@ -46,6 +46,7 @@ def _z_two_sided(alpha: float) -> float:
 
 LOCATED_ZONES = ("rut_floor", "rut_wall", "outside")   # berm heights follow chi: not a location test
 N_LOCATE_TESTS = len(LOCATED_ZONES) + 2                 # + left/right asymmetry + spectral line
+SHAPE_ZONES = ("rut_floor", "rut_wall", "berm")          # where a shape term (walls, footprint) may show
 
 
 def thresholds(p: list[float], alpha: float, lead_share: float) -> list[float]:
@@ -124,16 +125,18 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
     effective-sample-size correction: the fitted sinkage (mean over tracks; for lateral load
     the right-minus-left difference) against the term's covariate, and the held-out cost
     against the covariate's change to the neighbouring windows (a missing term shows where
-    its covariate changes). Shape terms: the rut-floor / rut-wall profile z (two zones); they
-    are testable only when a zone's residual is significant (|z| > z_locate; materiality is
-    left to the held-out test), since a shape term has nothing else to show in."""
+    its covariate changes). Shape terms: the largest rut-floor / rut-wall / berm profile z
+    (SHAPE_ZONES; the berm is not a location test, as its height follows chi, but steeper
+    walls under a flat or rounded tyre show there first, as soil missing beside the rut);
+    they are testable only when such a zone's residual is significant (|z| > z_locate, and
+    its mean beyond `material`: 0 in `diagnose`, where materiality is left to the held-out
+    test), since a shape term has nothing else to show in."""
     d = np.array([[r[f"d{t + 1}"] for t in range(n_tracks)] for r in rows], np.float64)
     if ext.covariate is None:
-        z = max(abs(zones[zn]["z"]) if abs(zones[zn]["mean"]) > material else 0.0
-                for zn in ("rut_floor", "rut_wall"))
-        raw = max(abs(zones[zn]["z"]) for zn in ("rut_floor", "rut_wall"))
-        return {"testable": bool(z > z_locate), "p": float(min(1.0, 4 * stats.norm.sf(z))),
-                "statistic": f"floor/wall profile |z| = {raw:.1f}" + ("" if z > 0 else ", below materiality")}
+        z = max(abs(zones[zn]["z"]) if abs(zones[zn]["mean"]) > material else 0.0 for zn in SHAPE_ZONES)
+        raw = max(abs(zones[zn]["z"]) for zn in SHAPE_ZONES)
+        return {"testable": bool(z > z_locate), "p": float(min(1.0, 2 * len(SHAPE_ZONES) * stats.norm.sf(z))),
+                "statistic": f"floor/wall/berm profile |z| = {raw:.1f}" + ("" if z > 0 else ", below materiality")}
     x = cov[ext.covariate]
     spread = float(np.nanstd(x))
     if spread < cfg.min_spread.get(ext.covariate, 0.0):
