@@ -298,7 +298,8 @@ class DiagnosisConfig(Section):
     offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "
                                                             "each fit is also scored")
     sections: tuple[tuple[float, float], ...] = Field(
-        tuple((f, e) for e in (1.0, 0.5, 0.25) for f in (0.0, 0.15, 0.3, 0.5, 0.7, 0.85)),
+        tuple([(f, 1.0) for f in (0.0, 0.15, 0.3, 0.5, 0.7, 0.85)]
+              + [(f, e) for e in (0.5, 0.25) for f in (0.0, 0.15, 0.3)]),
         description="tyre sections (flat fraction f, taper exponent e; sim.sinkage.taper) tried besides the "
                     "robot's own; the best fit on the drive's windows is the base model's section, a nuisance "
                     "(a rounded or crowned tyre is not missing physics); (): the robot's as described, -")
