@@ -101,7 +101,9 @@ def test_numba_adjoint_matches_torch_autograd():
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_gradcheck_fixed_iterations(backend):
     h = pile(X=8, Y=7, height=0.03).requires_grad_(True)
-    tb = torch.full((1, 8, 7), math.tan(math.radians(30)), dtype=torch.float64, requires_grad=True)
+    # distinct angles per cell: a face takes the steeper of its two cells' (no ties to split)
+    g = torch.Generator().manual_seed(1)
+    tb = (math.tan(math.radians(30)) + 0.2 * torch.rand(1, 8, 7, generator=g, dtype=torch.float64)).requires_grad_(True)
     fn = lambda h, tb: relax(h, tb, 0.02, fixed_iter=4, backend=backend).h  # noqa: E731
     assert torch.autograd.gradcheck(fn, (h, tb), eps=1e-7, atol=1e-6)
 
@@ -118,3 +120,22 @@ def test_non_contiguous_input():
 def test_unknown_backend():
     with pytest.raises(ValueError, match="backend"):
         relax(pile(), torch.tensor([0.5], dtype=torch.float64), 0.02, backend="cuda-magic")
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_cohesive_trench_stands_on_both_sides(backend):
+    """A trench cut in flat ground, its cells settling at 80 deg and the ground around at 20
+    deg: every face that touches the trench is a cut face, so both walls stand as cut, and the
+    mirrored trench relaxes to the mirrored surface."""
+    X, Y, dx = 12, 21, 0.02
+    h = torch.zeros(1, X, Y, dtype=torch.float64)
+    h[:, :, 8:13] = -0.05                                   # 5 cells wide, 50 mm deep
+    tb = torch.full((1, X, Y), math.tan(math.radians(20)), dtype=torch.float64)
+    tb[:, :, 8:13] = math.tan(math.radians(80))
+    out = relax(h, tb, dx, backend=backend)
+    assert torch.equal(out.h, h)                            # 2.5 = 50 mm / 20 mm < tan 80 deg
+    loose = relax(h, torch.full_like(tb, math.tan(math.radians(20))), dx, backend=backend)
+    assert (loose.h - h).abs().max().item() > 0.01          # at 20 deg the same walls collapse
+    flipped = relax(torch.flip(h, [2]), torch.flip(tb, [2]), dx, backend=backend).h
+    assert torch.allclose(torch.flip(flipped, [2]), out.h, atol=1e-12)
+    assert max_slope_excess(out.h, tb, dx).item() < 0

@@ -81,7 +81,10 @@ def relax_torch(h, tan_beta, dx, domain=None, tau=0.01, max_iter=2000, fixed_ite
 
 
 def max_slope_excess(h, tan_beta, dx, domain=None) -> torch.Tensor:
-    """(B,) max over the domain of |grad h| - tan(beta) (forward differences, no-flux edges)."""
+    """(B,) max over the domain of |grad h| - tan(beta) (forward differences, no-flux edges;
+    a (B, X, Y) tan_beta as `relax` reads it)."""
+    if tan_beta.ndim == 3 and tan_beta.shape[-2:] != (1, 1):
+        tan_beta = face_tan(tan_beta)
     fx, fy = face_masks(domain, h.shape[1:], h.device)
     return _step_terms(h, tan_beta, fx.to(h.dtype) / dx, fy.to(h.dtype) / dx)[2].flatten(1).amax(1)
 
@@ -94,7 +97,7 @@ def relax(h: torch.Tensor, tan_beta: torch.Tensor, dx: float, domain: torch.Tens
     Args:
         h: (B, X, Y) heights, m.
         tan_beta: (B,) or (B, X, Y) tangent of the angle of repose (per cell for models whose
-            walls and deposits settle at different angles).
+            walls and deposits settle at different angles; see `face_tan`).
         dx: cell edge, m.
         domain: (X, Y) bool cells that may exchange soil (None: the whole map).
         tau: stop when max |grad h| - tan(beta) < tau.
@@ -105,6 +108,8 @@ def relax(h: torch.Tensor, tan_beta: torch.Tensor, dx: float, domain: torch.Tens
     """
     if tan_beta.ndim == 1:
         tan_beta = tan_beta[:, None, None]
+    elif tan_beta.shape[-2:] != (1, 1):
+        tan_beta = face_tan(tan_beta)
     if backend == "auto":
         backend = "numba" if h.device.type == "cpu" and _numba_ok() else "torch"
     if backend == "torch":
@@ -114,6 +119,19 @@ def relax(h: torch.Tensor, tan_beta: torch.Tensor, dx: float, domain: torch.Tens
     from torchsoil.sim import _relax_numba
 
     return _relax_numba.relax(h, tan_beta, dx, domain, tau, max_iter, fixed_iter, eps_scale)
+
+
+def face_tan(tan_beta: torch.Tensor) -> torch.Tensor:
+    """(B, X, Y) per-cell tan(beta) -> the tan each cell's stencil uses.
+
+    The update measures a cell's slope on its +x and +y faces, so a per-cell angle would
+    hold a wall on one side of a rut and not on the other. Each face settles instead at the
+    steeper angle of the two cells it joins (a cut face in cohesive soil stands whichever
+    side it faces): the cell takes the largest tan of itself and its +x and +y neighbours."""
+    t = tan_beta
+    nx = torch.cat([t[:, 1:], t[:, -1:]], 1)
+    ny = torch.cat([t[:, :, 1:], t[:, :, -1:]], 2)
+    return torch.maximum(t, torch.maximum(nx, ny))
 
 
 _NUMBA = None
