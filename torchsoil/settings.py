@@ -56,6 +56,10 @@ class SimConfig(Section):
                                                        "many cells per pose")
     backend: Literal["auto", "numba", "torch"] = Field("auto", description="relaxation kernel: auto (numba "
                                                                             "on CPU, torch on CUDA)")
+    dig_order: Literal["robot", "wheel"] = Field(
+        "robot", description="robot: every wheel digs from the surface before the robot (the paper); wheel: "
+                             "the axles dig in the order they meet the ground, each trailing wheel again "
+                             "from the rut the wheels before it left")
 
 
 # ---------------------------------------------------------------------------- estimator

@@ -218,3 +218,49 @@ def test_robot_validation():
         Robot(0.14, np.array([[0, 0, 0], [0, 1, 2]]))
     with pytest.raises(ValueError, match="wheel_width"):
         Robot(-0.1, np.array([[0, 0, 0]]))
+
+
+def test_dig_order_turns():
+    """Hand cases: forward, the front axle meets the ground first; reversing, the rear one;
+    a three-axle robot counts the axles ahead of each wheel."""
+    from torchsoil.sim.geometry import dig_order
+
+    fwd = np.array([[0, 0.0, 0, 0], [1, 0.1, 0, 0], [2, 0.2, 0, 0]], float)
+    rev = fwd[::-1].copy()
+    rev[:, 0] = fwd[:, 0]
+    x = np.array([0.69, 0.69, -0.69, -0.69])
+    assert dig_order(fwd, x).T.tolist() == [[0, 0, 1, 1]] * 3
+    assert dig_order(rev, x).T.tolist() == [[1, 1, 0, 0]] * 3
+    assert dig_order(fwd, np.array([0.8, 0.0, -0.8]))[:, 0].tolist() == [0, 1, 2]
+    turned = fwd.copy()
+    turned[:, 3] = math.pi                                # moving along +x while facing -x
+    assert dig_order(turned, x)[:, 1].tolist() == [1, 1, 0, 0]
+
+
+def test_wheels_dig_in_turn():
+    """dig_order "wheel" on flat ground under a flat tread (f = 0.5, so the reference the rear
+    wheel smooths from the front's rut is its floor): 2 d where both axles passed, d where
+    only one did, and the same rut when the drive runs in reverse; "robot" digs d everywhere."""
+    from dataclasses import replace
+
+    from torchsoil.robot import paper_platform
+
+    robot = replace(paper_platform(), wheel_flat_fraction=0.5)
+    grid = Grid.covering(-1.0, -0.3, 3.0, 0.8, 0.02)
+    xs = np.arange(0.0, 2.0 + 1e-9, 0.02)                  # base_link from 0 to 2 m: front 0.69..2.69
+    poses = np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)])
+    back = np.column_stack([xs[::-1], np.zeros_like(xs), np.zeros_like(xs)])
+    flat = torch.zeros(grid.shape, dtype=torch.float64)
+    x, y = grid.centers()
+    j = int(np.argmin(abs(y - 0.5)))
+    at = {name: int(np.argmin(abs(x - v))) for name, v in
+          (("rear_only", 0.0), ("both", 1.0), ("front_only", 2.4))}
+    th = theta(d1=0.03, d2=0.03, chi=0.0, beta=89.9)
+    for p in (poses, back):
+        geom = wheel_geometry(grid, p, robot, dtype=torch.float64)
+        turn = simulate(flat, geom, th, SimConfig(dig_order="wheel")).h[0, :, j]
+        paper = simulate(flat, geom, th, SimConfig(dig_order="robot")).h[0, :, j]
+        assert turn[at["both"]].item() == pytest.approx(-0.06, abs=1e-9)
+        assert turn[at["rear_only"]].item() == pytest.approx(-0.03, abs=1e-9)
+        assert turn[at["front_only"]].item() == pytest.approx(-0.03, abs=1e-9)
+        assert all(paper[i].item() == pytest.approx(-0.03, abs=1e-9) for i in at.values())

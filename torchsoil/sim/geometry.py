@@ -54,10 +54,13 @@ class WheelGeometry(NamedTuple):
     n_bins:  deposition bins per wheel.
     radius:  nominal footprint radius (half the wheel width), m.
     flat_fraction: tyre taper f (FORMATS.md section 2).
-    section_exponent: exponent e of the taper (sim.sinkage.taper; 1: FORMATS.md's).
     dx:      cell edge, m.
     band_width: deposition band width, m.
     nominal: Footprint at the nominal radius, precomputed.
+    section_exponent: exponent e of the taper (sim.sinkage.taper; 1: FORMATS.md's).
+    order:   (E,) int64 turn of the entry's wheel at its pose: 0 for the axle that meets the
+             ground first in the direction of travel, 1 for the next one, ...
+             (`dig_order`; SimConfig.dig_order "wheel").
     """
 
     cell: torch.Tensor
@@ -77,6 +80,7 @@ class WheelGeometry(NamedTuple):
     band_width: float
     nominal: Footprint
     section_exponent: float = 1.0
+    order: torch.Tensor | None = None
 
     @property
     def n_tracks(self) -> int:
@@ -159,6 +163,18 @@ def _headings(w: np.ndarray, yaw: np.ndarray, eps: float) -> np.ndarray:
     return np.where(moving, np.arctan2(d[:, 1], d[:, 0]), yaw)
 
 
+def dig_order(poses: np.ndarray, wheels_x: np.ndarray, eps: float = 1e-9) -> np.ndarray:
+    """(K, N) int64 turn of each wheel at each pose: how many axles (distinct body-frame x of
+    the wheels, m) meet the ground before it in the direction the robot moves there (forward
+    or reversing; standing still counts as forward). poses: (N, 4) t, x, y, yaw."""
+    v = np.gradient(poses[:, 1:3], axis=0) if len(poses) > 1 else np.zeros((len(poses), 2))
+    forward = v[:, 0] * np.cos(poses[:, 3]) + v[:, 1] * np.sin(poses[:, 3]) >= -eps
+    axles = np.unique(np.round(np.asarray(wheels_x, np.float64), 6))
+    ahead = (axles[None, :] > np.round(wheels_x, 6)[:, None]).sum(1)    # (K,) axles in front
+    behind = (axles[None, :] < np.round(wheels_x, 6)[:, None]).sum(1)   # (K,) axles behind
+    return np.where(forward[None, :], ahead[:, None], behind[:, None]).astype(np.int64)
+
+
 def wheel_geometry(
     grid: Grid,
     poses,
@@ -195,7 +211,8 @@ def wheel_geometry(
                            np.cumsum(np.linalg.norm(np.diff(w, axis=1), axis=-1), axis=1)], axis=1)
     n_bins = int(np.floor(arcs[:, -1].max() / bin_len)) + 1
     near = np.full(len(cells), np.inf)
-    cols = {n: [] for n in ("cell", "wheel", "dist", "lateral", "pose", "bin")}
+    cols = {n: [] for n in ("cell", "wheel", "dist", "lateral", "pose", "bin", "order")}
+    turn = dig_order(p, robot.wheels[:, 0])
     far = max(reach, domain_reach)
     for k in range(len(w)):
         head = _headings(w[k], p[:, 3], 1e-6 * dx)
@@ -213,6 +230,7 @@ def wheel_geometry(
         cols["dist"].append(d[c])
         cols["lateral"].append(-np.sin(h) * rel[:, 0] + np.cos(h) * rel[:, 1])
         cols["pose"].append(i[c])
+        cols["order"].append(turn[k, i[c]])
         cols["bin"].append(k * n_bins + np.floor(arcs[k, i[c]] / bin_len).astype(np.int64))
     col = {n: np.concatenate(v) for n, v in cols.items()}
     ints = dict(device=device, dtype=torch.int64)
@@ -235,5 +253,6 @@ def wheel_geometry(
         band_width=band_width * dx,
         nominal=None,
         section_exponent=robot.wheel_section_exponent,
+        order=torch.as_tensor(col["order"], **ints),
     )
     return geom._replace(nominal=footprint(geom))

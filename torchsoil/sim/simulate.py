@@ -14,7 +14,7 @@ from torchsoil.sim.deposition import deposit
 from torchsoil.sim.geometry import WheelGeometry, footprint, wheel_geometry
 from torchsoil.sim.params import ParamSpec
 from torchsoil.sim.relaxation import relax
-from torchsoil.sim.sinkage import reference_height, sink
+from torchsoil.sim.sinkage import reference_height, sink, sink_in_turn
 
 MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avoids tan overflow
 
@@ -99,7 +99,11 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
         depth = depth * scale[:, geom.wheel * N + geom.pose]
     if h_ref is None:
         h_ref = reference_height(h, config.ref_radius * geom.radius, geom.dx)
-    h_dug, removed = sink(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth)
+    if config.dig_order == "wheel" and geom.order is not None:
+        h_dug, removed = sink_in_turn(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth, geom.order,
+                                      config.ref_radius * geom.radius, geom.dx)
+    else:
+        h_dug, removed = sink(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth)
     added, lost = deposit(removed, geom.cell, fp.owner, fp.band, geom.bin,
                           geom.n_bins * geom.n_wheels, chi)
     h_pre = h_dug + added
