@@ -19,6 +19,10 @@ For every pose and every wheel:
    over the one-cell-wide band beside the wheel: the cells with r < |lateral| <= r + dx
    and |longitudinal| <= r, left and right of the footprint.
 
+With dig="wheel" the axles take turns instead (front first; the drives made here go forward):
+each digs the whole drive in step 3 from a reference height taken anew from the surface the
+axles before it left (deposits included), so the rear wheel digs again in the front one's rut.
+
 Then, once every pose is done, Exner relaxation over the whole grid: forward-difference
 gradients g = [h(i+1,j) - h(i,j), h(i,j+1) - h(i,j)] / dx (0 across the grid's outer
 edge), flux phi = -max(|g| - tan(beta), 0) g / |g| leaving each cell through its +x and +y
@@ -105,8 +109,9 @@ def relax(h: np.ndarray, dx: float, beta: float, tau: float = 0.01, eps_scale: f
 
 def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.ndarray, wheel_width: float,
              d: tuple[float, ...], chi: float, beta: float, ref_radius: float = 0.5, flat: float = 0.0,
-             tau: float = 0.01) -> tuple[np.ndarray, dict]:
-    """Algorithm 1 on the surface h0 (X, Y) [m]; d: sinkage per track [m]; beta [rad].
+             tau: float = 0.01, dig: str = "robot") -> tuple[np.ndarray, dict]:
+    """Algorithm 1 on the surface h0 (X, Y) [m]; d: sinkage per track [m]; beta [rad]; dig:
+    "robot" (every wheel from the surface before the robot) or "wheel" (axle after axle).
 
     Returns the surface after the drive and {"removed": total removed volume m^3,
     "deposited": total deposited volume m^3, "iterations": relaxation iterations}."""
@@ -114,45 +119,58 @@ def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.nd
     h = h0.copy()
     r = wheel_width / 2
     h_ref = disc_mean(h0, ref_radius * r, dx)
-    X, Y = h.shape
-    xs = origin[0] + dx * np.arange(X)
-    ys = origin[1] + dx * np.arange(Y)
+    xs = origin[0] + dx * np.arange(h.shape[0])
+    ys = origin[1] + dx * np.arange(h.shape[1])
     reach = int(math.ceil((r + 2 * dx) / dx))
-    removed_total = deposited_total = 0.0
-    for x, y, yaw in dense_poses(poses, wheels[:, :2], dx / 2):
-        c, s = math.cos(yaw), math.sin(yaw)
-        for wx, wy, track in wheels:
-            cx, cy = x + c * wx - s * wy, y + s * wx + c * wy
-            i0, j0 = int(round((cx - origin[0]) / dx)), int(round((cy - origin[1]) / dx))
-            win = (slice(max(i0 - reach, 0), min(i0 + reach + 1, X)), slice(max(j0 - reach, 0), min(j0 + reach + 1, Y)))
-            ex, ey = np.meshgrid(xs[win[0]] - cx, ys[win[1]] - cy, indexing="ij")
-            along = ex * c + ey * s
-            lat = -ex * s + ey * c
-            foot = along**2 + lat**2 <= r**2
-            hw = h[win]
-            target = h_ref[win] - taper(lat / r, flat) * d[int(track)]
-            new = np.where(foot, np.minimum(hw, target), hw)
-            volume = float((hw - new).sum()) * dx**2
-            band = ~foot & (np.abs(lat) > r) & (np.abs(lat) <= r + dx) & (np.abs(along) <= r)
-            if band.any() and volume > 0:
-                new = new + band * (chi * volume / (band.sum() * dx**2))      # volume -> height
-                deposited_total += chi * volume
-            removed_total += volume
-            h[win] = new
+    totals = [0.0, 0.0]
+    dense = dense_poses(poses, wheels[:, :2], dx / 2)
+    axles = [wheels] if dig == "robot" else [wheels[wheels[:, 0] == a] for a in sorted(set(wheels[:, 0]), reverse=True)]
+    for n, axle in enumerate(axles):
+        if n > 0:
+            h_ref = disc_mean(h, ref_radius * r, dx)       # the next axle's turn: the surface as left
+        for x, y, yaw in dense:
+            _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, axle, d, chi, flat, totals)
     h, iterations = relax(h, dx, beta, tau)
-    return h, {"removed": removed_total, "deposited": deposited_total, "iterations": iterations}
+    return h, {"removed": totals[0], "deposited": totals[1], "iterations": iterations}
+
+
+def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat, totals):
+    """Steps 1, 3 and 4 for the given wheels at one pose, in place on h; totals: [removed,
+    deposited] volumes, m^3, added to."""
+    X, Y = h.shape
+    c, s = math.cos(yaw), math.sin(yaw)
+    for wx, wy, track in wheels:
+        cx, cy = x + c * wx - s * wy, y + s * wx + c * wy
+        i0, j0 = int(round((cx - origin[0]) / dx)), int(round((cy - origin[1]) / dx))
+        win = (slice(max(i0 - reach, 0), min(i0 + reach + 1, X)), slice(max(j0 - reach, 0), min(j0 + reach + 1, Y)))
+        ex, ey = np.meshgrid(xs[win[0]] - cx, ys[win[1]] - cy, indexing="ij")
+        along = ex * c + ey * s
+        lat = -ex * s + ey * c
+        foot = along**2 + lat**2 <= r**2
+        hw = h[win]
+        target = h_ref[win] - taper(lat / r, flat) * d[int(track)]
+        new = np.where(foot, np.minimum(hw, target), hw)
+        volume = float((hw - new).sum()) * dx**2
+        band = ~foot & (np.abs(lat) > r) & (np.abs(lat) <= r + dx) & (np.abs(along) <= r)
+        if band.any() and volume > 0:
+            new = new + band * (chi * volume / (band.sum() * dx**2))      # volume -> height
+            totals[1] += chi * volume
+        totals[0] += volume
+        h[win] = new
 
 
 def straight_drive_pair(d: tuple[float, float] = (0.03, 0.02), chi: float = 0.5, beta_deg: float = 30.0,
                         length: float = 4.0, speed: float = 1.0, dx: float = 0.02, relief: float = 0.004,
                         roughness: float = 0.001, noise: float = 0.0015, seed: int = 0,
-                        wheels: np.ndarray | None = None, wheel_width: float = 0.14) -> tuple[dict, dict]:
+                        wheels: np.ndarray | None = None, wheel_width: float = 0.14, flat: float = 0.0,
+                        dig: str = "robot") -> tuple[dict, dict]:
     """Terrain pair (FORMATS.md section 3 keys) of a straight drive along +x from x = 0.
 
     The ground: smooth relief (std `relief` m, correlation ~3 cells) plus white roughness
     (`roughness` m per cell). h_front = ground + measurement noise, h_back = Algorithm 1's
     result + independent measurement noise (`noise` m per cell on each map). wheels: (K, 3)
-    x, y, track (default: the paper's platform). Returns (pair dict, truth dict with the
+    x, y, track (default: the paper's platform); flat: the tyre's flat fraction; dig: as in
+    `simulate`. Returns (pair dict, truth dict with the
     noise-free surfaces and the model's bookkeeping)."""
     if wheels is None:
         wheels = np.array([[0.69, 0.5, 0], [0.69, -0.5, 1], [-0.69, 0.5, 0], [-0.69, -0.5, 1]], np.float64)
@@ -165,12 +183,13 @@ def straight_drive_pair(d: tuple[float, float] = (0.03, 0.02), chi: float = 0.5,
     t = np.arange(0.0, length / speed + 1e-9, 0.05)
     poses = np.zeros((len(t), 7))
     poses[:, 0], poses[:, 1] = t, speed * t
-    hb, info = simulate(h0, dx, origin, poses, wheels, wheel_width, d, chi, math.radians(beta_deg))
+    hb, info = simulate(h0, dx, origin, poses, wheels, wheel_width, d, chi, math.radians(beta_deg), flat=flat,
+                        dig=dig)
     pair = {
         "dx": np.float64(dx), "origin": origin,
         "h_front": (h0 + rng.normal(0, noise, h0.shape)).astype(np.float32),
         "h_back": (hb + rng.normal(0, noise, h0.shape)).astype(np.float32),
         "poses": poses, "wheels": wheels.astype(np.float64), "wheel_width": np.float64(wheel_width),
-        "wheel_flat_fraction": np.float64(0.0),
+        "wheel_flat_fraction": np.float64(flat),
     }
     return pair, {"h0": h0, "hb": hb, **info}

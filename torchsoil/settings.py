@@ -307,6 +307,10 @@ class DiagnosisConfig(Section):
         description="tyre sections (flat fraction f, taper exponent e; sim.sinkage.taper) tried besides the "
                     "robot's own; the best fit on the drive's windows is the base model's section, a nuisance "
                     "(a rounded or crowned tyre is not missing physics); (): the robot's as described, -")
+    dig_orders: tuple[Literal["robot", "wheel"], ...] = Field(
+        ("robot", "wheel"), description="dig orders (sim.dig_order) tried, each at its best few sections; the "
+                                        "one that fits the drive's windows best is the base model's, a nuisance "
+                                        "like the section; (): sim.dig_order as set")
     footprint_sections: int = Field(3, ge=1, description="a footprint term's passes choose their own section "
                                                          "among this many best for the base model and "
                                                          "the robot's own")
@@ -396,6 +400,9 @@ class EnvConfig(Section):
     def _limits(self):
         if self.speed[0] > self.speed[1]:
             raise ValueError(f"speed must be (min, max), got {self.speed}")
+        if self.sim.dig_order != "robot":
+            raise ValueError("sim.dig_order: the environment digs every wheel from the surface before the robot "
+                             "('robot'); 'wheel' is for the estimator and the synthetic world")
         return self
 
 
@@ -488,14 +495,19 @@ SECTIONS = ("taper", "flat", "rounded", "crowned")
 
 class TyreConfig(Section):
     """The world's tyre, drawn per drive from the seed (the terrain pair and the estimator keep
-    the robot's nominal width and taper): one section of `sections` and a footprint width
-    of the robot's wheel_width times a factor drawn uniformly in `width_scale`."""
+    the robot's nominal width and taper): one section of `sections`, a footprint width of the
+    robot's wheel_width times a factor drawn uniformly in `width_scale`, and (when set) one
+    dig order of `dig_orders`, which then overrides world.dig_order."""
 
     sections: tuple[Literal["taper", "flat", "rounded", "crowned"], ...] = Field(
         ("taper",), min_length=1, description="cross-sections to draw from: taper (the robot's), flat, rounded "
                                               "(elliptic), crowned (parabolic) (synth.world.section_profile)")
     width_scale: tuple[float, float] = Field((1.0, 1.0), description="range of footprint width / robot "
                                                                      "wheel_width, -")
+    dig_orders: tuple[Literal["robot", "wheel"], ...] | None = Field(
+        None, min_length=1, description="how the wheels dig, drawn per drive (sim.dig_order: robot, every wheel "
+                                        "from the surface before the robot; wheel, axle after axle); null: "
+                                        "world.dig_order")
 
     @field_validator("width_scale")
     @classmethod
@@ -549,7 +561,7 @@ class MeasurementConfig(Section):
 REALISTIC = {
     "measurement": {"noise_dof": (3.0, 5.0), "offset": 0.002, "tilt_deg": 0.05, "dropout": (0.005, 0.015),
                     "blobs": 1.0, "streaks": 2.0, "first_view": 0.5},
-    "tyre": {"sections": SECTIONS},
+    "tyre": {"sections": SECTIONS, "dig_orders": ("robot", "wheel")},
 }
 
 

@@ -112,3 +112,29 @@ def test_tyre_section_is_fitted_as_a_nuisance(section, want):
     assert best == want and set(costs) == set(tried)
     assert costs[want] < min(c for k, c in costs.items() if k != want)
     assert set(shared) == {"index", "nuisance", "view"} and pair.wheel_flat_fraction == 0.0   # not changed in place
+
+
+@pytest.mark.parametrize("dig", ["robot", "wheel"])
+def test_dig_order_told_from_the_drive(dig):
+    """Pairs made by the plain numpy reference model (tests/reference_model.py), where every
+    wheel digs from the surface before the robot or the axles dig in turn: the diagnosis'
+    nuisance fit picks the order the pair was made with, and under "wheel" the fitted
+    sinkage is each wheel's (the truth's d), where "robot" needs about twice as much."""
+    from tests.reference_model import straight_drive_pair
+    from torchsoil.diagnosis.fit import run_pass
+    from torchsoil.diagnosis.run import DiagnosisConfig, fit_nuisance_model
+    from torchsoil.settings import EstimatorConfig, SimConfig
+    from torchsoil.terrain import TerrainPair
+
+    data, _ = straight_drive_pair(d=(0.02, 0.02), chi=0.5, beta_deg=35.0, length=4.0, flat=0.5, dig=dig, seed=4)
+    pair = TerrainPair.from_mapping(data)
+    cfg = DiagnosisConfig(sections=())
+    est, sim = EstimatorConfig(), SimConfig()
+    _, fitted, _, evidence, shared, _ = fit_nuisance_model(pair, cfg, est, sim)
+    assert evidence["fitted"] == fitted.dig_order == dig
+    assert set(evidence["residual"]) == {"robot", "wheel"}
+    if dig == "wheel":
+        d = np.nanmedian([r["d1"] for r in run_pass(pair, est, fitted, offsets=(), **shared).rows])
+        paper = np.nanmedian([r["d1"] for r in run_pass(pair, est, sim, offsets=(), **shared).rows])
+        assert d == pytest.approx(0.02, rel=0.1)
+        assert paper > 1.5 * d

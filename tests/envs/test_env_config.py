@@ -36,6 +36,8 @@ def test_bad_values_are_refused_by_name():
         env_config({"speed": [1.0, -0.5]})
     with pytest.raises(SettingsError, match=r"`env.field.patches.0.radius`"):
         env_config({"field": {"patches": [{"center": [1, 1]}]}})
+    with pytest.raises(SettingsError, match=r"sim.dig_order: the environment digs every wheel"):
+        env_config({"sim": {"dig_order": "wheel"}})
     with pytest.raises(SettingsError, match="must be None, an EnvConfig, a dict or a YAML path"):
         env_config([("dt", 0.1)])
 

@@ -112,7 +112,8 @@ def test_realistic_draws_stay_in_their_ranges_and_follow_the_seed():
     assert draw_tyre(TyreConfig(**REALISTIC["tyre"]), 7) == tyres[7]
     wide = [draw_tyre(TyreConfig(width_scale=(0.85, 1.25)), s)["width_scale"] for s in range(40)]
     assert all(0.85 <= w <= 1.25 for w in wide) and max(wide) - min(wide) > 0.2
-    assert draw_tyre(TyreConfig(), 7) == {"section": "taper", "width_scale": 1.0}
+    assert {t["dig_order"] for t in tyres} == {"robot", "wheel"}
+    assert draw_tyre(TyreConfig(), 7) == {"section": "taper", "width_scale": 1.0, "dig_order": None}
 
 
 def test_bad_ranges_are_refused():

@@ -101,6 +101,30 @@ def test_world_matches_the_project_simulator_on_uniform_soil():
     assert np.abs(w.h_after - w.h_before).mean() > 5 * diff.mean()
 
 
+def test_wheels_dig_in_turn_in_the_world():
+    """world.dig_order "wheel": the rear wheel digs again from the front one's rut, so on flat
+    ground the rut is about 2 d where both axles passed (the smoothed reference of a rounded
+    tyre's rut sits a little above its floor) and d at the start, where only the rear one
+    did; the chunked world agrees with torchsoil.sim's staged dig."""
+    import torch
+
+    from torchsoil.sim import ParamSpec, SimConfig, simulate_path
+
+    scn = scenario(STRAIGHT)
+    scn["world"] = {"dig_order": "wheel"}
+    truth = build_truth(scn)
+    w = truth.world
+    x0 = truth.traj.poses[0, 1]
+    for y in (0.5, -0.5):
+        assert rut_depth(w, (2.0, 4.0), y) == pytest.approx(0.06, rel=0.1)
+        assert rut_depth(w, (x0 - 0.4, x0 + 0.4), y) == pytest.approx(0.03, abs=0.0015)
+    theta = ParamSpec.base(2).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(89.0))
+    sim = simulate_path(torch.as_tensor(w.h_before)[None], w.grid, truth.traj.poses, truth.robot, theta,
+                        SimConfig(dig_order="wheel"))
+    diff = np.abs(sim.h[0].detach().numpy() - w.h_after)
+    assert diff.mean() < 3e-4 and np.abs(w.h_after - w.h_before).mean() > 5 * diff.mean()
+
+
 def test_multi_pass_hardening_second_pass_sinks_less():
     plain = world(scenario(LOOP))
     hard = world(scenario(LOOP, effects={"multi_pass_hardening": {"k": -0.6}}))

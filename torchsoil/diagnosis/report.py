@@ -24,7 +24,7 @@ def _mm(x: float) -> str:
 def explain(diag) -> str:
     """One paragraph, plain language, from a Diagnosis; ends with what was removed from the
     maps as measurement nuisance (offset, tilt) before anything was fitted, and the tyre
-    section the base model was given."""
+    section and dig order the base model was given."""
     removed = diag.evidence.get("map_nuisance_text")
     note = (f" Removed from H_b before fitting, as measurement rather than physics: {removed}."
             if removed else " No map offset was removed (estimator.nuisance.offset is off).")
@@ -34,6 +34,11 @@ def explain(diag) -> str:
         note += (f" Tyre section fitted as a nuisance: taper flat to {f:.2f} of the radius, exponent {e:.2f}"
                  + (f" (the robot description: {f0:.2f}, {e0:.2f})." if (f, e) != (f0, e0)
                     else ", as the robot description says."))
+    dig = diag.evidence.get("dig_order")
+    if dig is not None and dig["fitted"] != dig["declared"]:
+        note += (" The wheels dig in turn (sim.dig_order: wheel): each trailing wheel digs again from the rut "
+                 "the wheels ahead of it left; this fits the drive better than every wheel digging from the "
+                 "surface before the robot, so d is the sinkage of each wheel, not of the robot.")
     return _explain(diag) + note
 
 

@@ -158,20 +158,43 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
                                                    f"held-out cost vs change r = {c2.r:+.2f} (n_eff {c2.n_eff:.1f})"}
 
 
+def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None):
+    """The tyre section and the dig order as nuisances (`fit_section`; SimConfig.dig_order):
+    the section searched over cfg.sections under sim's order, then each other order of
+    cfg.dig_orders at the best few sections; the lowest mean window residual wins.
+
+    Returns (the pair with that section, sim with that order, section evidence, dig-order
+    evidence (None when only one order was tried), run_pass keywords, the sections a footprint
+    term may choose from)."""
+    section, dig, shared, tried = None, None, {}, ()
+    declared = section_of(pair)
+    if not cfg.sections and not set(cfg.dig_orders) - {sim.dig_order}:
+        return pair, sim, section, dig, shared, tried
+    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress)
+    tried = tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
+    orders = {sim.dig_order: costs[best]}
+    for order in dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order):
+        alt = sim.replace(dig_order=order)
+        b, c, shared = fit_section(pair, est, alt, tried, shared=shared)
+        orders[order] = c[b]
+        if c[b] < costs[best]:
+            sim, best, costs = alt, b, c
+    if len(orders) > 1:
+        dig = {"declared": next(iter(orders)), "fitted": sim.dig_order, "residual": orders}
+    if cfg.sections:
+        section = {"declared": list(declared), "fitted": list(best),
+                   "residual": [[f, e, c] for (f, e), c in costs.items()]}
+        tried = tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
+    return with_section(pair, best), sim, section, dig, shared, tried
+
+
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
              sim: SimConfig | None = None, progress=None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
     estimator and simulator settings (their sections; defaults when None). progress:
     optional tqdm-like bar (update(n))."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    section, shared, tried = None, {}, ()
-    if cfg.sections:
-        declared = section_of(pair)
-        best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress)
-        section = {"declared": list(declared), "fitted": list(best),
-                   "residual": [[f, e, c] for (f, e), c in costs.items()]}
-        tried = tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
-        pair = with_section(pair, best)
+    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress)
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
     window, stride = est.window, est.stride
@@ -275,6 +298,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "map_nuisance": base.nuisance.summary() if base.nuisance is not None else None,
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "tyre_section": section,
+                "dig_order": dig,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchsoil.diagnosis.fit import section_of, with_section
 from torchsoil.diagnosis.run import diagnose
 from torchsoil.settings import Settings
 from torchsoil.synth.scenario import make_terrain_pair
@@ -236,12 +237,37 @@ def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
     t0 = time.perf_counter()
     pair, clean, truth = load_foreign(directory, name)
     exp = truth["expected"]
-    s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
-    extra = {"truth_parameters": truth_coefficients(truth)}
+    diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
+    extra = {"truth_parameters": truth_coefficients(truth), "d_mm": 1e3 * _median_d(diag.base.rows),
+             "d_truth_mm": 1e3 * _median_d(truth.get("windows") or [])}
     if clean is not None:
         extra["model_error_mm"] = 1e3 * model_error(simulated_back(pair, settings), clean)
         extra["model_error_clean_mm"] = 1e3 * model_error(simulated_back(clean, settings), clean)
-    return _record(name, s, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0, **extra)
+        # the same with the nuisance model the diagnosis fitted (tyre section, dig order)
+        fitted, sec = _fitted_nuisance(diag, pair, settings)
+        extra["model_error_fitted_mm"] = 1e3 * model_error(simulated_back(with_section(pair, sec), fitted), clean)
+        extra["model_error_fitted_clean_mm"] = 1e3 * model_error(
+            simulated_back(with_section(clean, sec), fitted), clean)
+    return _record(name, diag.summary, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0,
+                   **extra)
+
+
+def _median_d(rows: list[dict]) -> float:
+    """Median over windows of the mean sinkage of the tracks (keys d1, d2, ...), m."""
+    d = [np.mean([r[k] for k in r if k[:1] == "d" and k[1:].isdigit()]) for r in rows]
+    d = [x for x in d if np.isfinite(x)]
+    return float(np.median(d)) if d else math.nan
+
+
+def _fitted_nuisance(diag, pair, settings: Settings) -> tuple[Settings, tuple[float, float]]:
+    """Settings with the diagnosis' fitted dig order, and its fitted tyre section (f, e)
+    (the pair's own when none was fitted)."""
+    ev = diag.evidence
+    sim = settings.sim
+    if ev.get("dig_order"):
+        sim = sim.replace(dig_order=ev["dig_order"]["fitted"])
+    sec = tuple(ev["tyre_section"]["fitted"]) if ev.get("tyre_section") else section_of(pair)
+    return settings.replace(sim=sim), sec
 
 
 def run_foreign(directory: Path, out: Path, settings: Settings | None = None, names: list[str] | None = None,

@@ -15,7 +15,8 @@ its keys, defaults and units); a scenario YAML is a document of that section:
                  organized: bool (full beams x columns clouds, NaN where nothing returned)}
     world:      {chunk: m, and the simulator's settings (section sim)}
     robot:      shipped robot name or path to a robot YAML (default paper_platform)
-    tyre:       {sections: [taper|flat|rounded|crowned, ..], width_scale: [low, high]}  (drawn per seed)
+    tyre:       {sections: [taper|flat|rounded|crowned, ..], width_scale: [low, high],
+                 dig_orders: [robot|wheel, ..]}  (drawn per seed)
     measurement: {noise: m, noise_dof: [low, high] | null, offset: m, tilt_deg: deg,
                  dropout: [low, high], blobs: 1/m^2, blob_radius: [m, m], streaks: 1/m,
                  streak_length: [m, m]}   (terrain-pair nuisances, drawn per seed: synth.measurement)
@@ -127,7 +128,7 @@ class Truth:
 
     field: lidar-visible grid; h_field: (X, Y) initial surface on it, m.
     corridor: (i0, j0) offset of the world grid inside the field grid.
-    tyre: the world's tyre drawn from the seed: {section, width_scale} (synth.world).
+    tyre: the world's tyre drawn from the seed: {section, width_scale, dig_order} (synth.world).
     """
 
     scenario: SynthConfig
@@ -181,7 +182,9 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
     X, Y = corridor_grid.shape
     h0 = h_field[nx0:nx0 + X, ny0:ny0 + Y]
     tyre = draw_tyre(scn.tyre, seed)
-    world = simulate_world(corridor_grid, h0, traj, robot, scn.soil, scn.effects, scn.world, **tyre)
+    world_cfg = scn.world if tyre["dig_order"] is None else scn.world.replace(dig_order=tyre["dig_order"])
+    world = simulate_world(corridor_grid, h0, traj, robot, scn.soil, scn.effects, world_cfg,
+                           section=tyre["section"], width_scale=tyre["width_scale"])
     t2 = time.perf_counter()
     return Truth(scn, int(seed), robot, relief, landmarks, traj, field, h_field, (nx0, ny0), world,
                  {"terrain_s": t1 - t0, "world_s": t2 - t1}, tyre)
@@ -189,10 +192,14 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
 
 def draw_tyre(cfg: TyreConfig, seed: int) -> dict:
     """The world's tyre for a seed: {section: one of cfg.sections, width_scale: uniform in
-    cfg.width_scale} (synth.world.simulate_world's keywords)."""
+    cfg.width_scale, dig_order: one of cfg.dig_orders, or None when they are not set (then
+    world.dig_order holds)}."""
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 17]))
-    return {"section": str(cfg.sections[rng.integers(len(cfg.sections))]),
-            "width_scale": float(rng.uniform(*cfg.width_scale))}
+    section = str(cfg.sections[rng.integers(len(cfg.sections))])
+    width_scale = float(rng.uniform(*cfg.width_scale))
+    orders = cfg.dig_orders
+    return {"section": section, "width_scale": width_scale,
+            "dig_order": str(orders[rng.integers(len(orders))]) if orders else None}
 
 
 def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None) -> dict:

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.settings import SECTIONS, WorldConfig, WorldSoil
+from torchsoil.sim.geometry import dig_order as wheel_turns
 from torchsoil.sim.relaxation import relax
 from torchsoil.sim.sinkage import reference_height, taper
 from torchsoil.synth import effects as fx
@@ -96,7 +97,10 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     optional `track_scale` (T,) factors on d per track; effects: scenario effects section
     (see `effects.resolve`); config: the world's physics (settings.WorldConfig: the
     simulator's settings and chunk); revisit_gap: base_link travel [m] after which a wheel
-    near a cell starts a new visit (default: twice the wheelbase plus a wheel width).
+    near a cell starts a new visit (default: twice the wheelbase plus a wheel width); section,
+    width_scale: the tyre (`section_profile`; footprint width / the robot's). With
+    config.dig_order "wheel" the axles dig in turn, each trailing wheel again from the rut
+    ahead of it, its reference height smoothed from that surface where it was dug.
     """
     config = config or WorldConfig()
     soil = as_world_soil(soil)
@@ -126,6 +130,12 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     pending = np.zeros(grid.shape, dtype=bool)
     dug = np.zeros(grid.shape, dtype=bool)
 
+    # dig_order "wheel": per turn r < R - 1, the surface the axles of turns <= r left in this visit
+    # (no deposits) and where they dug; reset when the surface settles
+    n_axles = len(np.unique(np.round(robot.wheels[:, 0], 6)))
+    lead = [(h.copy(), np.zeros(grid.shape, dtype=bool)) for _ in range(n_axles - 1)] \
+        if config.dig_order == "wheel" else []
+
     def settle():
         if not pending.any():
             return
@@ -138,6 +148,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         h[box] = rr.h[0].numpy()
         pending[:] = False
         dug[:] = False
+        _advance_turns(lead, None, None, h)
 
     last_arc = np.full(grid.shape, -np.inf)
     n_visits = np.zeros(grid.shape, dtype=np.int64)
@@ -201,8 +212,11 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
                                            .reshape(pidx.shape))
 
-        h[win], covered, domain = _step(h[win], h_ref[win], geom, radius0 * rscale, robot, depth,
-                                        sf["chi"][win], config, section)
+        turn = np.take_along_axis(wheel_turns(gp, robot.wheels[:, 0]), pidx.reshape(K, -1), 1).reshape(pidx.shape)
+        ref = _turn_reference(h_ref[win], lead, win, turn, config.ref_radius * radius0, dx)
+        h[win], covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
+                                                 sf["chi"][win], config, section)
+        _advance_turns(lead, win, turn, targets)
         pending[win] |= domain
         dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
@@ -220,6 +234,33 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     for k in range(1, V + 1):                               # the final state after the last visit
         states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
     return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf)
+
+
+def _turn_reference(h_ref: np.ndarray, lead: list, win, turn: np.ndarray, radius: float, dx: float) -> np.ndarray:
+    """Reference height of each wheel-cell, (X, Y) -> (K, X, Y) [m] (h_ref itself when the
+    wheels dig all at once): under dig_order "wheel", a wheel of turn r >= 1 takes it from the
+    surface the turns before it left (`lead`), smoothed over a disc of `radius` [m], where they
+    dug in this visit. turn: (K, X, Y) int turn of each wheel at its nearest pose."""
+    if not lead:
+        return h_ref
+    ref = np.repeat(h_ref[None], len(turn), 0)
+    for r, (surf, dug_r) in enumerate(lead, start=1):
+        ahead = reference_height(torch.from_numpy(surf[win])[None], radius, dx)[0].numpy()
+        ref = np.where((turn == r) & dug_r[win][None], ahead[None], ref)
+    return ref
+
+
+def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray) -> None:
+    """Update `lead` in place: per turn r, the surface the wheels of turns <= r left and where
+    they dug, from this chunk's (K, X, Y) targets [m] on window `win`; with turn None, start
+    a visit: every surface becomes `targets` (the settled (X, Y) surface), nothing dug."""
+    for r, (surf, dug_r) in enumerate(lead):
+        if turn is None:
+            surf[:], dug_r[:] = targets, False
+            continue
+        t_r = np.where(turn <= r, targets, np.inf).min(0)
+        surf[win] = np.fmin(surf[win], t_r)
+        dug_r[win] |= np.isfinite(t_r)
 
 
 def _wheel_xy(gp: np.ndarray, wxy: np.ndarray) -> np.ndarray:
@@ -283,20 +324,22 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
 
 def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config: WorldConfig,
           section: str = "taper"):
-    """Sinkage and deposition of one chunk on window arrays (X, Y) [m]; depth (K, X, Y) [m],
-    chi (X, Y) the soil's displacement-compaction ratio where the soil is dug.
+    """Sinkage and deposition of one chunk on window arrays (X, Y) [m]; h_ref (X, Y) or per
+    wheel (K, X, Y) [m]; depth (K, X, Y) [m], chi (X, Y) the soil's displacement-compaction
+    ratio where the soil is dug.
 
     Sinkage h <- min(h, h_ref - s * depth) over each footprint; the height removed under
     each wheel goes, times the local chi, to the band of width config.band_width cells
     beside its footprint in the same 2-cell arc bin. Relaxation comes later, once per pass.
-    Returns the new surface (X, Y), the (K, X, Y) bool footprint cover and the (X, Y) bool
-    relaxation domain of the chunk."""
+    Returns the new surface (X, Y), the (K, X, Y) bool footprint cover, the (X, Y) bool
+    relaxation domain of the chunk and the (K, X, Y) targets h_ref - s * depth [m] (inf off
+    the footprint)."""
     dist, lateral = geom["dist"], geom["lateral"]
     covered = dist <= radius
     s = np.zeros_like(dist)
     s[covered] = section_profile(lateral[covered] / radius, section, robot.wheel_flat_fraction)
-    target = np.where(covered, h_ref[None] - s * depth, np.inf).min(0)
-    h_dug = np.minimum(h, target)
+    targets = np.where(covered, (h_ref if h_ref.ndim == 3 else h_ref[None]) - s * depth, np.inf)
+    h_dug = np.minimum(h, targets.min(0))
     removed = (h - h_dug) * chi
     covered_any = covered.any(0)
     owner = covered & (np.arange(len(dist))[:, None, None] == np.where(covered, s + 1, 0).argmax(0)[None])
@@ -310,4 +353,4 @@ def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config:
         share = np.where(cnt > 0, vol / np.maximum(cnt, 1), 0.0)
         added[band[k]] += share[b[band[k]]]
     domain = dist.min(0) <= radius + config.relax_margin * robot.wheel_width
-    return h_dug + added, covered, domain
+    return h_dug + added, covered, domain, targets
