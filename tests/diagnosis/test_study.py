@@ -142,5 +142,7 @@ def test_foreign_study_runs_on_a_pair_in_the_foreign_layout(tmp_path):
     # a fraction of the 3 mm noise; the noisy pair cannot do better
     assert 0 < rec["model_error_clean_mm"] < 1.0
     assert rec["model_error_mm"] > rec["model_error_clean_mm"]
+    assert 0 < rec["model_error_fitted_clean_mm"] < 1.0 and rec["d_mm"] > 5    # the world digs a rut
+    assert "diagnosis' section and dig order" in table
     assert (tmp_path / "out" / "confusion.md").read_text() == table
     assert run_foreign(tmp_path, tmp_path / "out", settings) == table               # resumed: nothing redone

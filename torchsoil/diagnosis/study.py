@@ -297,12 +297,15 @@ def model_error_table(records: list[dict]) -> str:
     prediction cost over noise floor before and after, and fitted against true coefficients."""
     lines = [f"model error: mean |simulated H_b - noise-free H_b| where the noise-free ground changed by more "
              f"than {1e3 * CHANGED:g} mm", "",
-             "| drive | model error [mm] | fitted to noise-free [mm] | excess [mm] | prediction / floor "
-             "before -> after | fitted | truth |", "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| drive | model error [mm] | fitted to noise-free [mm] | excess [mm] | the same under the "
+             "diagnosis' section and dig order [mm] | d fitted / truth [mm] | prediction / floor before -> after "
+             "| fitted | truth |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in records:
         e, c = r.get("model_error_mm", math.nan), r.get("model_error_clean_mm", math.nan)
+        ef, cf = r.get("model_error_fitted_mm", math.nan), r.get("model_error_fitted_clean_mm", math.nan)
         floor = r.get("noise_floor") or math.nan
-        lines.append(f"| {r['case']} | {e:.2f} | {c:.2f} | {e - c:+.2f} | "
+        lines.append(f"| {r['case']} | {e:.2f} | {c:.2f} | {e - c:+.2f} | {ef:.2f} / {cf:.2f} ({ef - cf:+.2f}) | "
+                     f"{r.get('d_mm', math.nan):.1f} / {r.get('d_truth_mm', math.nan):.1f} | "
                      f"{r['cost_before']['prediction'] / floor:.2f} -> {r['cost_after']['prediction'] / floor:.2f} | "
                      f"{r['parameters'] or '-'} | "
                      f"{ {k: round(v, 3) for k, v in r.get('truth_parameters', {}).items()} or '-'} |")
