@@ -85,6 +85,9 @@ def _run(quick: bool) -> dict[str, float]:
                     partial(simulate, h, geom, theta, torch_cfg), max(3, repeat // 4))
                 out[f"sim_forward_backward_ms_{key}"] = _median_ms(
                     partial(_forward_backward, h, geom, theta, cfg), repeat)
+                wheel_cfg = SimConfig(dig_order="wheel")          # axles dig in turn
+                out[f"sim_forward_wheel_order_ms_{key}"] = _median_ms(
+                    partial(simulate, h, geom, theta, wheel_cfg), repeat)
     grid, poses, robot, h = paper_window(0.02)
     geom = wheel_geometry(grid, poses, robot, dtype=torch.float64)
     for deg in (20, 30, 45):
