@@ -166,13 +166,16 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     Returns (the pair with that section, sim with that order, section evidence, dig-order
     evidence (None when only one order was tried), run_pass keywords, the sections a footprint
     term may choose from)."""
-    section, dig, shared, tried = None, None, {}, ()
+    section, dig = None, None
     declared = section_of(pair)
     if not cfg.sections and not set(cfg.dig_orders) - {sim.dig_order}:
-        return pair, sim, section, dig, shared, tried
+        return pair, sim, section, dig, {}, ()
+
+    def best_few(costs):
+        return tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
+
     best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress)
-    tried = tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
-    orders = {sim.dig_order: costs[best]}
+    orders, tried = {sim.dig_order: costs[best]}, best_few(costs)
     for order in dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order):
         alt = sim.replace(dig_order=order)
         b, c, shared = fit_section(pair, est, alt, tried, shared=shared)
@@ -184,8 +187,7 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     if cfg.sections:
         section = {"declared": list(declared), "fitted": list(best),
                    "residual": [[f, e, c] for (f, e), c in costs.items()]}
-        tried = tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
-    return with_section(pair, best), sim, section, dig, shared, tried
+    return with_section(pair, best), sim, section, dig, shared, best_few(costs) if cfg.sections else ()
 
 
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,

@@ -169,9 +169,10 @@ def dig_order(poses: np.ndarray, wheels_x: np.ndarray, eps: float = 1e-9) -> np.
     or reversing; standing still counts as forward). poses: (N, 4) t, x, y, yaw."""
     v = np.gradient(poses[:, 1:3], axis=0) if len(poses) > 1 else np.zeros((len(poses), 2))
     forward = v[:, 0] * np.cos(poses[:, 3]) + v[:, 1] * np.sin(poses[:, 3]) >= -eps
-    axles = np.unique(np.round(np.asarray(wheels_x, np.float64), 6))
-    ahead = (axles[None, :] > np.round(wheels_x, 6)[:, None]).sum(1)    # (K,) axles in front
-    behind = (axles[None, :] < np.round(wheels_x, 6)[:, None]).sum(1)   # (K,) axles behind
+    x = np.round(np.asarray(wheels_x, np.float64), 6)
+    axles = np.unique(x)
+    ahead = (axles[None, :] > x[:, None]).sum(1)     # (K,) axles in front
+    behind = (axles[None, :] < x[:, None]).sum(1)    # (K,) axles behind
     return np.where(forward[None, :], ahead[:, None], behind[:, None]).astype(np.int64)
 
 

@@ -148,7 +148,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         h[box] = rr.h[0].numpy()
         pending[:] = False
         dug[:] = False
-        _advance_turns(lead, None, None, h)
+        _start_visit(lead, h)
 
     last_arc = np.full(grid.shape, -np.inf)
     n_visits = np.zeros(grid.shape, dtype=np.int64)
@@ -212,8 +212,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
                                            .reshape(pidx.shape))
 
-        turn = np.take_along_axis(wheel_turns(gp, robot.wheels[:, 0]), pidx.reshape(K, -1), 1).reshape(pidx.shape)
-        ref = _turn_reference(h_ref[win], lead, win, turn, config.ref_radius * radius0, dx)
+        ref, turn = _turn_reference(h_ref[win], lead, win, gp, pidx, robot.wheels[:, 0], config.ref_radius * radius0,
+                                    dx)
         h[win], covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
                                                  sf["chi"][win], config, section)
         _advance_turns(lead, win, turn, targets)
@@ -236,31 +236,37 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf)
 
 
-def _turn_reference(h_ref: np.ndarray, lead: list, win, turn: np.ndarray, radius: float, dx: float) -> np.ndarray:
-    """Reference height of each wheel-cell, (X, Y) -> (K, X, Y) [m] (h_ref itself when the
-    wheels dig all at once): under dig_order "wheel", a wheel of turn r >= 1 takes it from the
-    surface the turns before it left (`lead`), smoothed over a disc of `radius` [m], where they
-    dug in this visit. turn: (K, X, Y) int turn of each wheel at its nearest pose."""
+def _turn_reference(h_ref: np.ndarray, lead: list, win, poses: np.ndarray, pidx: np.ndarray, wheels_x: np.ndarray,
+                    radius: float, dx: float) -> tuple[np.ndarray, np.ndarray | None]:
+    """Reference height of each wheel-cell [m] and the (K, X, Y) turn of each wheel at its
+    nearest pose (`geometry.dig_order`; pidx (K, X, Y) into the chunk's (N, 4) poses): h_ref
+    (X, Y) itself and None when the wheels dig all at once (`lead` empty). Under dig_order
+    "wheel", (K, X, Y): a wheel of turn r >= 1 takes it from the surface the turns before it
+    left (`lead`), smoothed over a disc of `radius` [m], where they dug in this visit."""
     if not lead:
-        return h_ref
-    ref = np.repeat(h_ref[None], len(turn), 0)
+        return h_ref, None
+    K = len(wheels_x)
+    turn = np.take_along_axis(wheel_turns(poses, wheels_x), pidx.reshape(K, -1), 1).reshape(pidx.shape)
+    ref = np.repeat(h_ref[None], K, 0)
     for r, (surf, dug_r) in enumerate(lead, start=1):
         ahead = reference_height(torch.from_numpy(surf[win])[None], radius, dx)[0].numpy()
         ref = np.where((turn == r) & dug_r[win][None], ahead[None], ref)
-    return ref
+    return ref, turn
 
 
 def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray) -> None:
     """Update `lead` in place: per turn r, the surface the wheels of turns <= r left and where
-    they dug, from this chunk's (K, X, Y) targets [m] on window `win`; with turn None, start
-    a visit: every surface becomes `targets` (the settled (X, Y) surface), nothing dug."""
+    they dug, from this chunk's (K, X, Y) targets [m] on window `win`."""
     for r, (surf, dug_r) in enumerate(lead):
-        if turn is None:
-            surf[:], dug_r[:] = targets, False
-            continue
         t_r = np.where(turn <= r, targets, np.inf).min(0)
         surf[win] = np.fmin(surf[win], t_r)
         dug_r[win] |= np.isfinite(t_r)
+
+
+def _start_visit(lead: list, h: np.ndarray) -> None:
+    """A new visit (the surface has settled): every turn's surface becomes h, nothing dug."""
+    for surf, dug_r in lead:
+        surf[:], dug_r[:] = h, False
 
 
 def _wheel_xy(gp: np.ndarray, wxy: np.ndarray) -> np.ndarray:
