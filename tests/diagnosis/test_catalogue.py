@@ -121,3 +121,30 @@ def test_hardening_counts_passes_as_the_pair_shows_them():
     assert torch.allclose(scale("last_visit", again), half)
     with pytest.raises(ValueError, match="view"):
         ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, "newest")
+
+
+def test_hardening_counts_wheel_passes_when_the_wheels_dig_in_turn():
+    """Under dig_order "wheel" a rear wheel in its front wheel's rut runs the second pass. On
+    the racetrack's second lap (first view, k = -0.5), the front wheels find two earlier
+    passes, 3^log2(0.5) = 1/3 (a line through the second pass's 1/2 would give 0), and the
+    rear wheels three, 4^-1 = 1/4; on the first lap (past the rear wheels' start) the front
+    wheels dig fresh ground and the rear ones at 1/2."""
+    robot = paper_platform()
+    poses = racetrack()
+    drive = DriveSignals.from_poses(poses, robot)
+    arc = drive.signals["arc_length"]
+    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
+    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+    model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, "first_view", "wheel")
+    front = torch.as_tensor(robot.wheels[:, 0] > 0)
+
+    def scale(sel):
+        geom = wheel_geometry(grid, poses[sel], robot, dtype=torch.float64)
+        return model.modifiers(Window(geom), theta).depth_scale[0]          # (K, N)
+
+    first = scale((arc > 2.0) & (arc < 3.0))          # rear wheels on the front ones' ground
+    again = scale(arc > arc[-1] - 0.5)                 # base_link at x 1.5-2, rear wheels beyond 0.69
+    torch.testing.assert_close(first[front], torch.ones_like(first[front]))
+    torch.testing.assert_close(first[~front], torch.full_like(first[~front], 0.5))
+    torch.testing.assert_close(again[front], torch.full_like(again[front], 1 / 3))
+    torch.testing.assert_close(again[~front], torch.full_like(again[~front], 0.25))

@@ -54,6 +54,30 @@ def test_passes_count_the_ground_driven_twice_only():
     assert drive.pose_passes(p4[west], robot, before=True).max() == 0
 
 
+def test_wheel_passes_count_the_front_wheel_for_the_rear_one():
+    """Out 6 m along x and back in reverse, axles at +-0.69 m. Counting wheel passes, a rear
+    wheel on the way out finds one pass (its front wheel's), and on the way back (the rear
+    axle leading) the rear wheel finds two and the front wheel three; counting visits, the
+    way back once or not at all (see below). Without `before` the pair shows the last pass, which counts the
+    same whichever leg the pose is on."""
+    robot = paper_platform()
+    t = np.arange(0.0, 12.0 + 1e-9, 0.02)
+    x = np.where(t <= 6.0, t, 12.0 - t)
+    drive = DriveSignals.from_poses(poses_from(t, x, 0 * t, 0 * t), robot)
+    p4 = drive.poses4
+    out, back = p4[np.argmin(np.abs(t - 3.0))][None], p4[np.argmin(np.abs(t - 9.0))][None]
+    front, rear = robot.wheels[:, 0] > 0, robot.wheels[:, 0] < 0
+    for pose, want in ((out, {"front": 0, "rear": 1}), (back, {"front": 3, "rear": 2})):
+        got = drive.pose_passes(pose, robot, before=True, by_wheel=True)[:, 0]
+        assert got[front] == pytest.approx([want["front"]] * 2, abs=0.01)
+        assert got[rear] == pytest.approx([want["rear"]] * 2, abs=0.01)
+        last = drive.pose_passes(pose, robot, by_wheel=True)[:, 0]
+        assert last[front] == pytest.approx([3, 3], abs=0.01) and last[rear] == pytest.approx([2, 2], abs=0.01)
+    # counting robot visits: the front wheels' ground (x 3.69) was left 0.7 m of travel before
+    # the robot reversed onto it (one visit), the rear wheels' (x 2.31) 5.3 m before (two)
+    assert drive.pose_passes(back, robot, before=True)[:, 0] == pytest.approx([0, 0, 1, 1])
+
+
 @pytest.mark.parametrize("bad, msg", [(np.zeros((10, 6)), "(N, 7)"), (np.zeros((2, 7)), "at least 3"),
                                       (np.zeros((5, 7)), "time must increase")])
 def test_bad_poses_are_named(bad, msg):

@@ -125,6 +125,19 @@ def test_wheels_dig_in_turn_in_the_world():
     assert diff.mean() < 3e-4 and np.abs(w.h_after - w.h_before).mean() > 5 * diff.mean()
 
 
+def test_wheels_digging_in_turn_harden_the_rut_for_the_wheel_behind():
+    """world.dig_order "wheel" with hardening (linear, k -0.5): a rear wheel in its front
+    wheel's rut runs the second pass and sinks d / 2 more, so the rut is 1.5 d where both
+    axles passed and d at the start, where only the rear one did."""
+    scn = scenario(STRAIGHT, effects={"multi_pass_hardening": {"form": "linear", "k": -0.5}})
+    scn["world"] = {"dig_order": "wheel"}
+    truth = build_truth(scn)
+    x0 = truth.traj.poses[0, 1]
+    for y in (0.5, -0.5):
+        assert rut_depth(truth.world, (2.0, 4.0), y) == pytest.approx(0.045, rel=0.1)
+        assert rut_depth(truth.world, (x0 - 0.4, x0 + 0.4), y) == pytest.approx(0.03, abs=0.0015)
+
+
 def test_multi_pass_hardening_second_pass_sinks_less():
     plain = world(scenario(LOOP))
     hard = world(scenario(LOOP, effects={"multi_pass_hardening": {"k": -0.6}}))

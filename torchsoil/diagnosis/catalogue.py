@@ -1,13 +1,13 @@
 """Catalogue of model extensions: each a named physical term with one coefficient, turned
 into `torchsoil.sim.Modifiers` for one window.
 
-Every law is deliberately simple and monotone (linear in its covariate, one coefficient k,
-k = 0 is the paper's model); the world may follow another form (power law, saturation): the
-diagnosis must still name the term.
+Every law is deliberately simple and monotone (one coefficient k, k = 0 is the paper's model;
+linear in its covariate, but for passes); the world may follow another form (power law,
+saturation): the diagnosis must still name the term.
 
 | id | law | coefficient |
 | --- | --- | --- |
-| multi_pass_hardening | sinkage x (1 + k * earlier passes) | k [-] per pass (< 0: hardening) |
+| multi_pass_hardening | sinkage x (1 + n)^log2(1 + k), n earlier passes | k [-]: 2nd pass / 1st - 1 (< 0: hardening) |
 | speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)) | k [-] |
 | slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
 | lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
@@ -17,6 +17,12 @@ diagnosis must still name the term.
 The per-window base parameters (d_1..d_T, chi, beta) are still fitted; the sinkage factors
 are normalised by nothing but their covariate, so d keeps its meaning at the covariate's
 reference (first pass, mean speed, no traction demand, no lateral load).
+
+Passes follow a power law in the pass number (1 + n) rather than a line: a line through the
+second pass's factor goes negative by the third pass of strong hardening, while soil hardens
+by ever smaller steps (each pass compacts what the last one left). Under the dig order
+"wheel" every wheel's pass counts (a rear wheel in its front wheel's rut runs the second),
+under "robot" the robot's visits.
 """
 
 from __future__ import annotations
@@ -78,16 +84,19 @@ def get(ext_id: str) -> Extension:
 
 
 def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.ndarray, k: float,
-                 reference: dict[str, float], before: bool = False) -> np.ndarray:
+                 reference: dict[str, float], before: bool = False, by_wheel: bool = False) -> np.ndarray:
     """(K, N) sinkage factor of a depth term at (N, 4) resampled poses t, x, y, yaw.
 
     reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed). before:
     count the passes before each pose's own (when every visit is simulated), not all but
-    the last (DriveSignals.passes)."""
+    the last (DriveSignals.passes). by_wheel: passes are wheel passes, not robot visits (the
+    wheels dig in turn, SimConfig.dig_order "wheel": a rear wheel in its front wheel's rut
+    runs a second pass)."""
     K, N = len(robot.wheels), len(poses4)
     t = poses4[:, 0]
     if ext.id == "multi_pass_hardening":
-        x = drive.pose_passes(poses4, robot, before=before).astype(np.float64)
+        n = drive.pose_passes(poses4, robot, before=before, by_wheel=by_wheel).astype(np.float64)
+        return np.clip((1.0 + n) ** math.log2(1.0 + k), 0.05, 10.0)
     elif ext.id == "speed_dependent_sinkage":
         v0 = max(reference.get("speed", 1.0), 1e-3)
         x = np.broadcast_to(drive.at("speed", t) / v0 - 1.0, (K, N))
@@ -112,15 +121,20 @@ class ExtensionModel:
     "first_view" every window simulates all the visits to its ground from untouched soil, so
     passes count the visits before each simulated pose's own (a loop's first lap digs fresh
     ground, although the drive comes back over it); with "last_visit" a window simulates the
-    last visit only, and passes count all visits but the last (DriveSignals.passes)."""
+    last visit only, and passes count all visits but the last (DriveSignals.passes).
+    dig_order: the simulator's (SimConfig.dig_order); under "wheel" passes count every
+    wheel's pass (a rear wheel in the front wheel's rut runs its second), under "robot"
+    the robot's visits (its wheels dig as one)."""
 
-    def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot, view: str = "last_visit"):
+    def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot, view: str = "last_visit",
+                 dig_order: str = "robot"):
         lo, hi = ext.bounds
         if not (lo <= k <= hi):
             raise ValueError(f"{ext.id}: coefficient {ext.parameter} = {k} outside [{lo}, {hi}]")
         if view not in ("first_view", "last_visit"):
             raise ValueError(f"view must be 'first_view' or 'last_visit', got {view!r}")
         self.ext, self.k, self.drive, self.robot, self.view = ext, float(k), drive, robot, view
+        self.by_wheel = dig_order == "wheel"
         self.reference = {"speed": float(np.mean(drive.signals["speed"]))}
         self._cache: dict[tuple, torch.Tensor] = {}
 
@@ -133,7 +147,7 @@ class ExtensionModel:
             if key not in self._cache:
                 poses4 = geom.poses.cpu().numpy()
                 f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference,
-                                 before=self.view == "first_view")
+                                 before=self.view == "first_view", by_wheel=self.by_wheel)
                 self._cache[key] = torch.as_tensor(f, **kw)
                 if len(self._cache) > 64:          # the held-out offsets revisit windows up to 6 back
                     self._cache.pop(next(iter(self._cache)))

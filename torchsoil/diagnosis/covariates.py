@@ -91,7 +91,10 @@ class DriveSignals:
     between the share falls linearly: the load of a wheel compacts the soil beside its
     footprint too, fading over about two wheel widths (a path that joins an old track at an
     angle runs on compacted ground before its wheels meet the old ruts). gap: base_link
-    travel [m] after which coming back counts as a new pass.
+    travel [m] after which coming back counts as a new pass. wheel_of: (M,) index of the wheel
+    each wheel point belongs to (needed to count wheel passes, `passes(wheel=...)`); lag:
+    base_link travel [m] by which another wheel's pass must precede a wheel's own to count
+    before it (half the shortest spacing of the robot's axles).
     """
 
     signals: dict[str, np.ndarray]
@@ -101,6 +104,8 @@ class DriveSignals:
     radius: float
     gap: float
     inner: float = 0.0
+    wheel_of: np.ndarray | None = None
+    lag: float = 0.0
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
 
     @classmethod
@@ -112,7 +117,10 @@ class DriveSignals:
         w = wheel_positions(dense, robot.wheels[:, :2])                     # (K, M, 2)
         gap = 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
         r = robot.wheel_width / 2
-        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), r + 2 * robot.wheel_width, gap, r)
+        axles = np.diff(np.unique(np.round(robot.wheels[:, 0], 6)))
+        lag = float(axles.min()) / 2 if len(axles) else gap / 2
+        return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), r + 2 * robot.wheel_width, gap, r,
+                   np.repeat(np.arange(len(w)), w.shape[1]), lag)
 
     def at(self, name: str, t) -> np.ndarray:
         """Signal `name` interpolated at times t [s] (any shape)."""
@@ -120,7 +128,8 @@ class DriveSignals:
             raise KeyError(f"unknown signal {name!r}; known: {sorted(self.signals)}")
         return np.interp(np.asarray(t, np.float64), self.signals["t"], self.signals[name])
 
-    def passes(self, points: np.ndarray, arc: np.ndarray, before: bool = False) -> np.ndarray:
+    def passes(self, points: np.ndarray, arc: np.ndarray, before: bool = False,
+               wheel: np.ndarray | None = None) -> np.ndarray:
         """Passes before the last one over the ground at `points` (..., 2) [m]: distinct visits
         (separated by more than `gap` of base_link travel) of any wheel within `radius`, each
         weighted by its closest wheel's distance (1 within `inner`, falling linearly to 0 at
@@ -130,7 +139,14 @@ class DriveSignals:
         base_link arc length [m] of the pose at each point; before: count only the visits that
         ended more than `gap` / 2 of travel before it (the passes before the pose's own, for a
         simulation that drives every visit). Returns a float array of arc's shape (whole
-        numbers where old tracks are driven exactly)."""
+        numbers where old tracks are driven exactly).
+
+        wheel: (...) int, the wheel whose centre each point is. Given, every wheel's pass (a
+        run of its hits, broken where it travelled more than `radius` away) counts on its own
+        (the multi-pass count of wheels digging in turn, where a rear wheel runs on the ground
+        its front wheel has just passed): the passes whose centre (the
+        share-weighted mean arc of a wheel's hits) lies more than `lag` of travel before that
+        wheel's own pass (the pose's with `before`, else its last over the point)."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
         if self._tree is None:
             self._tree = cKDTree(self.wheel_points)
@@ -142,14 +158,30 @@ class DriveSignals:
         i = np.repeat(np.arange(len(pts)), n_hits)                       # one row per (point, hit)
         j = np.concatenate([np.asarray(h, np.int64) for h in hits if len(h)])
         a = self.wheel_arc[j]
-        order = np.lexsort((a, i))
-        i, j, a = i[order], j[order], a[order]
+        by_wheel = wheel is not None
+        if by_wheel and self.wheel_of is None:
+            raise ValueError("counting wheel passes needs DriveSignals.wheel_of")
+        kw = self.wheel_of[j] if by_wheel else np.zeros_like(j)
+        order = np.lexsort((a, kw, i))
+        i, j, a, kw = i[order], j[order], a[order], kw[order]
         dist = np.linalg.norm(self.wheel_points[j] - pts[i], axis=1)
         share = np.clip((self.radius - dist) / max(self.radius - self.inner, 1e-9), 0.0, 1.0)
-        first = np.flatnonzero(np.r_[True, (i[1:] != i[:-1]) | (np.diff(a) > self.gap)])   # visit starts
+        split = self.radius if by_wheel else self.gap             # a wheel that left the disc came back
+        first = np.flatnonzero(np.r_[True, (i[1:] != i[:-1]) | (kw[1:] != kw[:-1]) | (np.diff(a) > split)])
         best = np.maximum.reduceat(share, first)                         # closest wheel of each visit
         owner = i[first]
-        if before:
+        if by_wheel:
+            w_sum = np.add.reduceat(share, first)
+            centre = np.where(w_sum > 0, np.add.reduceat(share * a, first) / np.maximum(w_sum, 1e-12),
+                              np.minimum.reduceat(a, first))
+            own = np.asarray(arc, np.float64).reshape(-1).copy()
+            if not before:
+                mine = kw[first] == np.asarray(wheel).reshape(-1)[owner]
+                last = np.full(len(pts), -np.inf)
+                np.maximum.at(last, owner[mine], centre[mine])
+                own = np.where(np.isfinite(last), last, own)
+            earlier = centre < own[owner] - self.lag
+        elif before:
             ends = np.maximum.reduceat(a, first)
             earlier = ends < np.asarray(arc, np.float64).reshape(-1)[owner] - self.gap / 2
         else:
@@ -157,12 +189,15 @@ class DriveSignals:
         out += np.bincount(owner, weights=best * earlier, minlength=len(pts))
         return out.reshape(np.shape(points)[:-1])
 
-    def pose_passes(self, poses4: np.ndarray, robot: Robot, before: bool = False) -> np.ndarray:
+    def pose_passes(self, poses4: np.ndarray, robot: Robot, before: bool = False,
+                    by_wheel: bool = False) -> np.ndarray:
         """(N, 4) poses t, x, y, yaw -> (K, N) earlier passes under each wheel (float); before:
-        see `passes`."""
+        see `passes`; by_wheel: count every wheel's pass (`passes(wheel=...)`), not visits."""
         w = wheel_positions(np.asarray(poses4, np.float64), robot.wheels[:, :2])
         arc = self.at("arc_length", poses4[:, 0])
-        return self.passes(w, np.broadcast_to(arc, w.shape[:2]), before)
+        wheel = np.broadcast_to(np.arange(len(w))[:, None], w.shape[:2]) if by_wheel else None
+        return self.passes(w, np.broadcast_to(arc, w.shape[:2]), before, wheel)
+
 
 
 def window_signals(drive: DriveSignals, spans: list[tuple[float, float]], robot: Robot) -> dict[str, np.ndarray]:

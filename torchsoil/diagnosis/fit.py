@@ -221,7 +221,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
         k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
-        model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit")
+        model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order)
         sec[k] = sec[0.0]
         if ext.kind == "radius" and sections:
             sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared)[0]

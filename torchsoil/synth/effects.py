@@ -11,7 +11,7 @@ under the base model's conditions, with a choosable functional form phi:
 
 | id | covariate x | scaled quantity |
 | --- | --- | --- |
-| multi_pass_hardening | pass index - 1 (0 on the first pass) | sinkage d (k < 0: later passes sink less) |
+| multi_pass_hardening | pass index - 1 (0 on the first; wheel passes if they dig in turn) | sinkage d (k < 0: harder) |
 | speed_dependent_sinkage | v / v_ref - 1 | sinkage d |
 | slip_sinkage | traction demand a / g + sin(grade) | sinkage d |
 | lateral_load_transfer | per wheel -side * 2 h_cg / track * (a_lat / g + sin(roll)) | sinkage d of that wheel |

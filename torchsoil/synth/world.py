@@ -6,7 +6,9 @@ own cells (sinkage d and angle of repose beta per cell, chi per chunk). The refe
 height h~ of a cell is taken from the surface just before the robot's current visit to it,
 so both wheels of a track dig to the same depth and a later pass digs from the rut the
 earlier one left. A visit starts when a wheel comes near a cell after the robot has
-travelled more than `revisit_gap` since it last did.
+travelled more than `revisit_gap` since it last did. Multi-pass hardening counts those visits;
+when the axles dig in turn (world.dig_order "wheel") it counts wheel passes instead, so a rear
+wheel in its front wheel's rut runs the second pass.
 """
 
 from __future__ import annotations
@@ -135,6 +137,10 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     n_axles = len(np.unique(np.round(robot.wheels[:, 0], 6)))
     lead = [(h.copy(), np.zeros(grid.shape, dtype=bool)) for _ in range(n_axles - 1)] \
         if config.dig_order == "wheel" else []
+    # ... and the wheel passes: where each turn dug in this visit, and how many wheels dug each
+    # cell in the visits before (under "wheel" a pass is a wheel's, under "robot" the robot's)
+    turn_dug = np.zeros((n_axles if lead else 0, *grid.shape), dtype=bool)
+    wheel_passes = np.zeros(grid.shape, dtype=np.int64)
 
     def settle():
         if not pending.any():
@@ -149,6 +155,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         pending[:] = False
         dug[:] = False
         _start_visit(lead, h)
+        wheel_passes[:] += turn_dug.sum(0)
+        turn_dug[:] = False
 
     last_arc = np.full(grid.shape, -np.inf)
     n_visits = np.zeros(grid.shape, dtype=np.int64)
@@ -203,8 +211,11 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         ro, pi = (np.interp(gp[:, 0], tt, traj.poses[:, c]) for c in (4, 5))
         fpose = fx.pose_depth_factor(eff, sp, ac, pi, ro, yr, robot.wheels[:, 1], track_width)
         fcell = np.take_along_axis(fpose, pidx.reshape(K, -1), 1).reshape(pidx.shape)
+        ref, turn = _turn_reference(h_ref[win], lead, win, gp, pidx, robot.wheels[:, 0], config.ref_radius * radius0,
+                                    dx)
+        passes = _pass_index(n_visits[win], turn, turn_dug[:, i0:i1, j0:j1], wheel_passes[win])
         depth = (sf["d"][win][None] * track_scale[robot.track][:, None, None] * fcell
-                 * np.asarray(fx.pass_depth_factor(eff, np.maximum(n_visits[win], 1)))[None])
+                 * np.asarray(fx.pass_depth_factor(eff, passes)))
         if "tread" in eff:
             wg = _wheel_xy(gp, wxy)
             warc = np.concatenate([np.zeros((K, 1)), np.cumsum(
@@ -212,11 +223,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
                                            .reshape(pidx.shape))
 
-        ref, turn = _turn_reference(h_ref[win], lead, win, gp, pidx, robot.wheels[:, 0], config.ref_radius * radius0,
-                                    dx)
         h[win], covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
                                                  sf["chi"][win], config, section)
-        _advance_turns(lead, win, turn, targets)
+        _advance_turns(lead, win, turn, targets, turn_dug, covered)
         pending[win] |= domain
         dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
@@ -254,13 +263,29 @@ def _turn_reference(h_ref: np.ndarray, lead: list, win, poses: np.ndarray, pidx:
     return ref, turn
 
 
-def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray) -> None:
+def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray, turn_dug: np.ndarray,
+                   covered: np.ndarray) -> None:
     """Update `lead` in place: per turn r, the surface the wheels of turns <= r left and where
-    they dug, from this chunk's (K, X, Y) targets [m] on window `win`."""
+    they dug, from this chunk's (K, X, Y) targets [m] on window `win`; and turn_dug (R, X, Y),
+    where each turn's wheels dug in this visit, from their (K, X, Y) footprints `covered`."""
     for r, (surf, dug_r) in enumerate(lead):
         t_r = np.where(turn <= r, targets, np.inf).min(0)
         surf[win] = np.fmin(surf[win], t_r)
         dug_r[win] |= np.isfinite(t_r)
+    for r in range(len(turn_dug)):
+        turn_dug[(slice(r, r + 1), *win)] |= (covered & (turn == r)).any(0)[None]
+
+
+def _pass_index(n_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndarray,
+                wheel_passes: np.ndarray) -> np.ndarray:
+    """The pass each wheel runs over each cell, 1 = first: (1, X, Y) robot visits when the
+    wheels dig all at once (turn None); else (K, X, Y) wheel passes: those of earlier visits
+    (wheel_passes (X, Y)) plus the turns before the wheel's own (turn (K, X, Y)) that dug the
+    cell in this visit (turn_dug (R, X, Y)), plus one."""
+    if turn is None:
+        return np.maximum(n_visits, 1)[None]
+    ahead = np.cumsum(turn_dug, 0) - turn_dug
+    return wheel_passes[None] + np.take_along_axis(ahead, turn, 0) + 1
 
 
 def _start_visit(lead: list, h: np.ndarray) -> None:
