@@ -144,9 +144,9 @@ class DriveSignals:
         wheel: (...) int, the wheel whose centre each point is. Given, every wheel's pass (a
         run of its hits, broken where it travelled more than `radius` away) counts on its own
         (the multi-pass count of wheels digging in turn, where a rear wheel runs on the ground
-        its front wheel has just passed): the passes whose centre (the
-        share-weighted mean arc of a wheel's hits) lies more than `lag` of travel before that
-        wheel's own pass (the pose's with `before`, else its last over the point)."""
+        its front wheel has just passed): the passes whose centre (the share-weighted mean arc
+        of a wheel's hits) lies more than `lag` of travel before that wheel's own pass (the
+        pose's with `before`, else its last over the point)."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
         if self._tree is None:
             self._tree = cKDTree(self.wheel_points)
@@ -197,7 +197,6 @@ class DriveSignals:
         arc = self.at("arc_length", poses4[:, 0])
         wheel = np.broadcast_to(np.arange(len(w))[:, None], w.shape[:2]) if by_wheel else None
         return self.passes(w, np.broadcast_to(arc, w.shape[:2]), before, wheel)
-
 
 
 def window_signals(drive: DriveSignals, spans: list[tuple[float, float]], robot: Robot) -> dict[str, np.ndarray]:
