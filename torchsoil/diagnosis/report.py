@@ -38,7 +38,9 @@ def explain(diag) -> str:
     if dig is not None and dig["fitted"] != dig["declared"]:
         note += (" The wheels dig in turn (sim.dig_order: wheel): each trailing wheel digs again from the rut "
                  "the wheels ahead of it left; this fits the drive better than every wheel digging from the "
-                 "surface before the robot, so d is the sinkage of each wheel, not of the robot.")
+                 "surface before the robot, so d is the sinkage of each wheel, not of the robot, and a "
+                 "hardening term counts every wheel's pass (a rear wheel in its front wheel's rut runs the "
+                 "second).")
     return _explain(diag) + note
 
 
