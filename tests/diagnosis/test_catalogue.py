@@ -95,32 +95,39 @@ def test_coefficient_outside_bounds_is_named(setup):
         ExtensionModel(CATALOGUE["cohesive_walls"], -0.2, drive, robot)
 
 
+def _racetrack_hardening(view: str, dig_order: str = "robot"):
+    """The hardening term at k = -0.5 on the racetrack: (arc (N,) of its poses [m], robot,
+    scale(sel) -> (K, n) sinkage factor of the poses sel)."""
+    robot = paper_platform()
+    poses = racetrack()
+    drive = DriveSignals.from_poses(poses, robot)
+    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
+    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+    model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, view, dig_order)
+
+    def scale(sel):
+        geom = wheel_geometry(grid, poses[sel], robot, dtype=torch.float64)
+        return model.modifiers(Window(geom), theta).depth_scale[0]
+
+    return drive.signals["arc_length"], robot, scale
+
+
 def test_hardening_counts_passes_as_the_pair_shows_them():
     """A racetrack comes back over its start. From a first view every visit is simulated:
     the first lap's wheels dig fresh ground (factor 1, although that ground is driven again
     later), the second lap's the first lap's ruts (factor 1 + k). From a last-visit H_f only
     the last visit is simulated, and every visit but the last is an earlier pass."""
-    robot = paper_platform()
-    poses = racetrack()
-    drive = DriveSignals.from_poses(poses, robot)
-    arc = drive.signals["arc_length"]
-    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
-    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
-
-    def scale(view, sel):
-        model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, view)
-        geom = wheel_geometry(grid, poses[sel], robot, dtype=torch.float64)
-        return model.modifiers(Window(geom), theta).depth_scale
-
+    arc, _, first_view = _racetrack_hardening("first_view")
+    _, _, last_visit = _racetrack_hardening("last_visit")
     first = (arc > 0.5) & (arc < 1.5)                 # driven again at the end
     again = arc > arc[-1] - 1.2
     one, half = torch.ones((), dtype=torch.float64), torch.full((), 0.5, dtype=torch.float64)
-    assert torch.allclose(scale("first_view", first), one)
-    assert torch.allclose(scale("first_view", again), half)
-    assert torch.allclose(scale("last_visit", first), half)
-    assert torch.allclose(scale("last_visit", again), half)
+    assert torch.allclose(first_view(first), one)
+    assert torch.allclose(first_view(again), half)
+    assert torch.allclose(last_visit(first), half)
+    assert torch.allclose(last_visit(again), half)
     with pytest.raises(ValueError, match="view"):
-        ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, "newest")
+        _racetrack_hardening("newest")
 
 
 def test_hardening_counts_wheel_passes_when_the_wheels_dig_in_turn():
@@ -129,19 +136,8 @@ def test_hardening_counts_wheel_passes_when_the_wheels_dig_in_turn():
     passes, 3^log2(0.5) = 1/3 (a line through the second pass's 1/2 would give 0), and the
     rear wheels three, 4^-1 = 1/4; on the first lap (past the rear wheels' start) the front
     wheels dig fresh ground and the rear ones at 1/2."""
-    robot = paper_platform()
-    poses = racetrack()
-    drive = DriveSignals.from_poses(poses, robot)
-    arc = drive.signals["arc_length"]
-    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
-    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
-    model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, "first_view", "wheel")
+    arc, robot, scale = _racetrack_hardening("first_view", "wheel")
     front = torch.as_tensor(robot.wheels[:, 0] > 0)
-
-    def scale(sel):
-        geom = wheel_geometry(grid, poses[sel], robot, dtype=torch.float64)
-        return model.modifiers(Window(geom), theta).depth_scale[0]          # (K, N)
-
     first = scale((arc > 2.0) & (arc < 3.0))          # rear wheels on the front ones' ground
     again = scale(arc > arc[-1] - 0.5)                 # base_link at x 1.5-2, rear wheels beyond 0.69
     torch.testing.assert_close(first[front], torch.ones_like(first[front]))
