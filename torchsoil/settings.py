@@ -311,7 +311,7 @@ class DiagnosisConfig(Section):
         ("robot", "wheel"), description="dig orders (sim.dig_order) tried, each at its best few sections; the "
                                         "one that fits the drive's windows best is the base model's, a nuisance "
                                         "like the section; (): sim.dig_order as set")
-    footprint_sections: int = Field(3, ge=1, description="a footprint term's passes choose their own section "
+    footprint_sections: int = Field(3, ge=1, description="a footprint or wall term's passes choose their own section "
                                                          "among this many best for the base model and "
                                                          "the robot's own")
     min_spread: dict[str, float] = Field(

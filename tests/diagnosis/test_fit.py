@@ -138,3 +138,29 @@ def test_dig_order_told_from_the_drive(dig):
         paper = np.nanmedian([r["d1"] for r in run_pass(pair, est, sim, offsets=(), **shared).rows])
         assert d == pytest.approx(0.02, rel=0.1)
         assert paper > 1.5 * d
+
+
+def test_a_wall_term_chooses_its_own_tyre_section():
+    """Steeper walls and a rounder tyre section trade off (a flat tread's box rut relaxed at
+    the soil's angle looks like a rounder tyre's rut standing). In a world with a flat tread
+    and cohesive walls, the wall term's passes pick the flat tread among the sections they
+    may choose from, although the base pass ran at the robot's cosine taper."""
+    from torchsoil.diagnosis.catalogue import CATALOGUE
+    from torchsoil.diagnosis.covariates import DriveSignals
+    from torchsoil.diagnosis.fit import fit_extension, run_pass
+    from torchsoil.settings import EstimatorConfig, SimConfig
+    from torchsoil.synth.scenario import make_terrain_pair
+    from torchsoil.terrain import TerrainPair
+
+    scn = {"trajectory": {"segments": [{"straight": 5.0, "speed": 1.0}]},
+           "soil": {"base": {"d": 0.05, "chi": 0.2, "beta_deg": 30.0, "moisture": 0.0}},
+           "effects": {"cohesive_walls": {"form": "linear", "k": 1.5}},
+           "tyre": {"sections": ["flat"]}, "world": {"chunk": 0.1}}
+    pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=3))
+    est, sim = EstimatorConfig(), SimConfig()
+    base = run_pass(pair, est, sim, profiles=True)
+    drive = DriveSignals.from_poses(pair.poses, pair.robot)
+    tried = ((0.0, 1.0), (0.0, 0.25), (0.85, 1.0))
+    fit = fit_extension(pair, est, sim, CATALOGUE["cohesive_walls"], drive, base, refine_steps=0, sections=tried)
+    assert fit.sections[0.0] == (0.0, 1.0)
+    assert fit.sections[1.5] == fit.sections[4.0] == (0.85, 1.0)

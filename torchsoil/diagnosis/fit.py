@@ -211,8 +211,10 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
     the base pass (which must have been scored with the same `offsets`). sections: tyre
-    sections (f, e) (`fit_section`) a footprint term's passes choose their own from (the
-    pair's is the base model's)."""
+    sections (f, e) (`fit_section`) a footprint or wall term's passes choose their own from
+    (the pair's is the base model's): a wider footprint and a fuller section both widen the
+    rut, and steeper walls and a rounder section trade off (a flat tread's rut relaxed at the
+    soil's angle looks like a rounder tyre's standing)."""
     passes: dict[float, Pass] = {0.0: base}
     shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view}
     sec: dict[float, Section] = {0.0: section_of(pair)}
@@ -223,7 +225,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
             return
         model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order)
         sec[k] = sec[0.0]
-        if ext.kind == "radius" and sections:
+        if ext.kind in ("radius", "wall") and sections:
             sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared)[0]
         passes[k] = run_pass(with_section(pair, sec[k]), est, sim, model,
                              profiles=True, theta0=theta0, offsets=offsets, **shared)

@@ -34,6 +34,13 @@ def explain(diag) -> str:
         note += (f" Tyre section fitted as a nuisance: taper flat to {f:.2f} of the radius, exponent {e:.2f}"
                  + (f" (the robot description: {f0:.2f}, {e0:.2f})." if (f, e) != (f0, e0)
                     else ", as the robot description says."))
+    best = diag.best
+    if best is not None and best.sections:
+        k = min(best.sections, key=lambda q: abs(q - best.k))
+        if best.sections[k] != best.sections[0.0]:
+            f, e = best.sections[k]
+            note += (f" With {best.ext.id} the tyre section that fits is another: taper flat to {f:.2f} of the "
+                     f"radius, exponent {e:.2f}.")
     dig = diag.evidence.get("dig_order")
     if dig is not None and dig["fitted"] != dig["declared"]:
         note += (" The wheels dig in turn (sim.dig_order: wheel): each trailing wheel digs again from the rut "

@@ -165,7 +165,7 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
 
     Returns (the pair with that section, sim with that order, section evidence, dig-order
     evidence (None when only one order was tried), run_pass keywords, the sections a footprint
-    term may choose from)."""
+    or wall term may choose from)."""
     section, dig = None, None
     declared = section_of(pair)
     if not cfg.sections and not set(cfg.dig_orders) - {sim.dig_order}:
