@@ -133,12 +133,11 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     dug = np.zeros(grid.shape, dtype=bool)
 
     # dig_order "wheel": per turn r < R - 1, the surface the axles of turns <= r left in this visit
-    # (no deposits) and where they dug; reset when the surface settles
+    # (no deposits), and per turn where its wheels dug in this visit; reset when the surface
+    # settles. wheel_passes: how many wheels dug each cell in the visits before (hardening
+    # counts wheel passes under "wheel", the robot's visits under "robot")
     n_axles = len(np.unique(np.round(robot.wheels[:, 0], 6)))
-    lead = [(h.copy(), np.zeros(grid.shape, dtype=bool)) for _ in range(n_axles - 1)] \
-        if config.dig_order == "wheel" else []
-    # ... and the wheel passes: where each turn dug in this visit, and how many wheels dug each
-    # cell in the visits before (under "wheel" a pass is a wheel's, under "robot" the robot's)
+    lead = [h.copy() for _ in range(n_axles - 1)] if config.dig_order == "wheel" else []
     turn_dug = np.zeros((n_axles if lead else 0, *grid.shape), dtype=bool)
     wheel_passes = np.zeros(grid.shape, dtype=np.int64)
 
@@ -154,9 +153,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         h[box] = rr.h[0].numpy()
         pending[:] = False
         dug[:] = False
-        _start_visit(lead, h)
-        wheel_passes[:] += turn_dug.sum(0)
-        turn_dug[:] = False
+        _start_visit(lead, turn_dug, wheel_passes, h)
 
     last_arc = np.full(grid.shape, -np.inf)
     n_visits = np.zeros(grid.shape, dtype=np.int64)
@@ -211,8 +208,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         ro, pi = (np.interp(gp[:, 0], tt, traj.poses[:, c]) for c in (4, 5))
         fpose = fx.pose_depth_factor(eff, sp, ac, pi, ro, yr, robot.wheels[:, 1], track_width)
         fcell = np.take_along_axis(fpose, pidx.reshape(K, -1), 1).reshape(pidx.shape)
-        ref, turn = _turn_reference(h_ref[win], lead, win, gp, pidx, robot.wheels[:, 0], config.ref_radius * radius0,
-                                    dx)
+        ref, turn = _turn_reference(h_ref[win], lead, turn_dug, win, gp, pidx, robot.wheels[:, 0],
+                                    config.ref_radius * radius0, dx)
         passes = _pass_index(n_visits[win], turn, turn_dug[:, i0:i1, j0:j1], wheel_passes[win])
         depth = (sf["d"][win][None] * track_scale[robot.track][:, None, None] * fcell
                  * np.asarray(fx.pass_depth_factor(eff, passes)))
@@ -245,33 +242,34 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf)
 
 
-def _turn_reference(h_ref: np.ndarray, lead: list, win, poses: np.ndarray, pidx: np.ndarray, wheels_x: np.ndarray,
-                    radius: float, dx: float) -> tuple[np.ndarray, np.ndarray | None]:
+def _turn_reference(h_ref: np.ndarray, lead: list, turn_dug: np.ndarray, win, poses: np.ndarray,
+                    pidx: np.ndarray, wheels_x: np.ndarray, radius: float, dx: float
+                    ) -> tuple[np.ndarray, np.ndarray | None]:
     """Reference height of each wheel-cell [m] and the (K, X, Y) turn of each wheel at its
     nearest pose (`geometry.dig_order`; pidx (K, X, Y) into the chunk's (N, 4) poses): h_ref
     (X, Y) itself and None when the wheels dig all at once (`lead` empty). Under dig_order
     "wheel", (K, X, Y): a wheel of turn r >= 1 takes it from the surface the turns before it
-    left (`lead`), smoothed over a disc of `radius` [m], where they dug in this visit."""
+    left (`lead`), smoothed over a disc of `radius` [m], where they dug in this visit
+    (turn_dug (R, X, Y) on the whole grid)."""
     if not lead:
         return h_ref, None
     K = len(wheels_x)
     turn = np.take_along_axis(wheel_turns(poses, wheels_x), pidx.reshape(K, -1), 1).reshape(pidx.shape)
     ref = np.repeat(h_ref[None], K, 0)
-    for r, (surf, dug_r) in enumerate(lead, start=1):
+    for r, surf in enumerate(lead, start=1):
         ahead = reference_height(torch.from_numpy(surf[win])[None], radius, dx)[0].numpy()
-        ref = np.where((turn == r) & dug_r[win][None], ahead[None], ref)
+        dug = turn_dug[(slice(None, r), *win)].any(0)
+        ref = np.where((turn == r) & dug[None], ahead[None], ref)
     return ref, turn
 
 
 def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray, turn_dug: np.ndarray,
                    covered: np.ndarray) -> None:
-    """Update `lead` in place: per turn r, the surface the wheels of turns <= r left and where
-    they dug, from this chunk's (K, X, Y) targets [m] on window `win`; and turn_dug (R, X, Y),
-    where each turn's wheels dug in this visit, from their (K, X, Y) footprints `covered`."""
-    for r, (surf, dug_r) in enumerate(lead):
-        t_r = np.where(turn <= r, targets, np.inf).min(0)
-        surf[win] = np.fmin(surf[win], t_r)
-        dug_r[win] |= np.isfinite(t_r)
+    """Update in place, on window `win`: `lead`, per turn r the surface the wheels of turns <= r
+    left, from this chunk's (K, X, Y) targets [m]; and turn_dug (R, X, Y), where each turn's
+    wheels dug in this visit, from their (K, X, Y) footprints `covered`."""
+    for r, surf in enumerate(lead):
+        surf[win] = np.fmin(surf[win], np.where(turn <= r, targets, np.inf).min(0))
     for r in range(len(turn_dug)):
         turn_dug[(slice(r, r + 1), *win)] |= (covered & (turn == r)).any(0)[None]
 
@@ -288,10 +286,13 @@ def _pass_index(n_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndar
     return wheel_passes[None] + np.take_along_axis(ahead, turn, 0) + 1
 
 
-def _start_visit(lead: list, h: np.ndarray) -> None:
-    """A new visit (the surface has settled): every turn's surface becomes h, nothing dug."""
-    for surf, dug_r in lead:
-        surf[:], dug_r[:] = h, False
+def _start_visit(lead: list, turn_dug: np.ndarray, wheel_passes: np.ndarray, h: np.ndarray) -> None:
+    """A new visit (the surface h has settled), in place: every turn's surface becomes h, the
+    wheel passes of the visit that ended join wheel_passes, nothing is dug yet."""
+    for surf in lead:
+        surf[:] = h
+    wheel_passes += turn_dug.sum(0)
+    turn_dug[:] = False
 
 
 def _wheel_xy(gp: np.ndarray, wxy: np.ndarray) -> np.ndarray:
