@@ -138,7 +138,7 @@ def fig_residual_map(diag, pair, path: Path) -> Path:
     return path
 
 
-def _mean_sinkage(rows: list[dict]) -> np.ndarray:
+def mean_sinkage(rows: list[dict]) -> np.ndarray:
     """(W,) mean of d1..dT per params row, m."""
     return np.array([np.mean([r[k] for k in r if k.startswith("d") and k[1:].isdigit()]) for r in rows])
 
@@ -148,12 +148,12 @@ def fig_covariate(diag, path: Path) -> Path:
     ax = fig.subplots()
     w = diag.windows
     cov = diag.summary["where"]["covariate"]
-    d = _mean_sinkage(diag.base.rows)
+    d = mean_sinkage(diag.base.rows)
     if cov in w and cov != "arc_length":
         ax.scatter(w[cov], 1e3 * d, s=12, label="base model: fitted sinkage")
         if diag.best is not None:
             k = min(diag.best.passes, key=lambda q: abs(q - diag.best.k))
-            de = _mean_sinkage(diag.best.passes[k].rows)
+            de = mean_sinkage(diag.best.passes[k].rows)
             ax.scatter(w[cov], 1e3 * de, s=12, label=f"with {diag.best.ext.id}")
         ax.set_xlabel(cov)
         ax.set_ylabel("mean sinkage d per window [mm]")

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from torchsoil.diagnosis.fit import section_of, with_section
+from torchsoil.diagnosis.report import mean_sinkage
 from torchsoil.diagnosis.run import diagnose
 from torchsoil.settings import Settings
 from torchsoil.synth.scenario import make_terrain_pair
@@ -254,9 +255,9 @@ def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
 
 def _median_d(rows: list[dict]) -> float:
     """Median over windows of the mean sinkage of the tracks (keys d1, d2, ...), m."""
-    d = [np.mean([r[k] for k in r if k[:1] == "d" and k[1:].isdigit()]) for r in rows]
-    d = [x for x in d if np.isfinite(x)]
-    return float(np.median(d)) if d else math.nan
+    d = mean_sinkage(rows)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if len(d) else math.nan
 
 
 def _fitted_nuisance(diag, pair, settings: Settings) -> tuple[Settings, tuple[float, float]]:
