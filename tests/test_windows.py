@@ -91,6 +91,32 @@ def test_ground_driven_twice_belongs_to_the_last_pass(pair):
     assert straight.s[i, j] == pytest.approx(1.5, abs=0.05)
 
 
+def test_ground_belongs_to_the_last_pass_whose_wheels_went_over_it(pair):
+    """Out along y = 0, a tight U-turn, back along y = 0.5 (half the track, a lane change):
+    the return's base_link runs over the first pass's left rut, which its wheels (at y = 0
+    and 1) leave alone, and its left wheel runs between the first pass's ruts, nearer the
+    first pass's base_link. Worked by hand at x = 1.5: the left rut keeps the first pass's
+    arc length 1.5 m, the strip between the ruts takes the return's, 3 + pi 0.25 + 1.5 m;
+    the right rut, untouched on the way back, and the return's right rut are unchanged."""
+    out = np.linspace(0, 3, 61)
+    a = np.linspace(-np.pi / 2, np.pi / 2, 31)[1:]
+    back = np.linspace(3, 0, 61)[1:]
+    x = np.concatenate([out, 3 + 0.25 * np.cos(a), back])
+    y = np.concatenate([0 * out, 0.25 + 0.25 * np.sin(a), 0.5 + 0 * back])
+    yaw = np.concatenate([0 * out, a + np.pi / 2, np.pi + 0 * back])
+    t = np.concatenate([[0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+    poses = np.column_stack([t, x, y, 0 * t, 0 * t, 0 * t, yaw])
+    idx = path_index(pair.grid, poses, pair.robot, 1.6)
+    xs, ys = pair.grid.centers()
+    i = np.argmin(abs(xs - 1.5))
+    s_at = {yc: idx.s[i, np.argmin(abs(ys - yc))] for yc in (-0.5, 0.0, 0.5, 1.0)}
+    back_s = 3 + np.pi * 0.25 + 1.5
+    assert s_at[0.5] == pytest.approx(1.5, abs=0.05)        # under the return's base_link, not its wheels
+    assert s_at[0.0] == pytest.approx(back_s, abs=0.05)     # under the return's left wheel
+    assert s_at[-0.5] == pytest.approx(1.5, abs=0.05)
+    assert s_at[1.0] == pytest.approx(back_s, abs=0.05)
+
+
 def _ruts(grid: Grid, poses: np.ndarray, robot, depth: float, sigma: float = 0.03) -> np.ndarray:
     """(X, Y) Gaussian troughs `depth` m deep along every wheel path of the poses."""
     w = wheel_positions(poses[:, [0, 1, 2, 6]], robot.wheels[:, :2]).reshape(-1, 2)

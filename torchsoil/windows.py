@@ -40,9 +40,11 @@ def path_arc(poses: np.ndarray) -> np.ndarray:
     return np.concatenate([[0.0], np.cumsum(step)])
 
 
-def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float) -> PathIndex:
+def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch: float | None = None) -> PathIndex:
     """Arc length and distances for the cells within `reach` [m] of the path; a cell the path
-    passes more than once takes the arc length of the last pass."""
+    passes more than once takes the arc length of the last pass whose wheels came within
+    `touch` [m] of it (default: one wheel width, the footprint and the berm beside it), or,
+    where no wheel did, of the last pass about as near as the nearest."""
     arc = path_arc(poses)
     planar = poses[:, [0, 1, 2, 6]]
     dense = resample_poses(planar, robot.wheels[:, :2], grid.dx / 2)
@@ -55,14 +57,43 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float) -> Pat
     # ground the robot drove over twice belongs to its last pass (a terrain pair shows the
     # surface before and after the last pass): the latest path point about as near as the nearest
     again = hit[_revisited(dense[:, 1:3], dense_arc, reach)[i[hit]]]
+    wheels = wheel_positions(dense, robot.wheels[:, :2])                          # (K, N, 2)
     if len(again):
         near = tree.query_ball_point(cells[again], r=d[again] + 2 * grid.dx, return_sorted=False)
         i[again] = [max(k) for k in near]
+        # a later pass shifted sideways (a lane change, a crossing) may dig ground nearer an
+        # earlier pass's base_link, and pass beside ground it leaves as it was: the ground
+        # belongs to the last pass whose wheels went over it
+        touch = robot.wheel_width if touch is None else touch
+        span = 2 * (np.abs(robot.wheels[:, 0]).max() + touch)
+        last = _last_wheel_pass(cells[again], dense[:, 1:3], wheels, dense_arc, touch, span)
+        i[again] = np.where(last >= 0, last, i[again])
     s = np.full(len(cells), np.nan)
     s[hit] = dense_arc[i[hit]]
-    wheels = wheel_positions(dense, robot.wheels[:, :2]).reshape(-1, 2)
-    wd, _ = cKDTree(wheels).query(cells, distance_upper_bound=reach)
+    wd, _ = cKDTree(wheels.reshape(-1, 2)).query(cells, distance_upper_bound=reach)
     return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc)
+
+
+def _last_wheel_pass(cells: np.ndarray, xy: np.ndarray, wheels: np.ndarray, arc: np.ndarray, touch: float,
+                     span: float, chunk: int = 20000) -> np.ndarray:
+    """(C,) index of the path point nearest each (C, 2) cell among the (N, 2) points of the
+    last pass whose (K, N, 2) wheel positions came within `touch` [m] of it: the points up
+    to `span` m of arc before the last one with a wheel that near; -1 where no wheel was."""
+    n = wheels.shape[1]
+    hits = cKDTree(wheels.reshape(-1, 2)).query_ball_point(cells, r=touch)
+    last = np.array([np.max(np.asarray(h) % n) if h else -1 for h in hits], dtype=np.int64)
+    out = np.full(len(cells), -1)
+    sel = np.flatnonzero(last >= 0)
+    if len(sel) == 0:
+        return out
+    lo = np.searchsorted(arc, arc[last[sel]] - span)
+    width = int((last[sel] - lo).max()) + 1
+    for a in range(0, len(sel), chunk):
+        c, j, lo_c = sel[a:a + chunk], last[sel[a:a + chunk]], lo[a:a + chunk]
+        k = np.minimum(lo_c[:, None] + np.arange(width)[None], j[:, None])        # (C, width) points
+        dist = ((xy[k] - cells[c][:, None]) ** 2).sum(-1)
+        out[c] = k[np.arange(len(c)), np.argmin(dist, 1)]
+    return out
 
 
 def _revisited(xy: np.ndarray, arc: np.ndarray, reach: float, step: float = 0.1) -> np.ndarray:

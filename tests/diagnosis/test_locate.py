@@ -61,6 +61,25 @@ def test_paired_improvement_recovers_a_shift():
     assert m0 == 0 and z0 == 0
 
 
+def test_paired_comparison_tests_the_windows_a_term_changes():
+    """A term that acts on 16 of 80 windows (a revisited stretch) with a steady 0.3 mm gain:
+    the 64 windows it leaves exactly as they were say nothing about the noise of the gain.
+    Counted as samples, they would hold z near the square root of the 4 blocks it touches
+    (at most 2), however large and steady the gain."""
+    rng = np.random.default_rng(7)
+    base = 3e-3 + 3e-4 * rng.standard_normal(80)
+    ext = base.copy()
+    ext[32:48] -= 3e-4 + 3e-5 * rng.standard_normal(16)
+    m, se, z = paired_improvement(base, ext)
+    assert abs(m - 3e-4) < 3 * se and z > 3
+    hits = 0
+    for _ in range(300):                                     # no gain, only noise where it acts
+        noisy = base.copy()
+        noisy[32:48] += 3e-5 * rng.standard_normal(16)
+        hits += paired_improvement(base, noisy)[2] > 1.96
+    assert hits / 300 < 0.08                                 # nominal 0.025
+
+
 def test_zones_across_the_rut():
     r, dx = 0.07, 0.02
     got = [ZONES[i] for i in zone_of(np.array([0.0, -0.03, 0.05, -0.07, 0.1, 0.2]), r, dx)]

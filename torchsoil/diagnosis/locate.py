@@ -79,7 +79,7 @@ def correlation(x, y) -> Correlation:
     return Correlation(r, n, ne, float(2 * stats.t.sf(abs(t), dof)))
 
 
-def paired_improvement(base, ext, block: int = 4) -> tuple[float, float, float]:
+def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[float, float, float]:
     """Per-window improvement base - ext [m] of two cost series on the same windows.
 
     Neighbouring windows share ground (and held-out costs reach several windows), so the
@@ -87,16 +87,24 @@ def paired_improvement(base, ext, block: int = 4) -> tuple[float, float, float]:
     error comes from the spread between block means, with the effective-sample-size
     correction for what correlation is left between blocks (a t statistic with n_eff - 1
     degrees of freedom, returned as the normal z of the same one-sided p). Windows where either cost
-    is NaN are dropped. Returns (mean, se, z)."""
+    is NaN are dropped, and so are blocks where the two series agree to `same` [m] on every
+    window: a term that acts only on some ground (a pass count on revisited ground) leaves
+    the others' costs exactly as they were, and such blocks say nothing about the noise of
+    the difference; counted as samples of it, they would cap z near the square root of the
+    number of blocks the term touches, however large and steady its gain there. Returns
+    (mean over the blocks kept, se, z)."""
     b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
     if b.shape != e.shape:
         raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
     ok = np.isfinite(b) & np.isfinite(e)
     d = b[ok] - e[ok]
     nb = len(d) // max(1, block)
+    blocks = d[: nb * block].reshape(nb, block)
+    blocks = blocks[np.abs(blocks).max(1) > same]
+    nb = len(blocks)
     if nb < 3:
         return (float(d.mean()) if len(d) else 0.0), math.inf, 0.0
-    means = d[: nb * block].reshape(nb, block).mean(1)
+    means = blocks.mean(1)
     n_eff = min(float(nb), effective_n(nb, means))       # block means may still be correlated
     se = float(np.std(means, ddof=1) / math.sqrt(n_eff))
     m = float(means.mean())
