@@ -1,6 +1,8 @@
 """Estimator benchmark on the synthetic `watered` scenario (terrain pair straight from the
 truth, 3 mm per-cell noise): milliseconds per window (median over windows) for autograd and
-finite-difference gradients, converged and capped relaxation, and the update rules."""
+finite-difference gradients, converged and capped relaxation, and the update rules; and the
+seconds to index a field's revisited ground (`path_index_s_lawn`: six 40 m lanes half a track
+apart, each wheel running where the last lane's other one ran, dx 0.02 m)."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import torch
 from torchsoil.estimator import Estimator
 from torchsoil.settings import load_settings
 from torchsoil.terrain import TerrainPair
+from torchsoil.windows import path_index
 
 VARIANTS = {
     "": [],
@@ -44,4 +47,25 @@ def run(quick: bool = False) -> dict[str, float]:
         out[f"estimate_residual_mm{suffix}"] = 1e3 * float(np.nanmean([r["residual"] for r in rows]))
         out[f"estimate_prediction_mm{suffix}"] = 1e3 * float(np.nanmean([r["prediction"] for r in rows]))
     torch.set_num_threads(threads)
+    out["path_index_s_lawn"] = _lawn_index_seconds(20.0 if quick else 40.0)
     return out
+
+
+def _lawn_index_seconds(length: float, lanes: int = 6, gap: float = 0.5) -> float:
+    """Seconds of `path_index` on a lawnmower drive: `lanes` lanes `length` m long, `gap` m apart."""
+    import time
+
+    from torchsoil.grid import Grid
+    from torchsoil.robot import paper_platform
+
+    robot = paper_platform()
+    x = np.concatenate([np.arange(0, length, 0.05)[:: 1 if k % 2 == 0 else -1] for k in range(lanes)])
+    per = len(x) // lanes
+    y = np.repeat(np.arange(lanes) * gap, per)
+    yaw = np.repeat(np.where(np.arange(lanes) % 2 == 0, 0.0, np.pi), per)
+    t = 0.05 * np.arange(len(x))
+    poses = np.column_stack([t, x, y, 0 * t, 0 * t, 0 * t, yaw])
+    grid = Grid(0.02, (-1.5, -1.5), (int((length + 3) / 0.02), int((lanes * gap + 3) / 0.02)))
+    t0 = time.perf_counter()
+    path_index(grid, poses, robot, 1.6)
+    return time.perf_counter() - t0

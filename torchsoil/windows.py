@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from itertools import chain
 from typing import NamedTuple
 
 import numpy as np
@@ -80,12 +81,15 @@ def _last_wheel_pass(cells: np.ndarray, xy: np.ndarray, wheels: np.ndarray, arc:
     last pass whose (K, N, 2) wheel positions came within `touch` [m] of it: the points up
     to `span` m of arc before the last one with a wheel that near; -1 where no wheel was."""
     n = wheels.shape[1]
-    hits = cKDTree(wheels.reshape(-1, 2)).query_ball_point(cells, r=touch)
-    last = np.array([np.max(np.asarray(h) % n) if h else -1 for h in hits], dtype=np.int64)
+    hits = cKDTree(wheels.reshape(-1, 2)).query_ball_point(cells, r=touch, return_sorted=False)
+    counts = np.fromiter(map(len, hits), np.int64, len(hits))
     out = np.full(len(cells), -1)
-    sel = np.flatnonzero(last >= 0)
+    sel = np.flatnonzero(counts)
     if len(sel) == 0:
         return out
+    flat = np.fromiter(chain.from_iterable(hits), np.int64, int(counts.sum())) % n
+    last = np.full(len(cells), -1)
+    last[sel] = np.maximum.reduceat(flat, (np.cumsum(counts) - counts)[sel])          # latest hit per cell
     lo = np.searchsorted(arc, arc[last[sel]] - span)
     width = int((last[sel] - lo).max()) + 1
     for a in range(0, len(sel), chunk):
