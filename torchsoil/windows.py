@@ -56,19 +56,21 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch:
     d, i = tree.query(cells, distance_upper_bound=reach)
     hit = np.flatnonzero(np.isfinite(d))
     # ground the robot drove over twice belongs to its last pass (a terrain pair shows the
-    # surface before and after the last pass): the latest path point about as near as the nearest
+    # surface before and after the last pass): the last pass whose wheels went over it (a
+    # later pass shifted sideways, a lane change or a crossing, may dig ground nearer an
+    # earlier pass's base_link and pass beside ground it leaves as it was); where no wheel
+    # did, the latest path point about as near as the nearest
     again = hit[_revisited(dense[:, 1:3], dense_arc, reach)[i[hit]]]
     wheels = wheel_positions(dense, robot.wheels[:, :2])                          # (K, N, 2)
     if len(again):
-        near = tree.query_ball_point(cells[again], r=d[again] + 2 * grid.dx, return_sorted=False)
-        i[again] = [max(k) for k in near]
-        # a later pass shifted sideways (a lane change, a crossing) may dig ground nearer an
-        # earlier pass's base_link, and pass beside ground it leaves as it was: the ground
-        # belongs to the last pass whose wheels went over it
         touch = robot.wheel_width if touch is None else touch
         span = 2 * (np.abs(robot.wheels[:, 0]).max() + touch)
         last = _last_wheel_pass(cells[again], dense[:, 1:3], wheels, dense_arc, touch, span)
-        i[again] = np.where(last >= 0, last, i[again])
+        i[again[last >= 0]] = last[last >= 0]
+        rest = again[last < 0]
+        if len(rest):
+            near = tree.query_ball_point(cells[rest], r=d[rest] + 2 * grid.dx, return_sorted=False)
+            i[rest] = [max(k) for k in near]
     s = np.full(len(cells), np.nan)
     s[hit] = dense_arc[i[hit]]
     wd, _ = cKDTree(wheels.reshape(-1, 2)).query(cells, distance_upper_bound=reach)
