@@ -1,8 +1,9 @@
 """Estimator benchmark on the synthetic `watered` scenario (terrain pair straight from the
 truth, 3 mm per-cell noise): milliseconds per window (median over windows) for autograd and
 finite-difference gradients, converged and capped relaxation, and the update rules; and the
-seconds to index a field's revisited ground (`path_index_s_lawn`: six 40 m lanes half a track
-apart, each wheel running where the last lane's other one ran, dx 0.02 m)."""
+seconds to index a field's revisited ground as the estimator does (`path_index_s_lawn`: six
+40 m lanes half a track apart, each wheel running where the last lane's other one ran, dx
+0.02 m)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import torch
 from torchsoil.estimator import Estimator
 from torchsoil.settings import load_settings
 from torchsoil.terrain import TerrainPair
-from torchsoil.windows import path_index
+from torchsoil.windows import path_index, sim_reach
 
 VARIANTS = {
     "": [],
@@ -67,5 +68,5 @@ def _lawn_index_seconds(length: float, lanes: int = 6, gap: float = 0.5) -> floa
     poses = np.column_stack([t, x, y, 0 * t, 0 * t, 0 * t, yaw])
     grid = Grid(0.02, (-1.5, -1.5), (int((length + 3) / 0.02), int((lanes * gap + 3) / 0.02)))
     t0 = time.perf_counter()
-    path_index(grid, poses, robot, 1.6)
+    path_index(grid, poses, robot, 1.6, sim_reach(robot, load_settings().sim))    # as the estimator does
     return time.perf_counter() - t0

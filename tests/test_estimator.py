@@ -134,3 +134,64 @@ def test_a_first_view_of_revisited_ground_drives_every_visit():
     assert set(returned) == {"first_view", "last_visit"}
     assert abs(returned["first_view"] - 0.025) < 0.3 * 0.025
     assert returned["last_visit"] > 1.6 * 0.025
+
+
+def test_ground_seen_anew_beside_a_later_pass_is_left_to_that_pass():
+    """A racetrack whose last leg runs back over the first 0.2 m to the left of it: its wheels
+    pass 0.2 m beside the first leg's ruts, beyond a wheel width (0.14 m) but within the
+    simulator's reach (half a wheel width plus the relaxation margin), so a front lidar that
+    keeps its newest view shows those ruts in H_f already dug (Gaussian troughs drawn by
+    hand). The last pass, not the first, must own them: the first leg's windows fitted 6 mm
+    (the reference 24 mm) to ruts H_f already holds. Left with no rut of their own there,
+    they are not fitted (NaN); the last leg's windows fit about the reference, taken where
+    no pass came back."""
+    from scipy.spatial import cKDTree
+
+    from tests.drive_by_hand import poses_from
+    from torchsoil.grid import Grid
+    from torchsoil.robot import paper_platform
+    from torchsoil.sim.geometry import wheel_positions
+
+    robot, dx, R, L, off = paper_platform(), 0.02, 1.5, 5.0, 0.2
+    r2 = (2 * R - off) / 2                                       # the last half circle ends at y = off
+    legs = [(L, lambda u: (u, 0.0, 0.0)),
+            (math.pi * R, lambda u: (L + R * math.sin(u / R), R - R * math.cos(u / R), u / R)),
+            (L, lambda u: (L - u, 2 * R, math.pi)),
+            (math.pi * r2, lambda u: (-r2 * math.sin(u / r2), 2 * R - r2 + r2 * math.cos(u / r2), math.pi + u / r2)),
+            (L / 2, lambda u: (u, off, 2 * math.pi))]
+    pts, t0 = [], 0.0
+    for length, at in legs:
+        u = np.arange(0.0, length, 0.05)
+        pts += [(t0 + ui, *at(ui)) for ui in u]
+        t0 += length
+    p = np.array(pts)
+    poses = poses_from(p[:, 0], p[:, 1], p[:, 2], p[:, 3])
+    grid = Grid.covering(-R - 1.2, -1.2, L + R + 1.2, 2 * R + 1.2, dx)
+    xs, ys = grid.centers()
+    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+
+    def ruts(sel, depth=0.025, sigma=0.03):
+        w = wheel_positions(poses[sel][:, [0, 1, 2, 6]], robot.wheels[:, :2]).reshape(-1, 2)
+        return -depth * np.exp(-0.5 * (cKDTree(w).query(cells)[0].reshape(grid.shape) / sigma) ** 2)
+
+    last = p[:, 0] >= t0 - L / 2
+    seen = cKDTree(wheel_positions(poses[last][:, [0, 1, 2, 6]], robot.wheels[:, :2]).reshape(-1, 2)).query(
+        cells)[0].reshape(grid.shape) <= 0.6                      # what the last leg's front lidar saw anew
+    rng = np.random.default_rng(5)
+    h_back = np.minimum(ruts(~last), ruts(last))
+    h_front = np.where(seen, ruts(~last), 0.0)
+    def measured(h):
+        return (h + 0.002 * rng.standard_normal(grid.shape)).astype(np.float32)
+
+    pair = TerrainPair(dx, np.array(grid.origin), measured(h_front), measured(h_back), poses, robot.wheels,
+                       robot.wheel_width)
+    e = Estimator(pair, EstimatorConfig(front_view="last_visit"))
+    rows = [o.row for o in e.run()]
+    s = np.array([r["s"] for r in rows])
+    d = np.array([(r["d1"] + r["d2"]) / 2 for r in rows])
+    ref = np.nanmedian(d[(s > L / 2 + 1.0) & (s < L - 0.5)])      # the first leg where nothing came back
+    assert ref > 0.01
+    first_leg = (s > 0.5) & (s < L / 2 - 0.5)
+    assert np.isnan(d[first_leg]).sum() + (d[first_leg] > 0.6 * ref).sum() == first_leg.sum()
+    back_again = s > e.index.arc[-1] - L / 2 + 0.5
+    assert (d[back_again] > 0.6 * ref).all()

@@ -29,6 +29,7 @@ from torchsoil.windows import (
     front_view,
     path_index,
     prepare_window,
+    sim_reach,
     smooth_heightmap,
 )
 
@@ -100,7 +101,10 @@ class Estimator:
         self.spec = ParamSpec.base(robot.n_tracks)
         reach = max(est.corridor / 2, est.floor_outer * robot.wheel_width + np.abs(
             robot.wheels[:, 1]).max()) + robot.wheel_width
-        self.index = path_index(pair.grid, pair.poses, robot, reach) if index is None else index
+        # revisited ground belongs to the last pass that could change it: whose wheels came within
+        # the simulator's reach (the footprint and the relaxation margin beside it)
+        touch = sim_reach(robot, self.sim)
+        self.index = path_index(pair.grid, pair.poses, robot, reach, touch) if index is None else index
         self.nuisance = nuisance if nuisance is not None else fit_map_nuisance(
             np.asarray(pair.h_front), np.asarray(pair.h_back), pair.grid, self.index, robot.wheel_width,
             est.floor_inner, est.corridor, est.nuisance)

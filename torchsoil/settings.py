@@ -140,8 +140,9 @@ class EstimatorConfig(Section):
     step_tol: float = Field(0.05, gt=0, description="stop when every step is below this, scale units")
     init: InitialParams = Field(InitialParams(), description="first window's starting parameters")
     merged_sinkage: bool = Field(False, description="ablation: one sinkage for all tracks")
-    min_valid_fraction: float = Field(0.3, ge=0, le=1, description="of the weighted window cells; "
-                                                                   "fewer: window flagged and skipped")
+    min_valid_fraction: float = Field(0.3, ge=0, le=1, description="of the weighted window cells, and "
+                                                                   "of the footprint cells among them, "
+                                                                   "measured; fewer: window flagged and skipped")
     stop_speed: float = Field(0.05, ge=0, description="slower than this for more than stop_time: window "
                                                       "flagged 'stopped', m/s")
     stop_time: float = Field(0.5, ge=0, description="s")

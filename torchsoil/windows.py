@@ -44,8 +44,10 @@ def path_arc(poses: np.ndarray) -> np.ndarray:
 def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch: float | None = None) -> PathIndex:
     """Arc length and distances for the cells within `reach` [m] of the path; a cell the path
     passes more than once takes the arc length of the last pass whose wheels came within
-    `touch` [m] of it (default: one wheel width, the footprint and the berm beside it), or,
-    where no wheel did, of the last pass about as near as the nearest."""
+    `touch` [m] of it (default: one wheel width, the footprint and the berm beside it; the
+    estimator passes the simulator's reach, half a wheel width plus the relaxation margin:
+    the last pass that could change the cell, before which a front lidar keeping its newest
+    view saw it), or, where no wheel did, of the last pass about as near as the nearest."""
     arc = path_arc(poses)
     planar = poses[:, [0, 1, 2, 6]]
     dense = resample_poses(planar, robot.wheels[:, :2], grid.dx / 2)
@@ -207,6 +209,12 @@ def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
     return best > duration
 
 
+def sim_reach(robot: Robot, sim: SimConfig) -> float:
+    """How far from a wheel's centre line the simulator changes the ground, m: half a wheel
+    width (the footprint) plus the relaxation margin (0.35 m on the paper's platform)."""
+    return robot.wheel_width * (0.5 + sim.relax_margin)
+
+
 def visit_gap(robot: Robot) -> float:
     """base_link travel [m] after which the wheels coming back over some ground make a new
     visit: twice the wheelbase plus a wheel width (as the recorder's world counts them)."""
@@ -295,7 +303,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     robot = pair.robot
     w = robot.wheel_width
     ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est.corridor / 2)
-    near = index.wheel_dist <= max(est.weight_width * w, w / 2 + sim.relax_margin * w)
+    near = index.wheel_dist <= max(est.weight_width * w, sim_reach(robot, sim))
     cells = np.argwhere(ground_full & near)
     if len(cells) == 0:
         return None
@@ -319,7 +327,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
         xs, ys = pair.grid.centers()
         ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
         before = int(np.searchsorted(index.arc, spec.s0 - reach - visit_gap(robot)))
-        runs = earlier_poses(pair, before, ground_xy, w / 2 + sim.relax_margin * w)
+        runs = earlier_poses(pair, before, ground_xy, sim_reach(robot, sim))
         earlier = tuple(wheel_geometry(grid, p, robot, **gkw) for p in runs if len(p) >= 2)
 
     hf = np.asarray((pair.h_front if h_start is None else h_start)[sl], dtype=np.float64)
@@ -337,7 +345,9 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     weight = zone & np.isfinite(raw) & np.isfinite(hb)
     floor = (ground & np.isfinite(raw) & np.isfinite(hb) & (index.wheel_dist[sl] >= est.floor_inner * w)
              & (index.wheel_dist[sl] <= est.floor_outer * w))
-    if weight.sum() < est.min_valid_fraction * max(zone.sum(), 1):
+    foot = zone & (index.wheel_dist[sl] <= w / 2)       # the ruts themselves, which d is fitted to
+    if (weight.sum() < est.min_valid_fraction * max(zone.sum(), 1)
+            or (weight & foot).sum() < est.min_valid_fraction * max(foot.sum(), 1)):
         flags.append("few_valid")
     in_window = pair.poses[(index.arc >= spec.s0) & (index.arc <= spec.s1)]
     if _stopped(in_window, est.stop_speed, est.stop_time):
