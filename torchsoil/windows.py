@@ -79,21 +79,42 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch:
     return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc)
 
 
+def _latest_hit(cells: np.ndarray, wheels: np.ndarray, touch: float, chunk: int = 200) -> np.ndarray:
+    """(C,) latest path point index whose (K, N, 2) wheel positions came within `touch` [m] of
+    each (C, 2) cell, -1 where none did. The path is searched backwards `chunk` points at a
+    time, and a cell leaves the search at its first hit: only the latest pass's points are
+    gathered, not every pass's (a lawn's cells lie under two)."""
+    n = wheels.shape[1]
+    last = np.full(len(cells), -1)
+    todo = np.arange(len(cells))
+    for b in range(n, 0, -chunk):
+        a = max(0, b - chunk)
+        pts = wheels[:, a:b].reshape(-1, 2)
+        c = todo[np.all((cells[todo] >= pts.min(0) - touch) & (cells[todo] <= pts.max(0) + touch), axis=1)]
+        if len(c) == 0:
+            continue
+        hits = cKDTree(pts).query_ball_point(cells[c], r=touch, return_sorted=False)
+        counts = np.fromiter(map(len, hits), np.int64, len(hits))
+        sel = np.flatnonzero(counts)
+        if len(sel):
+            flat = np.fromiter(chain.from_iterable(hits), np.int64, int(counts.sum())) % (b - a)
+            last[c[sel]] = np.maximum.reduceat(flat, (np.cumsum(counts) - counts)[sel]) + a
+            todo = np.setdiff1d(todo, c[sel], assume_unique=True)
+            if len(todo) == 0:
+                break
+    return last
+
+
 def _last_wheel_pass(cells: np.ndarray, xy: np.ndarray, wheels: np.ndarray, arc: np.ndarray, touch: float,
                      span: float, chunk: int = 20000) -> np.ndarray:
     """(C,) index of the path point nearest each (C, 2) cell among the (N, 2) points of the
     last pass whose (K, N, 2) wheel positions came within `touch` [m] of it: the points up
     to `span` m of arc before the last one with a wheel that near; -1 where no wheel was."""
-    n = wheels.shape[1]
-    hits = cKDTree(wheels.reshape(-1, 2)).query_ball_point(cells, r=touch, return_sorted=False)
-    counts = np.fromiter(map(len, hits), np.int64, len(hits))
+    last = _latest_hit(cells, wheels, touch)
     out = np.full(len(cells), -1)
-    sel = np.flatnonzero(counts)
+    sel = np.flatnonzero(last >= 0)
     if len(sel) == 0:
         return out
-    flat = np.fromiter(chain.from_iterable(hits), np.int64, int(counts.sum())) % n
-    last = np.full(len(cells), -1)
-    last[sel] = np.maximum.reduceat(flat, (np.cumsum(counts) - counts)[sel])          # latest hit per cell
     lo = np.searchsorted(arc, arc[last[sel]] - span)
     width = int((last[sel] - lo).max()) + 1
     for a in range(0, len(sel), chunk):
