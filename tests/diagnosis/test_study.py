@@ -80,6 +80,25 @@ def test_error_rates_by_hand():
     assert "right: 3/7" in table
 
 
+def test_case_table_shows_each_drive_s_margin_to_acceptance():
+    """The true term's z against its level; on a null drive the candidate nearest acceptance
+    (largest z - level), not the largest z."""
+    def rec(name, want, want_id, tests):
+        return {"case": name, "want": want, "want_id": want_id, "verdict": "adequate", "id": None,
+                "parameters": {}, "cost_before": {"prediction": 0.003}, "cost_after": {"prediction": 0.003},
+                "correct": False, "seconds": 1.0, "tests": tests}
+
+    t = [{"id": "slip_sinkage", "z": 2.0, "z_needed": 2.33}, {"id": "speed_dependent_sinkage", "z": 1.8,
+                                                             "z_needed": 1.88}]
+    rows = confusion([rec("a", "missing_physics", "speed_dependent_sinkage", t),
+                      rec("b", "missing_physics", "cohesive_walls", t), rec("c", "adequate", None, t),
+                      rec("d", "adequate", None, [])]).splitlines()
+    assert next(r for r in rows if r.startswith("| a |")).endswith("| 1.80 (1.88) |")
+    assert next(r for r in rows if r.startswith("| b |")).endswith("| not fitted |")
+    assert next(r for r in rows if r.startswith("| c |")).endswith("| speed_dependent_sinkage 1.80 (1.88) |")
+    assert next(r for r in rows if r.startswith("| d |")).endswith("| none fitted |")
+
+
 def test_model_error_by_hand():
     cf = np.zeros((4, 5), np.float32)
     cb = cf.copy()

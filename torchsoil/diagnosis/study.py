@@ -54,6 +54,16 @@ def _record(name: str, summary: dict, want_verdict: str, want_id: str | None, se
             "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds, **extra}
 
 
+def held_out_tests(diag) -> list[dict]:
+    """Each fitted candidate's held-out test: coefficient (all windows and per fold), paired z,
+    the z it needed and its location evidence p (a study compares these across settings more
+    finely than verdicts)."""
+    need, ev = diag.evidence["z_accept"], diag.evidence["candidates"]
+    return [{"id": f.ext.id, "k": round(f.k, 4), "k_fold": [round(k, 4) for k in f.k_fold],
+             "z": round(f.z, 3), "z_needed": round(need[f.ext.id], 3), "p_location": ev[f.ext.id]["p"],
+             "accepted": bool(f.accepted)} for f in diag.fits]
+
+
 def study_case(case: tuple, settings: Settings) -> dict:
     """The record of one (name, scenario, seed, verdict, id) case: its drive made and
     diagnosed, with the world's effect law, the tyre and measurement draws and the drive's
@@ -62,9 +72,10 @@ def study_case(case: tuple, settings: Settings) -> dict:
     t0 = time.perf_counter()
     data = make_terrain_pair(scn, seed=seed)
     pair = TerrainPair.from_mapping(data)
-    s = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim).summary
+    diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
     xy = pair.poses[:, 1:3]
-    return _record(name, s, want_verdict, want_id, time.perf_counter() - t0, seed=seed,
+    return _record(name, diag.summary, want_verdict, want_id, time.perf_counter() - t0, tests=held_out_tests(diag),
+                   seed=seed,
                    law=scn.get("effects", {}) if isinstance(scn, dict) else {},
                    nuisances=json.loads(str(data["nuisances"])),
                    length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
@@ -139,11 +150,28 @@ def confusion(records: list[dict]) -> str:
     lines += ["", f"right: {right}/{len(records)}",
               f"false alarms on null drives: {e['false_alarms']}/{e['nulls']} (rate {rate})",
               f"wrong id named: {e['wrong_id']}", f"time per case: {e['seconds_per_case']:.0f} s", "",
-              "| case | verdict | parameters | prediction before -> after [mm] |", "| --- | --- | --- | --- |"]
+              "| case | verdict | parameters | prediction before -> after [mm] | held-out z (needed) |",
+              "| --- | --- | --- | --- | --- |"]
     for r in records:
         lines.append(f"| {r['case']} | {_label(r['verdict'], r['id'])} | {r['parameters']} | "
-                     f"{1e3 * r['cost_before']['prediction']:.3f} -> {1e3 * r['cost_after']['prediction']:.3f} |")
+                     f"{1e3 * r['cost_before']['prediction']:.3f} -> {1e3 * r['cost_after']['prediction']:.3f} | "
+                     f"{_margin(r)} |")
     return "\n".join(lines) + "\n"
+
+
+def _margin(r: dict) -> str:
+    """The held-out z of the true term against the z it needed (of the nearest to acceptance
+    when the drive has no catalogue effect), '-' for records without tests."""
+    tests = r.get("tests")
+    if tests is None:
+        return "-"
+    if r["want_id"] is not None:
+        t = next((t for t in tests if t["id"] == r["want_id"]), None)
+        return "not fitted" if t is None else f"{t['z']:.2f} ({t['z_needed']:.2f})"
+    if not tests:
+        return "none fitted"
+    t = max(tests, key=lambda t: t["z"] - t["z_needed"])
+    return f"{t['id']} {t['z']:.2f} ({t['z_needed']:.2f})"
 
 
 # ---------------------------------------------------------------------------- foreign pairs
@@ -250,7 +278,7 @@ def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
         extra["model_error_fitted_clean_mm"] = 1e3 * model_error(
             simulated_back(with_section(clean, sec), fitted), clean)
     return _record(name, diag.summary, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0,
-                   **extra)
+                   tests=held_out_tests(diag), **extra)
 
 
 def _median_d(rows: list[dict]) -> float:
