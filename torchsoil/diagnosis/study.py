@@ -66,8 +66,8 @@ def held_out_tests(diag) -> list[dict]:
 
 def study_case(case: tuple, settings: Settings) -> dict:
     """The record of one (name, scenario, seed, verdict, id) case: its drive made and
-    diagnosed, with the world's effect law, the tyre and measurement draws and the drive's
-    length [m]."""
+    diagnosed, with each candidate's held-out test (`held_out_tests`), the world's effect law,
+    the tyre and measurement draws and the drive's length [m]."""
     name, scn, seed, want_verdict, want_id = case
     t0 = time.perf_counter()
     data = make_terrain_pair(scn, seed=seed)
