@@ -48,7 +48,23 @@ def explain(diag) -> str:
                  "surface before the robot, so d is the sinkage of each wheel, not of the robot, and a "
                  "hardening term counts every wheel's pass (a rear wheel in its front wheel's rut runs the "
                  "second).")
-    return _explain(diag) + note
+    return _explain(diag) + _nearest(diag) + note
+
+
+def _nearest(diag) -> str:
+    """For a drive with no term accepted: the fitted candidate nearest its level (largest z
+    minus the z it needed), when it gained at all, and what more data would give it."""
+    if diag.best is not None or not diag.fits:
+        return ""
+    need = diag.evidence["z_accept"]
+    f = max(diag.fits, key=lambda f: f.z - need[f.ext.id])
+    if not f.z > 0:
+        return ""
+    more = (f"more changes of its covariate ({f.ext.covariate.replace('_', ' ')}) along the drive"
+            if f.ext.covariate is not None else "a longer drive")
+    return (f" Nearest to acceptance: {f.ext.id} ({f.ext.parameter} = {f.k:.3g}, folds {f.k_fold[0]:.3g} and "
+            f"{f.k_fold[1]:.3g}), z = {f.z:.2f} against {need[f.ext.id]:.2f} needed; {more} would give it more "
+            f"evidence.")
 
 
 def _explain(diag) -> str:

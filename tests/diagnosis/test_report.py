@@ -1,0 +1,37 @@
+"""The plain-language explanation on hand-made diagnoses."""
+
+from types import SimpleNamespace
+
+from torchsoil.diagnosis import catalogue
+from torchsoil.diagnosis.report import explain
+
+
+def _adequate(fits, z_accept):
+    zones = {zn: {"mean": 0.0, "z": 0.1} for zn in ("rut_floor", "rut_wall", "berm", "outside")}
+    summary = {"verdict": "adequate", "missing_physics": None, "cost_before": {"prediction": 0.003, "residual": 0.003},
+               "cost_after": {"prediction": 0.003, "residual": 0.003}, "noise_floor": 0.0034,
+               "where": {"cross_track": "mixed", "along_track": [], "covariate": None},
+               "candidates": [{"id": f.ext.id} for f in fits]}
+    evidence = {"zones": zones, "z_locate": 3.09, "z_accept": z_accept, "map_nuisance_text": None,
+                "tyre_section": None, "dig_order": None}
+    return SimpleNamespace(summary=summary, evidence=evidence, best=None, fits=fits)
+
+
+def _fit(ext_id, k, z, folds):
+    return SimpleNamespace(ext=catalogue.get(ext_id), k=k, z=z, k_fold=folds, sections=None)
+
+
+def test_an_adequate_drive_names_the_candidate_nearest_its_level_and_what_would_help():
+    """Nearest by z minus its level (hardening 1.80 of 1.88), not by z (slip 2.0 of 2.47)."""
+    fits = [_fit("slip_sinkage", 6.0, 2.0, (4.0, 8.0)), _fit("multi_pass_hardening", -0.45, 1.80, (-0.45, -0.6))]
+    text = explain(_adequate(fits, {"slip_sinkage": 2.47, "multi_pass_hardening": 1.88}))
+    assert "Nearest to acceptance: multi_pass_hardening (k_pass = -0.45, folds -0.45 and -0.6)" in text
+    assert "z = 1.80 against 1.88 needed" in text and "more changes of its covariate (passes)" in text
+    shape = explain(_adequate([_fit("footprint_width", 0.3, 1.2, (0.3, 0.15))], {"footprint_width": 2.17}))
+    assert "footprint_width" in shape and "a longer drive" in shape
+
+
+def test_no_nearest_candidate_is_named_when_none_gained():
+    fits = [_fit("speed_dependent_sinkage", 0.0, 0.0, (0.0, 0.0)), _fit("slip_sinkage", -4.0, -0.7, (-4.0, 4.0))]
+    text = explain(_adequate(fits, {"speed_dependent_sinkage": 1.88, "slip_sinkage": 2.33}))
+    assert "Nearest to acceptance" not in text
