@@ -163,5 +163,9 @@ def test_foreign_study_runs_on_a_pair_in_the_foreign_layout(tmp_path):
     assert rec["model_error_mm"] > rec["model_error_clean_mm"]
     assert 0 < rec["model_error_fitted_clean_mm"] < 1.0 and rec["d_mm"] > 5    # the world digs a rut
     assert "diagnosis' section and dig order" in table
+    # the per-window series a study is re-scored from offline: one held-out cost per window [mm]
+    ser = rec["series"]
+    assert len(ser["base"]) == len(ser["s"]) == len(ser["covariates"]["speed"]) >= 6 and ser["passes"] == {}
+    assert all(c is None or 0 < c < 20 for c in ser["base"]) and sum(c is not None for c in ser["base"]) >= 4
     assert (tmp_path / "out" / "confusion.md").read_text() == table
     assert run_foreign(tmp_path, tmp_path / "out", settings) == table               # resumed: nothing redone

@@ -64,6 +64,20 @@ def held_out_tests(diag) -> list[dict]:
              "accepted": bool(f.accepted)} for f in diag.fits]
 
 
+def held_out_series(diag) -> dict:
+    """The per-window numbers behind the held-out tests, so that a study can be re-scored
+    offline under another test statistic: window centres s [m], each window's covariates, the
+    base pass's held-out cost and every candidate pass's, by coefficient [mm]."""
+    def mm(x):
+        return [None if not np.isfinite(v) else round(1e3 * float(v), 4) for v in x]
+
+    return {"s": [round(float(v), 3) for v in diag.windows["s"]],
+            "covariates": {n: [round(float(v), 6) for v in x] for n, x in diag.windows.items() if n != "s"},
+            "base": mm(diag.base.held_out),
+            "passes": {f.ext.id: {f"{k:.6g}": mm(p.held_out) for k, p in sorted(f.passes.items())}
+                       for f in diag.fits}}
+
+
 def study_case(case: tuple, settings: Settings) -> dict:
     """The record of one (name, scenario, seed, verdict, id) case: its drive made and
     diagnosed, with each candidate's held-out test (`held_out_tests`), the world's effect law,
@@ -75,7 +89,7 @@ def study_case(case: tuple, settings: Settings) -> dict:
     diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
     xy = pair.poses[:, 1:3]
     return _record(name, diag.summary, want_verdict, want_id, time.perf_counter() - t0, tests=held_out_tests(diag),
-                   seed=seed,
+                   series=held_out_series(diag), seed=seed,
                    law=scn.get("effects", {}) if isinstance(scn, dict) else {},
                    nuisances=json.loads(str(data["nuisances"])),
                    length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
@@ -278,7 +292,7 @@ def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
         extra["model_error_fitted_clean_mm"] = 1e3 * model_error(
             simulated_back(with_section(clean, sec), fitted), clean)
     return _record(name, diag.summary, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0,
-                   tests=held_out_tests(diag), **extra)
+                   tests=held_out_tests(diag), series=held_out_series(diag), **extra)
 
 
 def _median_d(rows: list[dict]) -> float:
