@@ -27,8 +27,16 @@ def test_an_adequate_drive_names_the_candidate_nearest_its_level_and_what_would_
     text = explain(_adequate(fits, {"slip_sinkage": 2.47, "multi_pass_hardening": 1.88}))
     assert "Nearest to acceptance: multi_pass_hardening (k_pass = -0.45, folds -0.45 and -0.6)" in text
     assert "z = 1.80 against 1.88 needed" in text and "more changes of its covariate (passes)" in text
+    assert "about 1.1 x this drive's length" in text                     # (1.88 / 1.80)^2 = 1.09
     shape = explain(_adequate([_fit("footprint_width", 0.3, 1.2, (0.3, 0.15))], {"footprint_width": 2.17}))
     assert "footprint_width" in shape and "a longer drive" in shape
+    assert "about 3.3 x this drive's length" in shape                   # (2.17 / 1.2)^2 = 3.27
+
+
+def test_no_length_is_promised_when_the_folds_disagree():
+    fits = [_fit("lateral_load_transfer", 0.8, 1.5, (0.8, 0.0)), _fit("slip_sinkage", 4.0, 1.0, (4.0, -4.0))]
+    text = explain(_adequate(fits, {"lateral_load_transfer": 1.88, "slip_sinkage": 2.33}))
+    assert "Nearest to acceptance: lateral_load_transfer" in text and "this drive's length" not in text
 
 
 def test_no_nearest_candidate_is_named_when_none_gained():

@@ -53,7 +53,10 @@ def explain(diag) -> str:
 
 def _nearest(diag) -> str:
     """For a drive with no term accepted: the fitted candidate nearest its level (largest z
-    minus the z it needed), when it gained at all, and what more data would give it."""
+    minus the z it needed), when it gained at all, and what more data would give it. When
+    both folds chose the same sign, also how much more of the same driving would reach the
+    level at the gain measured: a paired z grows as the square root of the windows, so
+    (z needed / z)^2 times the drive's length."""
     if diag.best is not None or not diag.fits:
         return ""
     need = diag.evidence["z_accept"]
@@ -62,8 +65,12 @@ def _nearest(diag) -> str:
         return ""
     more = (f"more changes of its covariate ({f.ext.covariate.replace('_', ' ')}) along the drive"
             if f.ext.covariate is not None else "a longer drive")
-    return (f" Nearest to acceptance: {f.ext.id} ({f.ext.parameter} = {f.k:.3g}, folds {f.k_fold[0]:.3g} and "
-            f"{f.k_fold[1]:.3g}), z = {f.z:.2f} against {need[f.ext.id]:.2f} needed; {more} would give it more "
+    a, b = f.k_fold
+    if a != 0 and b != 0 and (a > 0) == (b > 0):
+        more += (f" (at the gain measured here, about {(need[f.ext.id] / f.z) ** 2:.1f} x this drive's length of "
+                 f"the same driving)")
+    return (f" Nearest to acceptance: {f.ext.id} ({f.ext.parameter} = {f.k:.3g}, folds {a:.3g} and "
+            f"{b:.3g}), z = {f.z:.2f} against {need[f.ext.id]:.2f} needed; {more} would give it more "
             f"evidence.")
 
 
