@@ -55,6 +55,30 @@ def test_speed_effect_is_named_located_and_fitted(speed_power):
     assert spans and all(any(a - 1.0 <= c <= b + 1.0 for c in range(2, 14, 2)) for a, b in spans)
 
 
+def test_a_study_record_re_scores_offline_as_the_diagnosis_scored_it(speed_power):
+    """The per-window series a study keeps give back each candidate's folds, z, level and
+    the verdict's id, through a JSON round trip, without the estimator."""
+    import json
+
+    from torchsoil.diagnosis.study import held_out_series, held_out_tests, retest
+
+    _, diag = speed_power
+    rec = json.loads(json.dumps({"tests": held_out_tests(diag), "series": held_out_series(diag)}))
+    tests, named = retest(rec, CFG.block_m, 0.4, CFG.alpha_accept, CFG.lead_share)
+    assert named == diag.summary["missing_physics"] == "speed_dependent_sinkage"
+    fits = {f.ext.id: f for f in diag.fits}
+    assert {t["id"] for t in tests} == set(fits) and len(fits) >= 2
+    for t in tests:
+        f = fits[t["id"]]
+        assert t["k_fold"] == pytest.approx(list(f.k_fold), abs=1e-3)
+        assert t["z"] == pytest.approx(f.z, abs=0.02)
+        assert t["z_needed"] == pytest.approx(diag.evidence["z_accept"][f.ext.id], abs=1e-6)
+        assert t["accepted"] == f.accepted
+    # a stricter family level re-scores to no verdict where the term's z falls short of it
+    stricter, none = retest(rec, CFG.block_m, 0.4, alpha=1e-12)
+    assert none is None and not any(t["accepted"] for t in stricter)
+
+
 def test_soil_varying_along_the_path_is_adequate(tmp_path):
     pair, diag = run("watered", 1)
     s = diag.summary

@@ -242,20 +242,28 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
             run(new)
     ks = sorted(passes)
     lab = folds(len(base.prediction), int(round(block_m / est.stride)))
-    pred = np.full(len(base.prediction), np.nan)
-    held = np.full(len(base.prediction), np.nan)
-    res = np.full(len(base.prediction), np.nan)
-    k_fold = []
-    for f in (0, 1):
-        train = lab != f
-        k_best = min(ks, key=lambda k: (_mean(passes[k].held_out, train), abs(k)))
-        k_fold.append(k_best)
-        for out, src in ((pred, "prediction"), (held, "held_out"), (res, "residual")):
-            out[lab == f] = getattr(passes[k_best], src)[lab == f]
+    k_fold = fold_choice({k: passes[k].held_out for k in ks}, lab)
+    pred, held, res = (by_fold({k: getattr(passes[k], name) for k in ks}, k_fold, lab)
+                       for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
     imp, se, z = paired_improvement(base.held_out, held)
-    return CandidateFit(ext, k_all, (k_fold[0], k_fold[1]), pred, res, imp, se, z, passes, held,
-                        sections=sec)
+    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec)
+
+
+def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:
+    """The coefficient each fold is scored with: the one whose (W,) held-out cost [m] is
+    lowest on the other fold's windows (lab: (W,) fold labels, `folds`); the smaller |k| on a
+    tie, so the base model (0) wins one."""
+    f0, f1 = (min(held, key=lambda k: (_mean(held[k], lab != f), abs(k))) for f in (0, 1))
+    return f0, f1
+
+
+def by_fold(series: dict[float, np.ndarray], k_fold: tuple[float, float], lab: np.ndarray) -> np.ndarray:
+    """(W,) each window's value from the series of the coefficient its fold was scored with."""
+    out = np.full(len(lab), np.nan)
+    for f, k in enumerate(k_fold):
+        out[lab == f] = np.asarray(series[k])[lab == f]
+    return out
 
 
 def accept(fit: CandidateFit, z_crit: float) -> bool:

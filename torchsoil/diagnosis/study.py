@@ -22,12 +22,14 @@ import time
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
-from torchsoil.diagnosis.fit import section_of, with_section
+from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
+from torchsoil.diagnosis.locate import paired_improvement
 from torchsoil.diagnosis.report import mean_sinkage
-from torchsoil.diagnosis.run import diagnose
+from torchsoil.diagnosis.run import accept_in_order, diagnose
 from torchsoil.settings import Settings
 from torchsoil.synth.scenario import make_terrain_pair
 from torchsoil.terrain import TerrainPair
@@ -76,6 +78,35 @@ def held_out_series(diag) -> dict:
             "base": mm(diag.base.held_out),
             "passes": {f.ext.id: {f"{k:.6g}": mm(p.held_out) for k, p in sorted(f.passes.items())}
                        for f in diag.fits}}
+
+
+def retest(rec: dict, block_m: float = 2.4, stride: float = 0.4, alpha: float = 0.05,
+           lead_share: float = 0.6) -> tuple[list[dict], str | None]:
+    """A case record's held-out tests redone from its `series` (held_out_series), as the
+    diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
+    folds of block_m [m] at the estimator's stride [m]), the paired z against the base pass,
+    and acceptance in order of location evidence (`run.accept_in_order`). Change any of these
+    (or patch the statistic) to re-score a study without running the estimator again.
+    Returns (the tests with k_fold and z recomputed, the id the diagnosis would name or None)."""
+    def arr(x):
+        return np.array([np.nan if v is None else v for v in x], np.float64)
+
+    ser = rec["series"]
+    base = arr(ser["base"])
+    lab = folds(len(base), int(round(block_m / stride)))
+    out = []
+    for t in sorted(rec.get("tests", []), key=lambda t: t["p_location"]):
+        held = {float(k): arr(v) for k, v in ser["passes"][t["id"]].items()}
+        held[0.0] = base
+        k_fold = fold_choice(held, lab)
+        z = paired_improvement(base, by_fold(held, k_fold, lab))[2]
+        out.append({**t, "k_fold": list(k_fold), "z": z})
+    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], accepted=False) for t in out]
+    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share)
+    for t, f, level in zip(out, fits, levels, strict=True):
+        t.update(z_needed=level, accepted=f.accepted)
+    named = [t for t in out if t["accepted"]]
+    return out, max(named, key=lambda t: t["z"])["id"] if named else None
 
 
 def study_case(case: tuple, settings: Settings) -> dict:
