@@ -56,7 +56,8 @@ def _nearest(diag) -> str:
     minus the z it needed), when it gained at all, and what more data would give it. When
     both folds chose the same sign, also how much more of the same driving would reach the
     level at the gain measured: a paired z grows as the square root of the windows, so
-    (z needed / z)^2 times the drive's length."""
+    (z needed / z)^2 times the drive's length. A misfit of other physics that follows the
+    covariate grows with the drive as well (README: a null out-and-back driven twice)."""
     if diag.best is not None or not diag.fits:
         return ""
     need = diag.evidence["z_accept"]
@@ -68,7 +69,7 @@ def _nearest(diag) -> str:
     a, b = f.k_fold
     if a != 0 and b != 0 and (a > 0) == (b > 0):
         more += (f" (at the gain measured here, about {(need[f.ext.id] / f.z) ** 2:.1f} x this drive's length of "
-                 f"the same driving)")
+                 f"the same driving, if nothing else the model misses follows the same covariate)")
     return (f" Nearest to acceptance: {f.ext.id} ({f.ext.parameter} = {f.k:.3g}, folds {a:.3g} and "
             f"{b:.3g}), z = {f.z:.2f} against {need[f.ext.id]:.2f} needed; {more} would give it more "
             f"evidence.")
