@@ -48,12 +48,15 @@ def _append(out: Path, rec: dict) -> None:
         f.write(json.dumps(rec) + "\n")
 
 
-def _record(name: str, summary: dict, want_verdict: str, want_id: str | None, seconds: float, **extra) -> dict:
-    s = summary
+def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: float, **extra) -> dict:
+    """One line of cases.jsonl: the diagnosis' verdict against the truth, with each candidate's
+    held-out test (`held_out_tests`) and the numbers behind it (`held_out_series`)."""
+    s = diag.summary
     return {"case": name, "want": want_verdict, "want_id": want_id, "verdict": s["verdict"],
             "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
             "cost_before": s["cost_before"], "cost_after": s["cost_after"], "noise_floor": s.get("noise_floor"),
-            "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds, **extra}
+            "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds,
+            "tests": held_out_tests(diag), "series": held_out_series(diag), **extra}
 
 
 def held_out_tests(diag) -> list[dict]:
@@ -69,14 +72,14 @@ def held_out_tests(diag) -> list[dict]:
 def held_out_series(diag) -> dict:
     """The per-window numbers behind the held-out tests, so that a study can be re-scored
     offline under another test statistic: window centres s [m], each window's covariates, the
-    base pass's held-out cost and every candidate pass's, by coefficient [mm]."""
+    base pass's held-out cost and every other candidate pass's, by coefficient [mm]."""
     def mm(x):
         return [None if not np.isfinite(v) else round(1e3 * float(v), 4) for v in x]
 
     return {"s": [round(float(v), 3) for v in diag.windows["s"]],
             "covariates": {n: [round(float(v), 6) for v in x] for n, x in diag.windows.items() if n != "s"},
             "base": mm(diag.base.held_out),
-            "passes": {f.ext.id: {f"{k:.6g}": mm(p.held_out) for k, p in sorted(f.passes.items())}
+            "passes": {f.ext.id: {f"{k:.6g}": mm(p.held_out) for k, p in sorted(f.passes.items()) if k != 0.0}
                        for f in diag.fits}}
 
 
@@ -111,16 +114,15 @@ def retest(rec: dict, block_m: float = 2.4, stride: float = 0.4, alpha: float = 
 
 def study_case(case: tuple, settings: Settings) -> dict:
     """The record of one (name, scenario, seed, verdict, id) case: its drive made and
-    diagnosed, with each candidate's held-out test (`held_out_tests`), the world's effect law,
-    the tyre and measurement draws and the drive's length [m]."""
+    diagnosed (`_record`), with the world's effect law, the tyre and measurement draws and the
+    drive's length [m]."""
     name, scn, seed, want_verdict, want_id = case
     t0 = time.perf_counter()
     data = make_terrain_pair(scn, seed=seed)
     pair = TerrainPair.from_mapping(data)
     diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
     xy = pair.poses[:, 1:3]
-    return _record(name, diag.summary, want_verdict, want_id, time.perf_counter() - t0, tests=held_out_tests(diag),
-                   series=held_out_series(diag), seed=seed,
+    return _record(name, diag, want_verdict, want_id, time.perf_counter() - t0, seed=seed,
                    law=scn.get("effects", {}) if isinstance(scn, dict) else {},
                    nuisances=json.loads(str(data["nuisances"])),
                    length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
@@ -322,8 +324,7 @@ def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
         extra["model_error_fitted_mm"] = 1e3 * model_error(simulated_back(with_section(pair, sec), fitted), clean)
         extra["model_error_fitted_clean_mm"] = 1e3 * model_error(
             simulated_back(with_section(clean, sec), fitted), clean)
-    return _record(name, diag.summary, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0,
-                   tests=held_out_tests(diag), series=held_out_series(diag), **extra)
+    return _record(name, diag, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0, **extra)
 
 
 def _median_d(rows: list[dict]) -> float:
