@@ -138,6 +138,34 @@ def test_wheels_digging_in_turn_harden_the_rut_for_the_wheel_behind():
         assert rut_depth(truth.world, (x0 - 0.4, x0 + 0.4), y) == pytest.approx(0.03, abs=0.0015)
 
 
+@pytest.mark.parametrize("order", ["robot", "wheel"])
+def test_a_revisit_is_one_more_pass_from_the_settled_surface(order):
+    """The loop's last straight runs over its first one: started from the surface the first
+    visit left (a terrain pair's H_f under `last_visit`), torchsoil.sim over the last
+    straight's poses gives the world's final surface there, as closely as it gives the first
+    visit's (the world relaxes the revisit's digs once, at the end, not as it goes)."""
+    import torch
+
+    from torchsoil.sim import ParamSpec, SimConfig, simulate_path
+    from torchsoil.windows import path_arc
+
+    scn = scenario(LOOP, soil=SOIL_30)
+    scn["world"] = {"dig_order": order}
+    truth = build_truth(scn)
+    w, poses = truth.world, truth.traj.poses
+    i = int(np.searchsorted(path_arc(poses), path_arc(poses)[-1] - 3.0))   # the last straight
+    before = np.take_along_axis(w.states, np.maximum(w.n_visits - 1, 0)[None], 0)[0]
+    theta = ParamSpec.base(2).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+    sim = simulate_path(torch.as_tensor(before)[None], w.grid, poses[i:], truth.robot, theta,
+                        SimConfig(dig_order=order))
+    gx, _ = w.grid.centers()
+    twice = (w.n_visits == 2) & ((gx >= 0.8) & (gx <= 2.2))[:, None]
+    diff = np.abs(sim.h[0].numpy() - w.h_after)[twice]
+    assert twice.sum() > 1000
+    assert diff.mean() < 3e-4
+    assert np.abs(w.h_after - before)[twice].mean() > 5 * diff.mean()
+
+
 def test_multi_pass_hardening_second_pass_sinks_less():
     plain = world(scenario(LOOP))
     hard = world(scenario(LOOP, effects={"multi_pass_hardening": {"k": -0.6}}))

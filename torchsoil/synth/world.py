@@ -141,19 +141,22 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     turn_dug = np.zeros((n_axles if lead else 0, *grid.shape), dtype=bool)
     wheel_passes = np.zeros(grid.shape, dtype=np.int64)
 
-    def settle():
-        if not pending.any():
+    def settle(which: np.ndarray | None = None):
+        """Relax the pending cells (those of `which`, default all) once, as one pass's digs."""
+        sel = pending if which is None else pending & which
+        if not sel.any():
             return
-        ii, jj = np.nonzero(pending)
+        ii, jj = np.nonzero(sel)
         box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
         tb = np.where(dug[box], tan_wall[box], tan_beta[box])
         rr = relax(torch.from_numpy(h[box].copy())[None], torch.from_numpy(tb)[None], dx,
-                   torch.from_numpy(pending[box].copy()), config.tau, config.max_iter, None,
+                   torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None,
                    config.eps_scale, config.backend)
         h[box] = rr.h[0].numpy()
-        pending[:] = False
-        dug[:] = False
-        _start_visit(lead, turn_dug, wheel_passes, h)
+        done = sel.copy()
+        pending[done] = False
+        dug[done] = False
+        _start_visit(lead, turn_dug, wheel_passes, h, done)
 
     last_arc = np.full(grid.shape, -np.inf)
     n_visits = np.zeros(grid.shape, dtype=np.int64)
@@ -188,8 +191,10 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         new = near & (float(traj.arc[idx[0]]) - last_arc[win] > gap)
         if new.any():
             v = n_visits[win]
-            if (new & (v >= 1)).any():
-                settle()  # a revisit starts from the settled surface
+            if (new & (v >= 1) & pending[win]).any():
+                # a revisit starts from the settled surface: the earlier visits' digs relax,
+                # those of the visit under way (the robot left them less than `gap` ago) wait
+                settle(float(traj.arc[idx[0]]) - last_arc > gap)
             hw = h[win]
             if v[new].max() >= MAX_VISITS:
                 raise ValueError(f"a cell is visited more than {MAX_VISITS} times")
@@ -286,13 +291,15 @@ def _pass_index(n_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndar
     return wheel_passes[None] + np.take_along_axis(ahead, turn, 0) + 1
 
 
-def _start_visit(lead: list, turn_dug: np.ndarray, wheel_passes: np.ndarray, h: np.ndarray) -> None:
-    """A new visit (the surface h has settled), in place: every turn's surface becomes h, the
-    wheel passes of the visit that ended join wheel_passes, nothing is dug yet."""
+def _start_visit(lead: list, turn_dug: np.ndarray, wheel_passes: np.ndarray, h: np.ndarray,
+                 cells: np.ndarray) -> None:
+    """A new visit over the (X, Y) bool `cells` (where the surface h has settled), in place:
+    every turn's surface becomes h there, the wheel passes of the visit that ended join
+    wheel_passes, nothing is dug yet."""
     for surf in lead:
-        surf[:] = h
-    wheel_passes += turn_dug.sum(0)
-    turn_dug[:] = False
+        surf[cells] = h[cells]
+    wheel_passes[cells] += turn_dug[:, cells].sum(0)
+    turn_dug[:, cells] = False
 
 
 def _wheel_xy(gp: np.ndarray, wxy: np.ndarray) -> np.ndarray:
