@@ -298,6 +298,9 @@ class DiagnosisConfig(Section):
     alpha_locate: float = Field(0.01, gt=0, lt=1, description="family-wise level of the location tests")
     materiality: float = Field(0.1, ge=0, description="a located zone must exceed this fraction of the "
                                                       "measured noise floor")
+    gain_materiality: float = Field(0.0025, ge=0, description="an accepted term must lower the mean held-out "
+                                                              "cost by at least this fraction of the base "
+                                                              "model's")
     block_m: float = Field(2.4, gt=0, description="cross-validation block length, m")
     refine_steps: int = Field(2, ge=0, description="parabolic refinements of a candidate's coefficient")
     offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "

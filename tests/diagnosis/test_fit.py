@@ -25,16 +25,19 @@ def test_folds_alternate_blocks():
     assert folds(10, 3).tolist() == [0, 0, 0, 1, 1, 1, 0, 0, 0, 1]
 
 
-def fit_with(z, k_fold):
+def fit_with(z, k_fold, gain=1e-4):
     n = np.zeros(3)
-    return CandidateFit(CATALOGUE["slip_sinkage"], 1.0, k_fold, n, n, 0.0, 1.0, z, {})
+    return CandidateFit(CATALOGUE["slip_sinkage"], 1.0, k_fold, n, n, gain, 1.0, z, {})
 
 
-def test_accept_needs_significance_and_agreeing_folds():
+def test_accept_needs_significance_material_gain_and_agreeing_folds():
     assert accept(fit_with(3.0, (2.0, 4.0)), 2.1)
     assert not accept(fit_with(1.5, (2.0, 4.0)), 2.1)        # within the noise
     assert not accept(fit_with(3.0, (0.0, 4.0)), 2.1)        # one fold preferred the base model
     assert not accept(fit_with(3.0, (-2.0, 4.0)), 2.1)       # folds disagree on the sign
+    # steady but immaterial: 0.001 mm gained where 0.006 mm is asked
+    assert not accept(fit_with(3.0, (2.0, 4.0), gain=1e-6), 2.1, material=6e-6)
+    assert accept(fit_with(3.0, (2.0, 4.0), gain=1e-5), 2.1, material=6e-6)
 
 
 def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
@@ -70,7 +73,7 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
     assert tied == pytest.approx([0.015, 0.015, 0.02])
 
     def fit(z):
-        return SimpleNamespace(z=z, k_fold=(-0.3, -0.3), accepted=None)
+        return SimpleNamespace(z=z, k_fold=(-0.3, -0.3), improvement=1e-4, accepted=None)
 
     # the leading candidate needs less than a Bonferroni split would ask (z 1.88 vs 2.24) ...
     fits = [fit(2.0), fit(2.4), fit(0.0)]

@@ -43,3 +43,14 @@ def test_no_nearest_candidate_is_named_when_none_gained():
     fits = [_fit("speed_dependent_sinkage", 0.0, 0.0, (0.0, 0.0)), _fit("slip_sinkage", -4.0, -0.7, (-4.0, 4.0))]
     text = explain(_adequate(fits, {"speed_dependent_sinkage": 1.88, "slip_sinkage": 2.33}))
     assert "Nearest to acceptance" not in text
+
+
+def test_a_steady_but_immaterial_gain_is_named_as_such():
+    """z above its level, gain 0.0014 mm against the 0.0062 mm a term must bring."""
+    f = SimpleNamespace(**vars(_fit("speed_dependent_sinkage", 0.07, 2.64, (0.07, 0.07))), improvement=1.4e-6)
+    diag = _adequate([f], {"speed_dependent_sinkage": 2.33})
+    diag.evidence["gain_material"] = 6.2e-6
+    text = explain(diag)
+    assert "z = 2.64 against 2.33 needed" in text
+    assert "held-out gain, 0.0014 mm, is under the 0.0062 mm a term must bring" in text
+    assert "this drive's length" not in text

@@ -266,8 +266,10 @@ def by_fold(series: dict[float, np.ndarray], k_fold: tuple[float, float], lab: n
     return out
 
 
-def accept(fit: CandidateFit, z_crit: float) -> bool:
-    """The extension predicts held-out windows better than the noise allows: paired z above
-    z_crit and the same non-zero coefficient sign chosen independently on both folds."""
+def accept(fit: CandidateFit, z_crit: float, material: float = 0.0) -> bool:
+    """The extension predicts held-out windows better than the noise allows, by a material
+    amount: paired z above z_crit, a mean improvement of at least `material` [m], and the
+    same non-zero coefficient sign chosen independently on both folds."""
     a, b = fit.k_fold
-    return bool(fit.z > z_crit and a != 0 and b != 0 and np.sign(a) == np.sign(b))
+    return bool(fit.z > z_crit and fit.improvement >= material and a != 0 and b != 0
+                and np.sign(a) == np.sign(b))

@@ -67,12 +67,16 @@ def _nearest(diag) -> str:
     more = (f"more changes of its covariate ({f.ext.covariate.replace('_', ' ')}) along the drive"
             if f.ext.covariate is not None else "a longer drive")
     a, b = f.k_fold
+    head = (f" Nearest to acceptance: {f.ext.id} ({f.ext.parameter} = {f.k:.3g}, folds {a:.3g} and "
+            f"{b:.3g}), z = {f.z:.2f} against {need[f.ext.id]:.2f} needed")
+    material = diag.evidence.get("gain_material", 0.0)
+    if f.z > need[f.ext.id] and f.improvement < material:
+        return (f"{head}, but its held-out gain, {1e3 * f.improvement:.2g} mm, is under the {1e3 * material:.2g} mm "
+                f"a term must bring (diagnosis.gain_materiality): a steady but immaterial difference.")
     if a != 0 and b != 0 and (a > 0) == (b > 0):
         more += (f" (at the gain measured here, about {(need[f.ext.id] / f.z) ** 2:.1f} x this drive's length of "
                  f"the same driving, if nothing else the model misses follows the same covariate)")
-    return (f" Nearest to acceptance: {f.ext.id} ({f.ext.parameter} = {f.k:.3g}, folds {a:.3g} and "
-            f"{b:.3g}), z = {f.z:.2f} against {need[f.ext.id]:.2f} needed; {more} would give it more "
-            f"evidence.")
+    return f"{head}; {more} would give it more evidence."
 
 
 def _explain(diag) -> str:

@@ -65,13 +65,21 @@ def thresholds(p: list[float], alpha: float, lead_share: float) -> list[float]:
     return [alpha * lead_share / n_lead if is_lead else alpha * (1 - lead_share) / (n - n_lead) for is_lead in lead]
 
 
-def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float) -> list[float]:
+def gain_material(cfg: DiagnosisConfig, base_held_out) -> float:
+    """The smallest mean held-out improvement [m] an accepted term must bring: the share
+    cfg.gain_materiality of the base model's mean held-out cost (W,) [m]."""
+    return cfg.gain_materiality * float(np.nanmean(np.asarray(base_held_out, np.float64)))
+
+
+def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float,
+                    material: float = 0.0) -> list[float]:
     """Set `accepted` on fits (in order of their location evidence p) by the fallback
-    procedure; returns the z level each was tested at."""
+    procedure, each also needing a mean held-out improvement of `material` [m]; returns the z
+    level each was tested at."""
     levels, carry, used = thresholds(p, alpha, lead_share), 0.0, []
     for f, a in zip(fits, levels, strict=True):
         z = float(stats.norm.isf(a + carry))
-        f.accepted = accept(f, z)
+        f.accepted = accept(f, z, material)
         carry = a + carry if f.accepted else 0.0
         used.append(z)
     return used
@@ -241,8 +249,9 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets, tried)
         fits.append(f)
+    gain_min = gain_material(cfg, base.held_out)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
-                                              cfg.lead_share), strict=True))
+                                              cfg.lead_share, gain_min), strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
     best = accepted[0] if accepted else None
     pairwise = None
@@ -295,7 +304,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
-                "spectral_line": line, "z_locate": z_loc, "z_accept": z_crit, "candidates": ev,
+                "spectral_line": line, "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
+                "candidates": ev,
                 "pairwise": pairwise,
                 "map_nuisance": base.nuisance.summary() if base.nuisance is not None else None,
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,

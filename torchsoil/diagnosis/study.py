@@ -61,12 +61,12 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
 
 def held_out_tests(diag) -> list[dict]:
     """Each fitted candidate's held-out test: coefficient (all windows and per fold), paired z,
-    the z it needed and its location evidence p (a study compares these across settings more
-    finely than verdicts)."""
+    the z it needed, its mean held-out gain [mm] and its location evidence p (a study compares
+    these across settings more finely than verdicts)."""
     need, ev = diag.evidence["z_accept"], diag.evidence["candidates"]
     return [{"id": f.ext.id, "k": round(f.k, 4), "k_fold": [round(k, 4) for k in f.k_fold],
-             "z": round(f.z, 3), "z_needed": round(need[f.ext.id], 3), "p_location": ev[f.ext.id]["p"],
-             "accepted": bool(f.accepted)} for f in diag.fits]
+             "z": round(f.z, 3), "z_needed": round(need[f.ext.id], 3), "gain_mm": round(1e3 * f.improvement, 5),
+             "p_location": ev[f.ext.id]["p"], "accepted": bool(f.accepted)} for f in diag.fits]
 
 
 def held_out_series(diag) -> dict:
@@ -84,11 +84,12 @@ def held_out_series(diag) -> dict:
 
 
 def retest(rec: dict, block_m: float = 2.4, stride: float = 0.4, alpha: float = 0.05,
-           lead_share: float = 0.6) -> tuple[list[dict], str | None]:
+           lead_share: float = 0.6, gain_materiality: float = 0.0025) -> tuple[list[dict], str | None]:
     """A case record's held-out tests redone from its `series` (held_out_series), as the
     diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
     folds of block_m [m] at the estimator's stride [m]), the paired z against the base pass,
-    and acceptance in order of location evidence (`run.accept_in_order`). Change any of these
+    and acceptance in order of location evidence (`run.accept_in_order`), a term's mean gain
+    at least gain_materiality times the base's mean held-out cost. Change any of these
     (or patch the statistic) to re-score a study without running the estimator again.
     Returns (the tests with k_fold and z recomputed, the id the diagnosis would name or None)."""
     def arr(x):
@@ -102,10 +103,11 @@ def retest(rec: dict, block_m: float = 2.4, stride: float = 0.4, alpha: float = 
         held = {float(k): arr(v) for k, v in ser["passes"][t["id"]].items()}
         held[0.0] = base
         k_fold = fold_choice(held, lab)
-        z = paired_improvement(base, by_fold(held, k_fold, lab))[2]
-        out.append({**t, "k_fold": list(k_fold), "z": z})
-    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], accepted=False) for t in out]
-    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share)
+        gain, _, z = paired_improvement(base, by_fold(held, k_fold, lab))     # series in mm
+        out.append({**t, "k_fold": list(k_fold), "z": z, "gain_mm": gain})
+    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], accepted=False) for t in out]
+    material = gain_materiality * float(np.nanmean(base))
+    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material)
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
     named = [t for t in out if t["accepted"]]

@@ -4,8 +4,8 @@ null case (base physics, soil varying along the path) and an out-of-catalogue ef
 magnitude, drive shape (revisits of every shape for hardening), soil, tyre and measurement
 nuisances, plus null drives.
 
-`world.chunk` is 0.1 m: the recorder's world relaxes chunk by chunk and its default 0.4 m
-chunks leave a faint periodic pattern on deep rut floors that a tread test would see too.
+`world.chunk` is 0.1 m: what the recorder's world evaluates per chunk (the footprint width's
+sinkage, the visits) changes in 0.1 m steps rather than its default 0.4 m.
 """
 
 from __future__ import annotations

@@ -131,6 +131,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     # base model digs and deposits for every pose first, then relaxes once
     pending = np.zeros(grid.shape, dtype=bool)
     dug = np.zeros(grid.shape, dtype=bool)
+    # deposits wait too (`held`): the wheels of a visit dig the surface without them, as the
+    # simulator digs every pose of a path before it deposits, and none is dug again
+    held = HeldDeposits()
 
     # dig_order "wheel": per turn r < R - 1, the surface the axles of turns <= r left in this visit
     # (no deposits), and per turn where its wheels dug in this visit; reset when the surface
@@ -146,6 +149,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         sel = pending if which is None else pending & which
         if not sel.any():
             return
+        held.lay(h, sel, dug)
         ii, jj = np.nonzero(sel)
         box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
         tb = np.where(dug[box], tan_wall[box], tan_beta[box])
@@ -168,6 +172,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     wxy = robot.wheels[:, :2]
     K = len(robot.wheels)
     tt = traj.poses[:, 0]
+    w_all = _wheel_xy(traj.poses[:, [0, 1, 2, 6]], wxy)                   # (K, N, 2)
+    wheel_arc = np.concatenate([np.zeros((K, 1)), np.cumsum(np.linalg.norm(np.diff(w_all, axis=1), axis=-1), 1)], 1)
 
     for idx in _chunks(traj.arc, config.chunk):
         p = traj.poses[idx]
@@ -181,7 +187,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         win = (slice(i0, i1), slice(j0, j1))
         rscale = fx.radius_scale(eff, float(np.median(sf["d"][win])))
         geom = chunk_geometry(grid.crop(i0, i1, j0, j1), p[:, [0, 1, 2, 6]], wxy,
-                              reach, config.pose_spacing * dx)
+                              reach, config.pose_spacing * dx, wheel_arc[:, idx[0]])
         gp, dist, pidx = geom["poses"], geom["dist"], geom["pose"]
         t_pose = gp[:, 0][pidx]                                    # (K, X, Y)
 
@@ -225,9 +231,11 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
                                            .reshape(pidx.shape))
 
-        h[win], covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
-                                                 sf["chi"][win], config, section)
+        h[win], deposits, covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
+                                                           sf["chi"][win], config, section, first=idx[0] == 0,
+                                                           final=idx[-1] == len(traj.poses) - 1)
         _advance_turns(lead, win, turn, targets, turn_dug, covered)
+        held.add(deposits, (i0, j0), grid.shape)
         pending[win] |= domain
         dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
@@ -291,6 +299,52 @@ def _pass_index(n_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndar
     return wheel_passes[None] + np.take_along_axis(ahead, turn, 0) + 1
 
 
+class HeldDeposits:
+    """The deposits of the visits under way, per wheel and arc bin (2 cells of the wheel's path
+    length over the whole drive): the height its footprint lost times chi [m, summed over
+    cells] and its band cells. They are laid when their cells settle, spread evenly over the
+    band cells no wheel of the visit dug: the simulator's deposition over a whole path."""
+
+    def __init__(self):
+        self.volume: dict[tuple[int, int], float] = {}
+        self.cells: dict[tuple[int, int], list[np.ndarray]] = {}
+
+    def add(self, deposits: list, corner: tuple[int, int], shape: tuple[int, int]) -> None:
+        """One chunk's digs (`_step`), per wheel k: (n,) arc bins and heights lost x chi [m] of
+        its footprint cells, (m,) arc bins and (rows, cols) of its band cells on the chunk's
+        window, whose first cell is `corner` on the grid of `shape`."""
+        for k, (vol_bins, vol, band_bins, (rows, cols)) in enumerate(deposits):
+            if len(vol_bins):
+                ub, inv = np.unique(vol_bins, return_inverse=True)
+                for b, v in zip(ub.tolist(), np.bincount(inv, vol).tolist(), strict=True):
+                    self.volume[(k, b)] = self.volume.get((k, b), 0.0) + v
+            if len(band_bins):
+                flat = np.ravel_multi_index((rows + corner[0], cols + corner[1]), shape)
+                order = np.argsort(band_bins, kind="stable")
+                ub, start = np.unique(band_bins[order], return_index=True)
+                for b, part in zip(ub.tolist(), np.split(flat[order], start[1:]), strict=True):
+                    self.cells.setdefault((k, b), []).append(part)
+
+    def lay(self, h: np.ndarray, settled: np.ndarray, dug: np.ndarray) -> None:
+        """Add to h (X, Y) [m], in place, the deposits whose band reaches the (X, Y) bool
+        `settled` cells, on their band cells outside the (X, Y) bool `dug` ones (on all their
+        band cells where a wheel dug each). A bin with a volume but no band cell of its own
+        gives it to the nearest bin of the same wheel that has some."""
+        flat, settled_f, dug_f = h.reshape(-1), settled.reshape(-1), dug.reshape(-1)
+        cells = {key: np.unique(np.concatenate(parts)) for key, parts in self.cells.items()}
+        ready = [key for key, c in cells.items() if settled_f[c].any()]
+        for key in [key for key in self.volume if key not in cells]:
+            near = [c for c in cells if c[0] == key[0]]
+            if near:
+                to = min(near, key=lambda c: abs(c[1] - key[1]))
+                self.volume[to] = self.volume.get(to, 0.0) + self.volume.pop(key)
+        for key in ready:
+            c = cells[key]
+            use = c[~dug_f[c]] if (~dug_f[c]).any() else c
+            flat[use] += self.volume.pop(key, 0.0) / len(use)
+            del self.cells[key]
+
+
 def _start_visit(lead: list, turn_dug: np.ndarray, wheel_passes: np.ndarray, h: np.ndarray,
                  cells: np.ndarray) -> None:
     """A new visit over the (X, Y) bool `cells` (where the surface h has settled), in place:
@@ -311,11 +365,13 @@ def _wheel_xy(gp: np.ndarray, wxy: np.ndarray) -> np.ndarray:
 
 
 def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
-                   max_step: float) -> dict:
+                   max_step: float, arc0: np.ndarray | None = None) -> dict:
     """Dense per-wheel geometry of one chunk on a small grid.
 
     poses: (N, 4) t, x, y, yaw; wxy: (K, 2) wheel offsets in base_link, m; reach: search
-    radius, m; max_step: poses are resampled so no wheel moves more than this, m.
+    radius, m; max_step: poses are resampled so no wheel moves more than this, m; arc0: (K,)
+    each wheel's path length at the chunk's first pose, m (default 0), so that the arc bins
+    of consecutive chunks line up.
     Returns {poses (M, 4), dist (K, X, Y) [m, inf beyond reach], lateral (K, X, Y) [m, left
     positive], pose (K, X, Y) int index of the nearest pose, bin (K, X, Y) int arc bin of
     2 cells along the wheel's path}.
@@ -337,6 +393,8 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
     lateral = np.zeros(shape)
     pose = np.zeros(shape, dtype=np.int64)
     bins = np.zeros(shape, dtype=np.int64)
+    ahead = np.zeros(shape, dtype=bool)
+    behind = np.zeros(shape, dtype=bool)
     for k in range(K):
         lo = np.maximum(np.floor((w[k].min(0) - reach - grid.origin) / grid.dx).astype(int), 0)
         hi = np.minimum(np.ceil((w[k].max(0) + reach - grid.origin) / grid.dx).astype(int) + 1, grid.shape)
@@ -348,6 +406,7 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
         moving = np.linalg.norm(d, axis=1) > 1e-9
         head = np.where(moving, np.arctan2(d[:, 1], d[:, 0]), p[:, 3])
         arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(w[k], axis=0), axis=1))])
+        arc = arc + (0.0 if arc0 is None else float(arc0[k]))
         dd, ii = cKDTree(w[k]).query(cells, distance_upper_bound=reach)
         hit = np.isfinite(dd)
         ii = np.where(hit, ii, 0)
@@ -356,25 +415,34 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
         sh = cx.shape
         dist[sub] = dd.reshape(sh)
         lateral[sub] = np.where(hit, -np.sin(head[ii]) * rel[:, 0] + np.cos(head[ii]) * rel[:, 1], 0.0).reshape(sh)
+        along = np.cos(head[ii]) * rel[:, 0] + np.sin(head[ii]) * rel[:, 1]
+        ahead[sub] = (hit & (ii == len(p) - 1) & (along > 0)).reshape(sh)
+        behind[sub] = (hit & (ii == 0) & (along < 0)).reshape(sh)
         pose[sub] = ii.reshape(sh)
         bins[sub] = np.floor(arc[ii] / (2 * grid.dx)).astype(np.int64).reshape(sh)
-    return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "bin": bins, "dx": grid.dx}
+    return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "bin": bins, "ahead": ahead,
+            "behind": behind, "dx": grid.dx}
 
 
 def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config: WorldConfig,
-          section: str = "taper"):
+          section: str = "taper", first: bool = True, final: bool = True):
     """Sinkage and deposition of one chunk on window arrays (X, Y) [m]; h_ref (X, Y) or per
     wheel (K, X, Y) [m]; depth (K, X, Y) [m], chi (X, Y) the soil's displacement-compaction
     ratio where the soil is dug.
 
     Sinkage h <- min(h, h_ref - s * depth) over each footprint; the height removed under
     each wheel goes, times the local chi, to the band of width config.band_width cells
-    beside its footprint in the same 2-cell arc bin. Relaxation comes later, once per pass.
-    Returns the new surface (X, Y), the (K, X, Y) bool footprint cover, the (X, Y) bool
+    beside its footprint in the same 2-cell arc bin, once the visit is over, as relaxation.
+    The ground beyond the chunk's last pose (before its first) is the next (the last) chunk's,
+    unless this one is the drive's `final` (`first`) one: a footprint or band there would
+    give a cell to two chunks and its volume to the wrong arc bin.
+    Returns the dug surface (X, Y), per wheel the deposits to make (the arc bins of its
+    footprint cells and the height each lost times chi [m], the arc bins and (rows, cols) of
+    its band cells; `HeldDeposits.add`), the (K, X, Y) bool footprint cover, the (X, Y) bool
     relaxation domain of the chunk and the (K, X, Y) targets h_ref - s * depth [m] (inf off
     the footprint)."""
     dist, lateral = geom["dist"], geom["lateral"]
-    covered = dist <= radius
+    covered = (dist <= radius) & (True if final else ~geom["ahead"])
     s = np.zeros_like(dist)
     s[covered] = section_profile(lateral[covered] / radius, section, robot.wheel_flat_fraction)
     targets = np.where(covered, (h_ref if h_ref.ndim == 3 else h_ref[None]) - s * depth, np.inf)
@@ -382,14 +450,9 @@ def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config:
     removed = (h - h_dug) * chi
     covered_any = covered.any(0)
     owner = covered & (np.arange(len(dist))[:, None, None] == np.where(covered, s + 1, 0).argmax(0)[None])
-    band = (dist > radius) & (dist <= radius + config.band_width * geom["dx"]) & ~covered_any
-    added = np.zeros_like(h)
-    for k in range(len(dist)):
-        b = geom["bin"][k]
-        nb = int(b.max()) + 1
-        vol = np.bincount(b[owner[k]], removed[owner[k]], minlength=nb)
-        cnt = np.bincount(b[band[k]], minlength=nb)
-        share = np.where(cnt > 0, vol / np.maximum(cnt, 1), 0.0)
-        added[band[k]] += share[b[band[k]]]
+    beyond = (geom["ahead"] if not final else False) | (geom["behind"] if not first else False)
+    band = (dist > radius) & (dist <= radius + config.band_width * geom["dx"]) & ~covered_any & ~beyond
+    deposits = [(geom["bin"][k][owner[k]], removed[owner[k]], geom["bin"][k][band[k]], np.nonzero(band[k]))
+                for k in range(len(dist))]
     domain = dist.min(0) <= radius + config.relax_margin * robot.wheel_width
-    return h_dug + added, covered, domain, targets
+    return h_dug, deposits, covered, domain, targets
