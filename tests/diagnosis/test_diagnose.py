@@ -147,19 +147,21 @@ def test_profiles_hold_finite_floor_and_wall_statistics(speed_power):
 FIRST_VIEW = {"first_view": 1.0}
 
 
-@pytest.mark.parametrize("effect, law, seed, n_fit, measurement", [
-    ("slip_sinkage", {}, 1, 4, None),                                         # linear world law
-    ("lateral_load_transfer", {"form": "saturating", "k": 2.0, "x_s": 0.1}, 2, 4, None),
-    ("cohesive_walls", {}, 1, 4, None),                                       # saturating world law
+@pytest.mark.parametrize("effect, law, seed, cfg, measurement", [
+    ("slip_sinkage", {}, 1, {}, None),                                        # linear world law
+    ("lateral_load_transfer", {"form": "saturating", "k": 2.0, "x_s": 0.1}, 2, {}, None),
+    ("cohesive_walls", {}, 1, {}, None),                                      # saturating world law
     # saturating world law; on the weave lateral load and the rut shape rank ahead of it by
-    # location evidence, so it is fitted fourth, as in the study
-    ("multi_pass_hardening", {}, 1, 4, FIRST_VIEW),
+    # location evidence, so it is fitted fourth, as in the study. The world's tyre is the
+    # robot's, and the 50 m drive's section search (tests/diagnosis/test_fit.py tests it) is
+    # left out to save a minute
+    ("multi_pass_hardening", {}, 1, {"sections": ()}, FIRST_VIEW),
     # k 0.8 was named while the world lost part of its deposits; depositing its full chi, the
     # flat-tread section (a nuisance) takes up most of that widening on this drive (z 0.7)
-    ("footprint_width", {"form": "saturating", "k": 1.2, "x_s": 0.8}, 2, 4, None),
+    ("footprint_width", {"form": "saturating", "k": 1.2, "x_s": 0.8}, 2, {}, None),
 ])
-def test_each_catalogue_effect_is_named_and_fitted(effect, law, seed, n_fit, measurement):
-    _, diag = run(effect, seed, DiagnosisConfig(n_fit=n_fit), measurement, **law)
+def test_each_catalogue_effect_is_named_and_fitted(effect, law, seed, cfg, measurement):
+    _, diag = run(effect, seed, DiagnosisConfig(n_fit=4, **cfg), measurement, **law)
     s = diag.summary
     assert (s["verdict"], s["missing_physics"]) == ("missing_physics", effect)
     name, truth = TRUTH[effect]
