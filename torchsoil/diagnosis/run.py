@@ -65,10 +65,10 @@ def thresholds(p: list[float], alpha: float, lead_share: float) -> list[float]:
     return [alpha * lead_share / n_lead if is_lead else alpha * (1 - lead_share) / (n - n_lead) for is_lead in lead]
 
 
-def gain_material(cfg: DiagnosisConfig, base_held_out) -> float:
-    """The smallest mean held-out improvement [m] an accepted term must bring: the share
-    cfg.gain_materiality of the base model's mean held-out cost (W,) [m]."""
-    return cfg.gain_materiality * float(np.nanmean(np.asarray(base_held_out, np.float64)))
+def gain_material(share: float, base_held_out) -> float:
+    """The smallest mean held-out improvement an accepted term must bring: `share`
+    (diagnosis.gain_materiality) of the base model's mean (W,) held-out cost, in its unit."""
+    return share * float(np.nanmean(np.asarray(base_held_out, np.float64)))
 
 
 def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float,
@@ -249,7 +249,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets, tried)
         fits.append(f)
-    gain_min = gain_material(cfg, base.held_out)
+    gain_min = gain_material(cfg.gain_materiality, base.held_out)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
                                               cfg.lead_share, gain_min), strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)

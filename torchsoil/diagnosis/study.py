@@ -29,8 +29,8 @@ import numpy as np
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
 from torchsoil.diagnosis.locate import paired_improvement
 from torchsoil.diagnosis.report import mean_sinkage
-from torchsoil.diagnosis.run import accept_in_order, diagnose
-from torchsoil.settings import Settings
+from torchsoil.diagnosis.run import accept_in_order, diagnose, gain_material
+from torchsoil.settings import DiagnosisConfig, Settings
 from torchsoil.synth.scenario import make_terrain_pair
 from torchsoil.terrain import TerrainPair
 
@@ -83,8 +83,12 @@ def held_out_series(diag) -> dict:
                        for f in diag.fits}}
 
 
-def retest(rec: dict, block_m: float = 2.4, stride: float = 0.4, alpha: float = 0.05,
-           lead_share: float = 0.6, gain_materiality: float = 0.0025) -> tuple[list[dict], str | None]:
+_DIAG = DiagnosisConfig()
+
+
+def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha: float = _DIAG.alpha_accept,
+           lead_share: float = _DIAG.lead_share, gain_materiality: float = _DIAG.gain_materiality
+           ) -> tuple[list[dict], str | None]:
     """A case record's held-out tests redone from its `series` (held_out_series), as the
     diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
     folds of block_m [m] at the estimator's stride [m]), the paired z against the base pass,
@@ -106,7 +110,7 @@ def retest(rec: dict, block_m: float = 2.4, stride: float = 0.4, alpha: float = 
         gain, _, z = paired_improvement(base, by_fold(held, k_fold, lab))     # series in mm
         out.append({**t, "k_fold": list(k_fold), "z": z, "gain_mm": gain})
     fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], accepted=False) for t in out]
-    material = gain_materiality * float(np.nanmean(base))
+    material = gain_material(gain_materiality, base)
     levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material)
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
