@@ -68,6 +68,28 @@ def test_offset_drifting_along_the_drive():
     assert np.abs(constant.field[zone] - drift[zone]).mean() > 5e-4
 
 
+def test_a_knot_few_cells_reach_does_not_drift():
+    """A constant 1 mm offset, but the untouched ground of the first 3.5 m is unmeasured
+    (an out-and-back's return leg covers it) except 20 cells behind the start, 5 mm off (a
+    blob). Knot 0 rests on those 20 cells alone: fitted freely it would drift by the blob's
+    5 mm; pulled toward none as if min_cells = 200 more cells had measured none there, it
+    keeps at most 20 / 220 of it (about 0.5 mm)."""
+    robot, grid, poses = _straight(length=12.0)
+    idx = path_index(grid, poses, robot, 1.6)
+    rng = np.random.default_rng(4)
+    hf = rng.normal(0.0, 0.002, grid.shape)
+    hb = hf + 0.001 + rng.normal(0.0, 0.002, grid.shape)
+    untouched = np.isfinite(idx.s) & (idx.wheel_dist >= 2.5 * robot.wheel_width) & (idx.offset <= 1.5)
+    early = np.argwhere(untouched & (idx.s < 3.5))
+    hb[tuple(early.T)] = np.nan
+    blob = early[np.argsort(idx.s[tuple(early.T)])[:20]]
+    hb[tuple(blob.T)] = hf[tuple(blob.T)] + 0.006
+    cfg = NuisanceConfig(tilt=False, knot_spacing=4.0, min_cells=200)
+    fit = fit_map_nuisance(hf, hb, grid, idx, robot.wheel_width, 2.5, 3.0, cfg)
+    assert fit.drift < 0.8e-3
+    assert fit.offset == pytest.approx(0.001, abs=2e-4)
+
+
 def test_switch_off_and_too_little_ground():
     robot, grid, poses = _straight()
     idx = path_index(grid, poses, robot, 1.6)

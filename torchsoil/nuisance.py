@@ -11,7 +11,10 @@ where H_b - H_f is measurement alone, and removed from H_b before anything is es
 with c(s) piecewise linear in the drive's arc length s (knots every `knot_spacing` m: an offset
 that drifts along the drive) and (a, b) a plane over the world (the tilt). The fit is robust
 (Huber weights, iterated), so a berm reaching into that ground or a blob of bad cells does
-not move it.
+not move it. Each knot's drift is pulled toward none as if `min_cells` more cells had measured
+none there: where the drive comes back over its own track the untouched ground takes the
+arc length of the later pass, and a knot of the earlier one may be left with a handful of
+cells behind the start, whose noise would otherwise read as millimetres of drift.
 """
 
 from __future__ import annotations
@@ -71,15 +74,19 @@ def _hats(s: np.ndarray, knots: np.ndarray) -> np.ndarray:
     return out
 
 
-def _huber_lstsq(A: np.ndarray, y: np.ndarray, iters: int = 8, c: float = 1.345) -> tuple[np.ndarray, float]:
+def _huber_lstsq(A: np.ndarray, y: np.ndarray, iters: int = 8, c: float = 1.345,
+                 ridge: float = 0.0) -> tuple[np.ndarray, float]:
     """Robust least squares (Huber weights, IRLS): coefficients (P,) and the robust std of the
-    residuals (MAD)."""
+    residuals (MAD). ridge: each coefficient is pulled toward 0 as if that many more rows had
+    measured 0 for it alone (a coefficient few rows support stays near 0)."""
     w = np.ones(len(y))
     coef = np.zeros(A.shape[1])
     sigma = float(np.std(y)) or 1.0
+    prior = math.sqrt(ridge) * np.eye(A.shape[1])
     for _ in range(iters):
         sw = np.sqrt(w)
-        coef = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+        coef = np.linalg.lstsq(np.vstack([A * sw[:, None], prior]), np.concatenate([y * sw, np.zeros(A.shape[1])]),
+                               rcond=None)[0]
         r = y - A @ coef
         sigma = 1.4826 * float(np.median(np.abs(r - np.median(r)))) or 1e-12
         a = np.abs(r) / (c * sigma)
@@ -124,8 +131,8 @@ def fit_map_nuisance(h_front: np.ndarray, h_back: np.ndarray, grid, index, wheel
     slope = (float(coef[1]), float(coef[2])) if cfg.tilt else (0.0, 0.0)
     hats = _hats(s, knots)
     along = np.zeros(len(knots))
-    if len(knots) > 1:
-        along, sigma = _huber_lstsq(hats, y - A @ coef)
+    if len(knots) > 1:                       # a knot few cells reach (ground driven again) keeps the offset
+        along, sigma = _huber_lstsq(hats, y - A @ coef, ridge=float(cfg.min_cells))
     reach = np.isfinite(index.s)
     X, Y = np.nonzero(reach)
     field = np.zeros(h_back.shape, np.float64)
