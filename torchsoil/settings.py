@@ -301,6 +301,10 @@ class DiagnosisConfig(Section):
     gain_materiality: float = Field(0.0025, ge=0, description="an accepted term must lower the mean held-out "
                                                               "cost by at least this fraction of the base "
                                                               "model's")
+    own_fit_z: float = Field(0.0, ge=0, description="an accepted term must not make the windows' own fit worse: "
+                                                   "the paired z of their residuals with it at least -own_fit_z "
+                                                   "(a term that predicts neighbouring ground better but fits its "
+                                                   "own worse stands in for soil that changes along the drive)")
     block_m: float = Field(2.4, gt=0, description="cross-validation block length, m")
     refine_steps: int = Field(2, ge=0, description="parabolic refinements of a candidate's coefficient")
     offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "

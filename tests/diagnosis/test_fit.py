@@ -25,9 +25,9 @@ def test_folds_alternate_blocks():
     assert folds(10, 3).tolist() == [0, 0, 0, 1, 1, 1, 0, 0, 0, 1]
 
 
-def fit_with(z, k_fold, gain=1e-4):
+def fit_with(z, k_fold, gain=1e-4, own_z=0.0):
     n = np.zeros(3)
-    return CandidateFit(CATALOGUE["slip_sinkage"], 1.0, k_fold, n, n, gain, 1.0, z, {})
+    return CandidateFit(CATALOGUE["slip_sinkage"], 1.0, k_fold, n, n, gain, 1.0, z, {}, own_z=own_z)
 
 
 def test_accept_needs_significance_material_gain_and_agreeing_folds():
@@ -38,6 +38,11 @@ def test_accept_needs_significance_material_gain_and_agreeing_folds():
     # steady but immaterial: 0.001 mm gained where 0.006 mm is asked
     assert not accept(fit_with(3.0, (2.0, 4.0), gain=1e-6), 2.1, material=6e-6)
     assert accept(fit_with(3.0, (2.0, 4.0), gain=1e-5), 2.1, material=6e-6)
+    # held-out ground predicted better, own windows fitted worse: the term stands in for
+    # something else that changes along the drive (checked only when asked)
+    assert not accept(fit_with(3.0, (2.0, 4.0), own_z=-1.4), 2.1, own_z=0.0)
+    assert accept(fit_with(3.0, (2.0, 4.0), own_z=0.3), 2.1, own_z=0.0)
+    assert accept(fit_with(3.0, (2.0, 4.0), own_z=-1.4), 2.1)
 
 
 def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
@@ -73,7 +78,7 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
     assert tied == pytest.approx([0.015, 0.015, 0.02])
 
     def fit(z):
-        return SimpleNamespace(z=z, k_fold=(-0.3, -0.3), improvement=1e-4, accepted=None)
+        return SimpleNamespace(z=z, k_fold=(-0.3, -0.3), improvement=1e-4, own_z=0.0, accepted=None)
 
     # the leading candidate needs less than a Bonferroni split would ask (z 1.88 vs 2.24) ...
     fits = [fit(2.0), fit(2.4), fit(0.0)]

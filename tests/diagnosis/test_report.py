@@ -54,3 +54,15 @@ def test_a_steady_but_immaterial_gain_is_named_as_such():
     assert "z = 2.64 against 2.33 needed" in text
     assert "held-out gain, 0.0014 mm, is under the 0.0062 mm a term must bring" in text
     assert "this drive's length" not in text
+
+
+def test_a_term_that_fits_its_own_windows_worse_is_named_as_a_stand_in():
+    """z above its level and a material gain, but the windows' own residuals worse with it."""
+    f = SimpleNamespace(**vars(_fit("speed_dependent_sinkage", 1.2, 3.15, (1.2, 1.2))), improvement=7e-5,
+                        own_z=-1.44)
+    diag = _adequate([f], {"speed_dependent_sinkage": 2.48})
+    diag.evidence.update(gain_material=6e-6, own_z_min=0.0)
+    text = explain(diag)
+    assert "z = 3.15 against 2.48 needed" in text
+    assert "paired z of their residuals -1.44" in text and "soil that changes where the speed changes" in text
+    assert "this drive's length" not in text

@@ -169,7 +169,10 @@ class CandidateFit:
     cross-validated next-window cost per window [m]; held_out: the same for the mean of the
     next- and previous-window costs. improvement, se, z: paired per-window improvement of
     held_out over the base model. passes: every pass run, by coefficient; sections: the tyre
-    section (f, e) each was run with (fit_section), by coefficient."""
+    section (f, e) each was run with (fit_section), by coefficient. own_gain, own_z: the
+    paired improvement of the windows' own residuals (by fold) over the base model's [m]: a
+    term that predicts the neighbouring ground better while it fits its own windows worse is
+    standing in for something else that changes along the drive, such as the soil."""
 
     ext: Extension
     k: float
@@ -183,6 +186,8 @@ class CandidateFit:
     held_out: np.ndarray | None = None
     accepted: bool = False
     sections: dict[float, Section] | None = None
+    own_gain: float = 0.0
+    own_z: float = 0.0
 
 
 def _mean(x: np.ndarray, sel: np.ndarray) -> float:
@@ -247,7 +252,9 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
     imp, se, z = paired_improvement(base.held_out, held)
-    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec)
+    own, _, own_z = paired_improvement(base.residual, res)
+    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_gain=own,
+                        own_z=own_z)
 
 
 def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:
@@ -266,10 +273,15 @@ def by_fold(series: dict[float, np.ndarray], k_fold: tuple[float, float], lab: n
     return out
 
 
-def accept(fit: CandidateFit, z_crit: float, material: float = 0.0) -> bool:
+def accept(fit: CandidateFit, z_crit: float, material: float = 0.0, own_z: float = -math.inf) -> bool:
     """The extension predicts held-out windows better than the noise allows, by a material
-    amount: paired z above z_crit, a mean improvement of at least `material` [m], and the
-    same non-zero coefficient sign chosen independently on both folds."""
+    amount: paired z above z_crit, a mean improvement of at least `material` [m], the same
+    non-zero coefficient sign chosen independently on both folds, and the windows' own fit no
+    worse with it than `own_z` (the paired z of their residuals, CandidateFit.own_z):
+    soil that changes where a covariate changes (a wetter patch where the robot slows into
+    its turns) is predicted across windows by a term that follows the covariate, but the
+    term then digs a step inside each window where the covariate changes, where the soil
+    changes smoothly, and those windows fit worse."""
     a, b = fit.k_fold
     return bool(fit.z > z_crit and fit.improvement >= material and a != 0 and b != 0
-                and np.sign(a) == np.sign(b))
+                and np.sign(a) == np.sign(b) and fit.own_z >= own_z)

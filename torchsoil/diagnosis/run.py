@@ -72,14 +72,15 @@ def gain_material(share: float, base_held_out) -> float:
 
 
 def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float,
-                    material: float = 0.0) -> list[float]:
+                    material: float = 0.0, own_z: float = -math.inf) -> list[float]:
     """Set `accepted` on fits (in order of their location evidence p) by the fallback
-    procedure, each also needing a mean held-out improvement of `material` [m]; returns the z
-    level each was tested at."""
+    procedure, each also needing a mean held-out improvement of `material` [m] and its
+    windows' own fit no worse than `own_z` (`fit.accept`); returns the z level each was
+    tested at."""
     levels, carry, used = thresholds(p, alpha, lead_share), 0.0, []
     for f, a in zip(fits, levels, strict=True):
         z = float(stats.norm.isf(a + carry))
-        f.accepted = accept(f, z, material)
+        f.accepted = accept(f, z, material, own_z)
         carry = a + carry if f.accepted else 0.0
         used.append(z)
     return used
@@ -251,7 +252,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
-                                              cfg.lead_share, gain_min), strict=True))
+                                              cfg.lead_share, gain_min, -cfg.own_fit_z), strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
     best = accepted[0] if accepted else None
     pairwise = None
@@ -305,6 +306,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                                          "prediction": float(np.nanmean(best.prediction))}
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
+                "own_z_min": -cfg.own_fit_z,
                 "candidates": ev,
                 "pairwise": pairwise,
                 "map_nuisance": base.nuisance.summary() if base.nuisance is not None else None,

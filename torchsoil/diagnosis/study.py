@@ -61,18 +61,21 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
 
 def held_out_tests(diag) -> list[dict]:
     """Each fitted candidate's held-out test: coefficient (all windows and per fold), paired z,
-    the z it needed, its mean held-out gain [mm] and its location evidence p (a study compares
+    the z it needed, its mean held-out gain [mm], the paired z of its windows' own residuals
+    and its location evidence p (a study compares
     these across settings more finely than verdicts)."""
     need, ev = diag.evidence["z_accept"], diag.evidence["candidates"]
     return [{"id": f.ext.id, "k": round(f.k, 4), "k_fold": [round(k, 4) for k in f.k_fold],
              "z": round(f.z, 3), "z_needed": round(need[f.ext.id], 3), "gain_mm": round(1e3 * f.improvement, 5),
+             "own_z": round(f.own_z, 3),
              "p_location": ev[f.ext.id]["p"], "accepted": bool(f.accepted)} for f in diag.fits]
 
 
 def held_out_series(diag) -> dict:
     """The per-window numbers behind the held-out tests, so that a study can be re-scored
     offline under another test statistic: window centres s [m], each window's covariates, the
-    base pass's held-out cost and every other candidate pass's, by coefficient [mm]."""
+    base pass's held-out cost and every other candidate pass's, by coefficient, and the same
+    for the windows' own residuals (`base_residual`, `residuals`) [mm]."""
     def mm(x):
         return [None if not np.isfinite(v) else round(1e3 * float(v), 4) for v in x]
 
@@ -80,20 +83,25 @@ def held_out_series(diag) -> dict:
             "covariates": {n: [round(float(v), 6) for v in x] for n, x in diag.windows.items() if n != "s"},
             "base": mm(diag.base.held_out),
             "passes": {f.ext.id: {f"{k:.6g}": mm(p.held_out) for k, p in sorted(f.passes.items()) if k != 0.0}
-                       for f in diag.fits}}
+                       for f in diag.fits},
+            "base_residual": mm(diag.base.residual),
+            "residuals": {f.ext.id: {f"{k:.6g}": mm(p.residual) for k, p in sorted(f.passes.items()) if k != 0.0}
+                          for f in diag.fits}}
 
 
 _DIAG = DiagnosisConfig()
 
 
 def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha: float = _DIAG.alpha_accept,
-           lead_share: float = _DIAG.lead_share, gain_materiality: float = _DIAG.gain_materiality
-           ) -> tuple[list[dict], str | None]:
+           lead_share: float = _DIAG.lead_share, gain_materiality: float = _DIAG.gain_materiality,
+           own_fit_z: float = _DIAG.own_fit_z) -> tuple[list[dict], str | None]:
     """A case record's held-out tests redone from its `series` (held_out_series), as the
     diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
     folds of block_m [m] at the estimator's stride [m]), the paired z against the base pass,
     and acceptance in order of location evidence (`run.accept_in_order`), a term's mean gain
-    at least gain_materiality times the base's mean held-out cost. Change any of these
+    at least gain_materiality times the base's mean held-out cost and its windows' own fit
+    no worse than -own_fit_z (paired z of the residuals; records without residual series
+    skip this check). Change any of these
     (or patch the statistic) to re-score a study without running the estimator again.
     Returns (the tests with k_fold and z recomputed, the id the diagnosis would name or None)."""
     def arr(x):
@@ -108,10 +116,16 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
         held[0.0] = base
         k_fold = fold_choice(held, lab)
         gain, _, z = paired_improvement(base, by_fold(held, k_fold, lab))     # series in mm
-        out.append({**t, "k_fold": list(k_fold), "z": z, "gain_mm": gain})
-    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], accepted=False) for t in out]
+        own_z = math.inf
+        if "residuals" in ser:
+            res = {float(k): arr(v) for k, v in ser["residuals"][t["id"]].items()}
+            res[0.0] = arr(ser["base_residual"])
+            own_z = paired_improvement(res[0.0], by_fold(res, k_fold, lab))[2]
+        out.append({**t, "k_fold": list(k_fold), "z": z, "gain_mm": gain, "own_z": own_z})
+    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"], accepted=False)
+            for t in out]
     material = gain_material(gain_materiality, base)
-    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material)
+    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material, -own_fit_z)
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
     named = [t for t in out if t["accepted"]]
