@@ -169,8 +169,8 @@ class CandidateFit:
     cross-validated next-window cost per window [m]; held_out: the same for the mean of the
     next- and previous-window costs. improvement, se, z: paired per-window improvement of
     held_out over the base model. passes: every pass run, by coefficient; sections: the tyre
-    section (f, e) each was run with (fit_section), by coefficient. own_gain, own_z: the
-    paired improvement of the windows' own residuals (by fold) over the base model's [m]: a
+    section (f, e) each was run with (fit_section), by coefficient. own_z: the paired z of
+    the improvement of the windows' own residuals (by fold) over the base model's: a
     term that predicts the neighbouring ground better while it fits its own windows worse is
     standing in for something else that changes along the drive, such as the soil."""
 
@@ -186,7 +186,6 @@ class CandidateFit:
     held_out: np.ndarray | None = None
     accepted: bool = False
     sections: dict[float, Section] | None = None
-    own_gain: float = 0.0
     own_z: float = 0.0
 
 
@@ -252,9 +251,8 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
     imp, se, z = paired_improvement(base.held_out, held)
-    own, _, own_z = paired_improvement(base.residual, res)
-    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_gain=own,
-                        own_z=own_z)
+    own_z = paired_improvement(base.residual, res)[2]
+    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z)
 
 
 def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:

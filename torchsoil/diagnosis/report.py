@@ -75,10 +75,11 @@ def _nearest(diag) -> str:
                 f"a term must bring (diagnosis.gain_materiality): a steady but immaterial difference.")
     own_min = diag.evidence.get("own_z_min", -math.inf)
     if f.z > need[f.ext.id] and f.own_z < own_min:
-        what = f"the {f.ext.covariate.replace('_', ' ')}" if f.ext.covariate is not None else "it"
+        where = (f" where the {f.ext.covariate.replace('_', ' ')} changes" if f.ext.covariate is not None
+                 else " along the drive")
         return (f"{head}, but its windows fit their own ground worse with it (paired z of their residuals "
                 f"{f.own_z:.2f}): it predicts the neighbouring ground better while it fits its own worse, as a term "
-                f"standing in for soil that changes where {what} changes does; not named.")
+                f"standing in for soil that changes{where} does; not named.")
     if a != 0 and b != 0 and (a > 0) == (b > 0):
         more += (f" (at the gain measured here, about {(need[f.ext.id] / f.z) ** 2:.1f} x this drive's length of "
                  f"the same driving, if nothing else the model misses follows the same covariate)")
