@@ -179,3 +179,34 @@ def test_a_first_view_window_drives_the_earlier_visit_first(lap_and_a_half):
         for g in wd.earlier:                                  # the first lap, long before
             assert float(g.poses[:, 0].max()) < float(t_own.min()) - 5.0
         assert prepare_window(first, idx, spec, EstimatorConfig(), SimConfig()).earlier == ()
+
+
+def test_a_window_simulates_every_wheel_pass_over_its_ground(lap_and_a_half):
+    """Every wheel pass over a window's dug ground is simulated by it: ground driven again
+    belongs to its last wheel pass, a rear wheel's, whose front wheel went over it a
+    wheelbase of travel earlier (1 m on the paper's platform, more than the window's reach
+    ahead of its start): those poses must be among the window's own, or among its earlier
+    visits' (a first view). Checked against every wheel centre of the drive within half a
+    wheel width of a dug cell of each window."""
+    first, _, robot = lap_and_a_half
+    idx = path_index(first.grid, first.poses, robot, 1.6)
+    dense = first.poses
+    t = dense[:, 0]
+    wheels = wheel_positions(dense[:, [0, 1, 2, 6]], robot.wheels[:, :2])      # (K, N, 2)
+    tree = cKDTree(wheels.reshape(-1, 2))
+    xs, ys = first.grid.centers()
+    checked = 0
+    for spec in plan_windows(float(idx.arc[-1]), 0.8, 0.4):
+        wd = prepare_window(first, idx, spec, EstimatorConfig(), SimConfig(), view="first_view")
+        if wd is None:
+            continue
+        i0, _, j0, _ = wd.crop
+        ii, jj = np.nonzero(wd.weight.numpy() > 0)
+        xy = np.stack([xs[ii + i0], ys[jj + j0]], 1)
+        spans = [(float(g.poses[0, 0]), float(g.poses[-1, 0])) for g in (*wd.earlier, wd.geom)]
+        for hits in tree.query_ball_point(xy, robot.wheel_width / 2 - first.dx):
+            for h in hits:
+                when = t[h % len(t)]
+                assert any(a <= when <= b for a, b in spans), (spec, when, spans)
+                checked += 1
+    assert checked > 1000

@@ -291,6 +291,26 @@ def front_view(pair, index: PathIndex, min_cells: int = 50) -> tuple[str, dict]:
     return ("first_view" if info["ratio"] < 0.25 else "last_visit"), info
 
 
+def visit_span(pair, index: PathIndex, ground_xy: np.ndarray, s0: float, s1: float, touch: float
+               ) -> tuple[float, float]:
+    """base_link arc range [m] over which the visit that owns some ground brings a wheel
+    within `touch` [m] of it: (G, 2) points [m] owned by arcs in [s0, s1) (PathIndex.s).
+
+    Ground driven again belongs to its last wheel pass, a rear wheel's, whose front wheel went
+    over it a wheelbase of travel earlier; on the inside of a tight turn the passes of one
+    visit lie farther apart still. Wheels within `visit_gap` of travel of every owner (arcs
+    s1 - gap to s0 + gap) are of the owning visit. (inf, -inf) when none came near."""
+    gap = visit_gap(pair.robot)
+    near = np.flatnonzero((index.arc >= s1 - gap) & (index.arc <= s0 + gap))
+    if len(near) == 0 or len(ground_xy) == 0:
+        return math.inf, -math.inf
+    lo, hi = max(near[0] - 1, 0), min(near[-1] + 2, len(index.arc))
+    pts, arc = _wheel_samples(np.asarray(pair.poses[lo:hi], np.float64), pair.robot, pair.dx)
+    dist, _ = cKDTree(ground_xy).query(pts, distance_upper_bound=touch)
+    a = arc[np.isfinite(dist)] + index.arc[lo]
+    return (float(a.min()), float(a.max())) if len(a) else (math.inf, -math.inf)
+
+
 def earlier_poses(pair, before: int, ground_xy: np.ndarray, reach: float) -> list[np.ndarray]:
     """The earlier visits over some ground: runs of the poses before pose `before` that bring
     a wheel within `reach` [m] of any of the (G, 2) ground points, each as its (n, 7) poses
@@ -337,7 +357,10 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     grid = pair.grid.crop(*crop)
 
     reach = np.abs(robot.wheels[:, 0]).max() + w / 2 + 0.1
-    sel = (index.arc >= spec.s0 - reach) & (index.arc <= spec.s1 + reach)
+    xs, ys = pair.grid.centers()
+    ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
+    a0, a1 = visit_span(pair, index, ground_xy, spec.s0, spec.s1, sim_reach(robot, sim))
+    sel = (index.arc >= min(spec.s0 - reach, a0)) & (index.arc <= max(spec.s1 + reach, a1))
     first, last = np.flatnonzero(sel)[[0, -1]]
     poses = pair.poses[max(first - 1, 0):last + 2]
     gkw = dict(pose_spacing=sim.pose_spacing, band_width=sim.band_width, relax_margin=sim.relax_margin,
@@ -345,10 +368,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     geom = wheel_geometry(grid, poses, robot, **gkw)
     earlier: tuple[WheelGeometry, ...] = ()
     if view == "first_view":
-        xs, ys = pair.grid.centers()
-        ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
-        before = int(np.searchsorted(index.arc, spec.s0 - reach - visit_gap(robot)))
-        runs = earlier_poses(pair, before, ground_xy, sim_reach(robot, sim))
+        runs = earlier_poses(pair, max(first - 1, 0), ground_xy, sim_reach(robot, sim))
         earlier = tuple(wheel_geometry(grid, p, robot, **gkw) for p in runs if len(p) >= 2)
 
     hf = np.asarray((pair.h_front if h_start is None else h_start)[sl], dtype=np.float64)

@@ -83,16 +83,21 @@ def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[f
     """Per-window improvement base - ext [m] of two cost series on the same windows.
 
     Neighbouring windows share ground (and held-out costs reach several windows), so the
-    differences are averaged over consecutive blocks of `block` windows and the standard
-    error comes from the spread between block means, with the effective-sample-size
-    correction for what correlation is left between blocks (a t statistic with n_eff - 1
-    degrees of freedom, returned as the normal z of the same one-sided p). Windows where either cost
-    is NaN are dropped, and so are blocks where the two series agree to `same` [m] on every
-    window: a term that acts only on some ground (a pass count on revisited ground) leaves
-    the others' costs exactly as they were, and such blocks say nothing about the noise of
-    the difference; counted as samples of it, they would cap z near the square root of the
-    number of blocks the term touches, however large and steady its gain there. Returns
-    (mean over the blocks kept, se, z)."""
+    differences are averaged over consecutive blocks of `block` windows. A real term's gain
+    follows the size of its effect, which changes along the drive with the soil and the
+    covariate (a footprint term gains most where the ruts are deepest), so the block means are
+    regressed on their place along the drive: the mean gain is tested against their scatter
+    about that line, with the effective-sample-size correction for what correlation is left
+    in it (a t statistic with n_eff - 2 degrees of freedom, returned as the normal z of the same
+    one-sided p). Without an effect the line costs one degree of freedom and the test keeps
+    its level; with one, a steady trend in the gain is no longer counted as its noise. With
+    fewer than 4 blocks the spread about the mean is used instead (n_eff - 1 degrees of
+    freedom). Windows where either cost is NaN are dropped, and so are blocks where the two
+    series agree to `same` [m] on every window: a term that acts only on some ground (a pass
+    count on revisited ground) leaves the others' costs exactly as they were, and such blocks
+    say nothing about the noise of the difference; counted as samples of it, they would cap z
+    near the square root of the number of blocks the term touches, however large and steady
+    its gain there. Returns (mean over the blocks kept, se, z)."""
     b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
     if b.shape != e.shape:
         raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
@@ -100,17 +105,24 @@ def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[f
     d = b[ok] - e[ok]
     nb = len(d) // max(1, block)
     blocks = d[: nb * block].reshape(nb, block)
-    blocks = blocks[np.abs(blocks).max(1) > same]
+    kept = np.abs(blocks).max(1) > same
+    blocks, place = blocks[kept], np.flatnonzero(kept).astype(np.float64)
     nb = len(blocks)
     if nb < 3:
         return (float(d.mean()) if len(d) else 0.0), math.inf, 0.0
     means = blocks.mean(1)
-    n_eff = min(float(nb), effective_n(nb, means))       # block means may still be correlated
-    se = float(np.std(means, ddof=1) / math.sqrt(n_eff))
     m = float(means.mean())
+    if nb >= 5:                                          # the scatter about the line through them
+        x = place - place.mean()
+        scatter = means - m - x * float((x * (means - m)).sum() / (x * x).sum())
+        fitted = 2
+    else:
+        scatter, fitted = means - m, 1
+    n_eff = min(float(nb), max(effective_n(nb, means), fitted + 2.0))
+    se = float(math.sqrt((scatter ** 2).sum() / (nb - fitted) / n_eff))
     if se <= 0:
         return m, 0.0, 0.0 if m == 0 else math.copysign(math.inf, m)
-    p = float(stats.t.sf(m / se, max(n_eff - 1.0, 1.0)))
+    p = float(stats.t.sf(m / se, max(n_eff - fitted, 1.0)))
     return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
 
 
