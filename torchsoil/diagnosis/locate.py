@@ -87,11 +87,12 @@ def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[f
     follows the size of its effect, which changes along the drive with the soil and the
     covariate (a footprint term gains most where the ruts are deepest), so the block means are
     regressed on their place along the drive: the mean gain is tested against their scatter
-    about that line, with the effective-sample-size correction for what correlation is left
-    in it (a t statistic with n_eff - 2 degrees of freedom, returned as the normal z of the same
-    one-sided p). Without an effect the line costs one degree of freedom and the test keeps
-    its level; with one, a steady trend in the gain is no longer counted as its noise. With
-    fewer than 4 blocks the spread about the mean is used instead (n_eff - 1 degrees of
+    about that line, with the effective-sample-size correction for the block means' own lag-1
+    correlation (a trend only raises it: the correction errs on the cautious side), as a t
+    statistic with n_eff - 2 degrees of freedom, returned as the normal z of the same one-sided
+    p. Without an effect the line costs one degree of freedom and the test keeps its level;
+    with one, a steady trend in the gain is no longer counted as its noise. With
+    fewer than 5 blocks the spread about the mean is used instead (n_eff - 1 degrees of
     freedom). Windows where either cost is NaN are dropped, and so are blocks where the two
     series agree to `same` [m] on every window: a term that acts only on some ground (a pass
     count on revisited ground) leaves the others' costs exactly as they were, and such blocks
