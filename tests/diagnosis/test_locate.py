@@ -142,3 +142,45 @@ def test_spectral_line_summed_over_ruts_out_of_phase():
     assert abs(both["amplitude"] - 0.0015) < 0.0005
     false = sum(spectral_line(0.004 * rng.standard_normal((2, len(s))), dx)["p"] < 0.01 for _ in range(60))
     assert false <= 4
+
+
+def _profiles_with(offset_mm: dict[int, float], n_seg: int = 30, noise_mm: float = 0.2, seed: int = 0):
+    """Profiles of n_seg segments whose residual (model - recording) is offset_mm[|bin|] [mm]
+    on both sides of the rut, plus segment noise."""
+    from torchsoil.diagnosis.locate import Profiles
+
+    p = Profiles.empty(radius=0.07, dx=0.02, reach=0.12)
+    rng = np.random.default_rng(seed)
+    L = len(p.bins)
+    true = np.array([offset_mm.get(abs(int(round(b / 0.02))), 0.0) for b in p.bins]) * 1e-3
+    for g in range(n_seg):
+        count = np.full((2, L), 5.0)
+        res = count * (true[None] + noise_mm * 1e-3 * rng.standard_normal((2, L)))
+        p.seg_s.append(0.4 * g)
+        p.res.append(res)
+        for name in ("meas", "sim"):
+            getattr(p, name).append(np.zeros((2, L)))
+        p.count.append(count)
+    return p
+
+
+def test_the_shape_of_a_rut_residual_is_read_across_the_rut():
+    # a rounder rut than the model's: the recording above the model at the centre and at the
+    # rim, below it halfway out (residual = model - recording)
+    p = _profiles_with({0: -1.0, 1: -1.0, 2: 1.2, 4: -1.3})
+    runs = p.shape(z=4.0)
+    assert [(round(a, 3), round(b, 3)) for a, b, _ in runs] == [(0.0, 0.02), (0.04, 0.04), (0.08, 0.08)]
+    assert [np.sign(m) for _, _, m in runs] == [-1, 1, -1]
+    assert abs(runs[1][2] - 1.2e-3) < 0.2e-3
+
+
+def test_noise_alone_gives_no_rut_shape():
+    assert _profiles_with({}, seed=3).shape(z=4.0) == []
+
+
+def test_a_one_sided_residual_is_kept_at_half_its_size_when_folded():
+    p = _profiles_with({})
+    for r in p.res:
+        r[:, -2] += r[:, -2] * 0 + 5.0 * 3e-3          # +3 mm at the second-outermost outward bin
+    runs = p.shape(z=4.0)
+    assert len(runs) == 1 and abs(runs[0][0] - 0.10) < 1e-9 and abs(runs[0][2] - 1.5e-3) < 0.3e-3

@@ -66,3 +66,18 @@ def test_a_term_that_fits_its_own_windows_worse_is_named_as_a_stand_in():
     assert "z = 3.15 against 2.48 needed" in text
     assert "paired z of their residuals -1.44" in text and "soil that changes where the speed changes" in text
     assert "this drive's length" not in text
+
+
+def test_an_unexplained_rut_says_where_across_the_rut_the_recording_differs():
+    d = _adequate([], {})
+    d.summary.update(verdict="unexplained", where={"cross_track": "rut_wall", "along_track": [[0.0, 20.0]],
+                                                    "covariate": None})
+    d.evidence.update(spectral_line={"p": 0.5}, rut_shape=[(0.0, 0.02, -1.0e-3), (0.04, 0.04, 1.2e-3)])
+    text = explain(d)
+    assert "a systematic residual on the rut wall" in text
+    assert ("the recording lies above the model 0-20 mm out (by 1.00 mm), below it 40 mm out (by 1.20 mm)."
+            in text)
+    d.evidence["rut_shape"] = [(0.0, 0.0, -1.0e-3)]
+    assert "the recording lies above the model at the centre line (by 1.00 mm)." in explain(d)
+    d.evidence["rut_shape"] = []
+    assert "Across the rut" not in explain(d)

@@ -286,6 +286,32 @@ class Profiles:
             out[zname] = {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "segments": int(len(seg))}
         return out
 
+    def shape(self, z: float, name: str = "res") -> list[tuple[float, float, float]]:
+        """Where across the rut the residual differs from 0: runs of adjacent offsets from the
+        wheel centre line (both sides of the rut folded: the mean of the bins at +o and -o)
+        whose mean differs from 0 by more than z standard errors, all of one sign.
+
+        Returns [(from [m], to [m], mean residual over the run [m]), ...], nearest the centre
+        line first; [] when no offset stands out."""
+        mean, se, _ = self.profile(name)
+        n = len(self.bins) // 2
+        pos, neg = mean[n:], mean[n::-1]
+        spos, sneg = se[n:], se[n::-1]
+        m = np.nanmean(np.vstack([pos, neg]), 0)
+        both = np.isfinite(pos) & np.isfinite(neg)
+        with np.errstate(invalid="ignore"):
+            e = np.where(both, 0.5 * np.hypot(spos, sneg), np.where(np.isfinite(pos), spos, sneg))
+            sign = np.where(np.isfinite(m) & (np.abs(m) > z * e), np.sign(m), 0.0)
+        out: list[tuple[float, float, float]] = []
+        start = None
+        for i in range(len(sign) + 1):
+            if start is not None and (i == len(sign) or sign[i] != sign[start]):
+                out.append((float(self.bins[n + start]), float(self.bins[n + i - 1]), float(np.mean(m[start:i]))))
+                start = None
+            if i < len(sign) and sign[i] != 0 and start is None:
+                start = i
+        return out
+
     def segment_zone_series(self, zone: str, sides=(0, 1)) -> np.ndarray:
         """(G,) mean residual of one zone per segment, m (NaN where no cell)."""
         v, n = self._stack("res")[:, list(sides)].sum(1), self._stack("count")[:, list(sides)].sum(1)

@@ -86,6 +86,18 @@ def _nearest(diag) -> str:
     return f"{head}; {more} would give it more evidence."
 
 
+def shape_text(runs) -> str:
+    """Profiles.shape runs [(from, to, mean residual), ...] [m] as plain language: where across
+    the rut, outward from the wheel centre line, the recording lies above or below the model
+    (residual = model - recording); "" when there are none."""
+    parts = []
+    for a, b, m in runs:
+        span = (f"{1e3 * a:.0f} mm out" if a > 0 or b > 0 else "at the centre line") if abs(b - a) < 1e-9 \
+            else f"{1e3 * a:.0f}-{1e3 * b:.0f} mm out"
+        parts.append(f"{'above' if m < 0 else 'below'} {'the model' if not parts else 'it'} {span} (by {_mm(abs(m))})")
+    return ", ".join(parts)
+
+
 def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
@@ -110,10 +122,13 @@ def _explain(diag) -> str:
                 if line["p"] < 1 and where["covariate"] == "arc_length" else
                 f"a systematic residual on the {where['cross_track'].replace('_', ' ')}")
         tried = ", ".join(f"{c['id']}" for c in s["candidates"]) or "none testable"
+        shape = shape_text(ev.get("rut_shape", []))
+        shape = f"Across the rut, outward from the wheel centre line, the recording lies {shape}." if shape else ""
         return (f"Simulation and recording disagree in structure: {what}, at {span}"
                 f"{', following ' + where['covariate'] if where['covariate'] else ''}. No catalogue term "
                 f"explains it (tried: {tried}; none predicted held-out windows better than noise allows), so "
-                f"no cause is named. Prediction cost {_mm(before['prediction'])}, noise floor {_mm(s['noise_floor'])}.")
+                f"no cause is named.{' ' + shape if shape else ''} Prediction cost {_mm(before['prediction'])}, "
+                f"noise floor {_mm(s['noise_floor'])}.")
     z = ev["zones"]
     return (f"No significant structured mismatch: rut-floor, rut-wall and outside residuals average "
             f"{_mm(z['rut_floor']['mean'])} (z = {z['rut_floor']['z']:.1f}), {_mm(z['rut_wall']['mean'])} "
@@ -255,7 +270,10 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
              + (f" — `{s['missing_physics']}`" if s["missing_physics"] else ""), "", s["explanation"], "",
              "## Where", "", f"- across the track: {s['where']['cross_track']}",
              f"- along the track: {s['where']['along_track'] or 'nowhere in particular'} (m of arc length)",
-             f"- follows: {s['where']['covariate']}", "", "## Evidence", "",
+             f"- follows: {s['where']['covariate']}",
+             f"- across the rut, outward from the wheel centre line, the recording lies: "
+             f"{shape_text(ev.get('rut_shape', [])) or 'nowhere off the model beyond noise'}",
+             "", "## Evidence", "",
              "| zone | mean residual | s.e. | z |", "| --- | --- | --- | --- |"]
     for zn, v in ev["zones"].items():
         lines.append(f"| {zn} | {_mm(v['mean'])} | {_mm(v['se'])} | {v['z']:.1f} |")

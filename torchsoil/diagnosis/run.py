@@ -305,7 +305,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
-                "spectral_line": line, "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
+                "spectral_line": line, "rut_shape": prof.shape(z_loc),
+                "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
                 "own_z_min": -cfg.own_fit_z,
                 "candidates": ev,
                 "pairwise": pairwise,
