@@ -184,3 +184,16 @@ def test_a_one_sided_residual_is_kept_at_half_its_size_when_folded():
         r[:, -2] += r[:, -2] * 0 + 5.0 * 3e-3          # +3 mm at the second-outermost outward bin
     runs = p.shape(z=4.0)
     assert len(runs) == 1 and abs(runs[0][0] - 0.10) < 1e-9 and abs(runs[0][2] - 1.5e-3) < 0.3e-3
+
+
+def test_offsets_no_segment_reached_are_left_out_of_the_rut_shape_quietly():
+    import warnings
+
+    p = _profiles_with({4: -1.3})
+    for c, r in zip(p.count, p.res, strict=True):
+        c[:, [0, -1]] = 0.0                              # the outermost offsets: no cell on either side
+        r[:, [0, -1]] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        runs = p.shape(z=4.0)
+    assert [(round(a, 3), round(b, 3)) for a, b, _ in runs] == [(0.08, 0.08)]

@@ -297,8 +297,8 @@ class Profiles:
         n = len(self.bins) // 2
         pos, neg = mean[n:], mean[n::-1]
         spos, sneg = se[n:], se[n::-1]
-        m = np.nanmean(np.vstack([pos, neg]), 0)
         both = np.isfinite(pos) & np.isfinite(neg)
+        m = np.where(both, 0.5 * (pos + neg), np.where(np.isfinite(pos), pos, neg))
         with np.errstate(invalid="ignore"):
             e = np.where(both, 0.5 * np.hypot(spos, sneg), np.where(np.isfinite(pos), spos, sneg))
             sign = np.where(np.isfinite(m) & (np.abs(m) > z * e), np.sign(m), 0.0)
