@@ -288,27 +288,35 @@ class Profiles:
 
     def shape(self, z: float, name: str = "res") -> list[tuple[float, float, float]]:
         """Where across the rut the residual differs from 0: runs of adjacent offsets from the
-        wheel centre line (both sides of the rut folded: the mean of the bins at +o and -o)
-        whose mean differs from 0 by more than z standard errors, all of one sign.
+        wheel centre line (both sides of the rut folded: the cells at +o and -o pooled per
+        segment) whose mean over segments differs from 0 by more than z standard errors (from
+        the spread between segments, with the effective-sample-size correction, as the zones'),
+        all of one sign.
 
         Returns [(from [m], to [m], mean residual over the run [m]), ...], nearest the centre
         line first; [] when no offset stands out."""
-        mean, se, _ = self.profile(name)
+        v, c = self._stack(name), self._stack("count")                      # (G, 2, L)
         n = len(self.bins) // 2
-        pos, neg = mean[n:], mean[n::-1]
-        spos, sneg = se[n:], se[n::-1]
-        both = np.isfinite(pos) & np.isfinite(neg)
-        m = np.where(both, 0.5 * (pos + neg), np.where(np.isfinite(pos), pos, neg))
-        with np.errstate(invalid="ignore"):
-            e = np.where(both, 0.5 * np.hypot(spos, sneg), np.where(np.isfinite(pos), spos, sneg))
-            sign = np.where(np.isfinite(m) & (np.abs(m) > z * e), np.sign(m), 0.0)
+        o = np.arange(n + 1)
+        num = v[:, :, n + o].sum(1) + v[:, :, n - o].sum(1)
+        den = c[:, :, n + o].sum(1) + c[:, :, n - o].sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            seg = np.where(den > 0, num / den, np.nan)                      # (G, n + 1)
+        m, sign = np.zeros(n + 1), np.zeros(n + 1)
+        for i in o:
+            x = seg[np.isfinite(seg[:, i]), i]
+            if len(x) < 3:
+                continue
+            m[i] = x.mean()
+            se = float(np.std(x, ddof=1)) / math.sqrt(effective_n(len(x), x))
+            sign[i] = np.sign(m[i]) if abs(m[i]) > z * se else 0.0
         out: list[tuple[float, float, float]] = []
         start = None
-        for i in range(len(sign) + 1):
-            if start is not None and (i == len(sign) or sign[i] != sign[start]):
+        for i in range(n + 2):
+            if start is not None and (i > n or sign[i] != sign[start]):
                 out.append((float(self.bins[n + start]), float(self.bins[n + i - 1]), float(np.mean(m[start:i]))))
                 start = None
-            if i < len(sign) and sign[i] != 0 and start is None:
+            if i <= n and sign[i] != 0 and start is None:
                 start = i
         return out
 
