@@ -11,7 +11,7 @@ import torch
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot, paper_platform
 
-# with pytest-xdist (the README's `-n auto`), the workers share the cores: a thread each
+# with pytest-xdist (the README's `-n auto`) the workers share the cores: torch threads, a share each
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1:
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // _workers))
