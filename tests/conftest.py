@@ -11,10 +11,25 @@ import torch
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot, paper_platform
 
-# with pytest-xdist (the README's `-n auto`) the workers share the cores: torch threads, a share each
+# with pytest-xdist (the README's `-n auto --dist loadgroup`) the workers share the cores: torch threads, a share each
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1:
     torch.set_num_threads(max(1, (os.cpu_count() or 1) // _workers))
+
+# module and session fixtures that take seconds to build (a drive to diagnose, a bag to map):
+# the tests that use one run on one worker (`--dist loadgroup`, the README's command), so each
+# is built once rather than once per worker
+SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed": "streamed",
+                   "moving_bag": "moving_bag", "side_slope": "side_slope", "rec": "recording",
+                   "truth_fit": "truth_fit", "drives": "fleet", "ray_instance": "fleet"}
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        groups = sorted({SHARED_FIXTURES[f] for f in getattr(item, "fixturenames", ()) if f in SHARED_FIXTURES})
+        if groups:
+            item.add_marker(pytest.mark.xdist_group(groups[0]))
 
 
 @pytest.fixture(scope="session")

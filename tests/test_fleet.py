@@ -22,7 +22,7 @@ FAST = ["estimator.max_iter=8"]                  # short relaxations: the output
 TIMING = ("seconds", "latency")                  # params.csv columns that differ between any two runs
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def drives(tmp_path_factory):
     """Two short terrain pairs (2 m), a broken one (not an .npz) and each good one's single run."""
     root = tmp_path_factory.mktemp("drives")

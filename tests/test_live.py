@@ -20,7 +20,7 @@ DRIVE = {"name": "soft", "trajectory": {"segments": [{"straight": 13.0, "speed":
          "lidar": {"columns": 512}}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def streamed(tmp_path_factory):
     """A 12 s drive on soft soil played through LiveEstimator: (bag, robot, settings, live,
     rows, how many came before the recording ended). The fits run on the worker thread, with

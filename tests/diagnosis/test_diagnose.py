@@ -32,7 +32,7 @@ def run(name, seed, cfg=CFG, measurement=None, **law):
     return pair, diagnose(pair, cfg)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def speed_power():
     # world: sinkage x (1 + 0.6 sign(x) |x|^0.5), x = v - 1; the extension is linear in v
     return run("speed_dependent_sinkage", 2, form="power", p=0.5)

@@ -21,7 +21,7 @@ SLOPE = {"name": "side_slope", "trajectory": {"segments": [{"straight": 10.0, "s
          "lidar": {"columns": 512}}
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def side_slope(tmp_path_factory):
     bag = tmp_path_factory.mktemp("slope") / "slope"
     make_recording(SLOPE, bag, seed=1, duration=5.0)

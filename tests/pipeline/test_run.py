@@ -19,7 +19,7 @@ def toy_bag(path, duration, **kw):
     return scene
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def moving_result(moving_bag):
     path, scene = moving_bag
     return process_bag(path, paper_platform()), scene

@@ -11,7 +11,7 @@ from torchsoil.synth.record import make_recording
 from torchsoil.synth.truthfile import load_truth
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def s_turn(tmp_path_factory):
     """25 s S-turn on an 8 % side slope (poles, posts and a shed around it)."""
     bag = tmp_path_factory.mktemp("sturn") / "sturn"

@@ -37,7 +37,7 @@ def cloud_points(msg) -> np.ndarray:
     return np.frombuffer(bytes(msg.data), dtype=POINT_DTYPE, count=msg.width * msg.height)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES: built once per worker
 def rec(tmp_path_factory):
     out = tmp_path_factory.mktemp("rec") / "small"
     stats = make_recording(SCN, out, seed=3, duration=DURATION)
