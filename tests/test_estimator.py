@@ -195,3 +195,36 @@ def test_ground_seen_anew_beside_a_later_pass_is_left_to_that_pass():
     assert np.isnan(d[first_leg]).sum() + (d[first_leg] > 0.6 * ref).sum() == first_leg.sum()
     back_again = s > e.index.arc[-1] - L / 2 + 0.5
     assert (d[back_again] > 0.6 * ref).all()
+
+
+def test_runs_sharing_a_window_store_prepare_each_window_once_and_agree(pair_truth, monkeypatch):
+    """A second run over the same pair with the store of the first prepares no window and gives
+    the same rows (a diagnosis's passes share one); another tyre section or setting gets its own."""
+    import dataclasses
+
+    import torchsoil.estimator as estimator_module
+    from torchsoil.windows import WindowStore
+
+    pair, _ = pair_truth
+    settings = load_settings()
+    calls = []
+    real = estimator_module.prepare_window
+    monkeypatch.setattr(estimator_module, "prepare_window", lambda *a, **k: calls.append(a[2]) or real(*a, **k))
+
+    def rows(p, store, sim=settings.sim):
+        est = Estimator(p, settings.estimator, sim, store=store, nuisance=first.nuisance, index=first.index)
+        return [{k: v for k, v in o.row.items() if k != "seconds"} for o in est.run()]
+
+    first = Estimator(pair, settings.estimator, settings.sim)
+    alone = rows(pair, None)
+    n_windows = len(calls)
+    store = WindowStore()
+    calls.clear()
+    assert rows(pair, store) == alone and len(calls) == n_windows
+    calls.clear()
+    assert rows(pair, store) == alone and calls == []                      # all from the store
+    rows(dataclasses.replace(pair, wheel_flat_fraction=0.5), store)
+    rows(pair, store, settings.sim.replace(pose_spacing=settings.sim.pose_spacing * 2))
+    assert len(calls) == 2 * n_windows                                     # neither shares the first's windows
+    assert len(store) == 3 * n_windows
+

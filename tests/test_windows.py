@@ -10,7 +10,7 @@ from torchsoil.settings import EstimatorConfig
 from torchsoil.sim import SimConfig
 from torchsoil.sim.geometry import wheel_positions
 from torchsoil.terrain import TerrainPair
-from torchsoil.windows import _stopped, front_view, path_index, plan_windows, prepare_window
+from torchsoil.windows import WindowStore, _stopped, front_view, path_index, plan_windows, prepare_window
 
 
 def test_plan_windows():
@@ -210,3 +210,10 @@ def test_a_window_simulates_every_wheel_pass_over_its_ground(lap_and_a_half):
                 assert any(a <= when <= b for a, b in spans), (spec, when, spans)
                 checked += 1
     assert checked > 1000
+
+
+def test_a_full_window_store_prepares_anew_instead_of_growing():
+    store, made = WindowStore(max_windows=2), []
+    for key in (1, 2, 3, 3, 1):
+        store.get(key, lambda k=key: made.append(k) or k)
+    assert made == [1, 2, 3, 3] and len(store) == 2

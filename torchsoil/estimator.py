@@ -25,6 +25,7 @@ from torchsoil.sim.sinkage import reference_height
 from torchsoil.windows import (
     WindowData,
     WindowSpec,
+    WindowStore,
     drive_windows,
     front_view,
     path_index,
@@ -78,6 +79,8 @@ class Estimator:
             it): windows sit where the whole drive's would, and rows report the drive's arc length.
         view: what H_f holds on revisited ground ("last_visit" or "first_view"), when already
             told (default: est.front_view, "auto" told from the maps by `windows.front_view`).
+        store: a `windows.WindowStore` that keeps prepared windows for later runs over the same
+            pair and map nuisance (a diagnosis's passes share one); None: prepared per run.
 
     H_b is used net of the map offset and tilt (`self.nuisance`, fitted on untouched ground;
     `self.h_back`); each row reports the offset removed on the window's ground (`map_offset`, m).
@@ -90,7 +93,7 @@ class Estimator:
 
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
                  dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None,
-                 arc0: float = 0.0, view: str | None = None):
+                 arc0: float = 0.0, view: str | None = None, store: WindowStore | None = None):
         self.pair = pair
         self.modifiers = modifiers
         self.est = est = est or EstimatorConfig()
@@ -114,6 +117,11 @@ class Estimator:
         if self.nuisance is not None:
             self.h_back = self.h_back - self.nuisance.field
         self.arc0 = arc0
+        self.store = store
+        # what a prepared window depends on besides its span, the pair and the map nuisance
+        self._context = (getattr(pair, "wheel_flat_fraction", None), getattr(pair, "wheel_section_exponent", None),
+                         est.model_dump_json(), self.sim.model_dump_json(), self.view, str(self.device), str(dtype),
+                         arc0)
         self.windows: list[WindowSpec] = drive_windows(float(self.index.arc[-1]), est.window, est.stride, arc0)
         ratio = est.window / est.stride
         self.ahead = int(round(ratio)) if abs(ratio - round(ratio)) < 1e-6 else None
@@ -227,9 +235,14 @@ class Estimator:
         return self._prepare(WindowSpec(-1, spec.s1, spec.s1 + self.est.window))
 
     def _prepare(self, spec: WindowSpec) -> WindowData | None:
-        return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
-                              h_start=self.h_start, h_back=self.h_back, extra_flags=self._registration_flags(spec),
-                              view=self.view)
+        def prepare():
+            return prepare_window(self.pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
+                                  h_start=self.h_start, h_back=self.h_back,
+                                  extra_flags=self._registration_flags(spec), view=self.view)
+
+        if self.store is None:
+            return prepare()
+        return self.store.get((self._context, spec.s0, spec.s1), prepare)
 
     def _registration_flags(self, spec: WindowSpec) -> tuple[str, ...]:
         """("registration",) when a sweep the lidar pipeline flagged was taken while the robot

@@ -204,6 +204,33 @@ class WindowData(NamedTuple):
     earlier: tuple[WheelGeometry, ...] = ()
 
 
+class WindowStore:
+    """Prepared windows (WindowData) kept across estimator runs over one terrain pair.
+
+    A diagnosis runs the estimator over the same drive some thirty times, and preparing a
+    window (crop, masks, wheel geometry) is about a quarter of a run. Share a store, like the
+    PathIndex, only among estimators over the same pair and map nuisance; the key holds what
+    may differ between them (tyre section, settings, view, device, the window's span). At
+    most `max_windows` are kept (about 0.4 MB each with the default corridor and 2 cm cells);
+    beyond that, windows are prepared anew each time."""
+
+    def __init__(self, max_windows: int = 1500):
+        self.max_windows = max_windows
+        self._kept: dict[tuple, WindowData | None] = {}
+
+    def __len__(self) -> int:
+        return len(self._kept)
+
+    def get(self, key: tuple, prepare) -> WindowData | None:
+        """The window under `key`, from `prepare()` the first time (None: not preparable)."""
+        if key in self._kept:
+            return self._kept[key]
+        wd = prepare()
+        if len(self._kept) < self.max_windows:
+            self._kept[key] = wd
+        return wd
+
+
 def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
     """Gaussian smoothing of an (X, Y) heightmap [m] with sigma in cells, ignoring NaN cells
     (normalised convolution); NaN stays NaN. sigma = 0 returns h unchanged."""

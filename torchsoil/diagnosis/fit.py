@@ -22,6 +22,7 @@ from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, paired_improvement
 from torchsoil.estimator import Estimator
 from torchsoil.settings import EstimatorConfig, SimConfig
+from torchsoil.windows import WindowStore
 
 
 @dataclass
@@ -35,7 +36,8 @@ class Pass:
     offsets carry a fit across changes of a covariate, where a missing term shows. index: the
     windows.PathIndex the pass used (shared by the passes of one diagnosis); nuisance: the map
     offset it removed from H_b (nuisance.MapNuisance or None; shared likewise); view: what
-    H_f holds on revisited ground (Estimator.view; shared likewise)."""
+    H_f holds on revisited ground (Estimator.view; shared likewise); store: the prepared
+    windows (windows.WindowStore; shared likewise)."""
 
     k: float
     rows: list[dict]
@@ -47,6 +49,7 @@ class Pass:
     index: object = None
     nuisance: object = None
     view: str | None = None
+    store: object = None
 
     @property
     def held_out(self) -> np.ndarray:
@@ -61,16 +64,17 @@ class Pass:
 def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
              profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
-             index=None, nuisance=None, view: str | None = None) -> Pass:
+             index=None, nuisance=None, view: str | None = None, store: WindowStore | None = None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
     on_window: optional callable(k, WindowOutput, estimator) called after every window.
     offsets: windows back (in strides) on whose ground each fit is also scored; use
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
-    recomputing it; nuisance and view likewise (Pass.nuisance, Pass.view)."""
+    recomputing it; nuisance, view and store likewise (Pass.nuisance, Pass.view, Pass.store;
+    a new store when None)."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
-                          nuisance=nuisance, view=view)
+                          nuisance=nuisance, view=view, store=store if store is not None else WindowStore())
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
@@ -102,7 +106,7 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     pred = np.array([r["prediction"] for r in rows], np.float64)
     return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
                 np.array(backward, np.float64).reshape(len(rows), len(offsets)), estimator.index,
-                estimator.nuisance, estimator.view)
+                estimator.nuisance, estimator.view, estimator.store)
 
 
 Section = tuple[float, float]
@@ -134,16 +138,17 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     extension with a fixed coefficient to fit the section under (a wider footprint and a
     fuller section both widen the rut: a footprint term must beat the base model at its
     best section, with the section it needs itself). shared: run_pass's index, nuisance and
-    view, when already known. Returns (best (f, e), {(f, e): mean residual, m}, {index,
-    nuisance, view}: run_pass's keywords for later passes)."""
+    view (and store), when already known. Returns (best (f, e), {(f, e): mean residual, m},
+    {index, nuisance, view, store}: run_pass's keywords for later passes)."""
     own = section_of(pair)
     candidates = list(dict.fromkeys([own, *((float(f), float(e)) for f, e in sections)]))
     costs: dict[Section, float] = {}
-    shared = dict(shared or {})
+    shared = {"store": WindowStore(), **(shared or {})}
     for sec in candidates:
         estimator = Estimator(with_section(pair, sec), est, sim,
                               modifiers=model.modifiers if model is not None else None, **shared)
-        shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view}
+        shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view,
+                  "store": estimator.store}
         estimator.windows = estimator.windows[::max(1, every)]
         res = [o.row["residual"] for o in estimator.run()]
         costs[sec] = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
@@ -220,7 +225,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     rut, and steeper walls and a rounder section trade off (a flat tread's rut relaxed at the
     soil's angle looks like a rounder tyre's standing)."""
     passes: dict[float, Pass] = {0.0: base}
-    shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view}
+    shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view, "store": base.store}
     sec: dict[float, Section] = {0.0: section_of(pair)}
 
     def run(k: float) -> None:
