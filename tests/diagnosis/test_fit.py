@@ -119,7 +119,8 @@ def test_tyre_section_is_fitted_as_a_nuisance(section, want):
     best, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
     assert best == want and set(costs) == set(tried)
     assert costs[want] < min(c for k, c in costs.items() if k != want)
-    assert set(shared) == {"index", "nuisance", "view", "store"} and pair.wheel_flat_fraction == 0.0   # not changed in place
+    assert set(shared) == {"index", "nuisance", "view", "store"}
+    assert pair.wheel_flat_fraction == 0.0                                   # not changed in place
 
 
 @pytest.mark.parametrize("dig", ["robot", "wheel"])
