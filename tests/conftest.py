@@ -21,7 +21,7 @@ if _workers > 1:
 # is built once rather than once per worker
 SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed": "streamed",
                    "moving_bag": "moving_bag", "side_slope": "side_slope", "rec": "recording",
-                   "truth_fit": "truth_fit", "drives": "fleet", "ray_instance": "fleet"}
+                   "drives": "fleet", "ray_instance": "fleet"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks

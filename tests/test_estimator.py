@@ -227,4 +227,3 @@ def test_runs_sharing_a_window_store_prepare_each_window_once_and_agree(pair_tru
     rows(pair, store, settings.sim.replace(pose_spacing=settings.sim.pose_spacing * 2))
     assert len(calls) == 2 * n_windows                                     # neither shares the first's windows
     assert len(store) == 3 * n_windows
-

@@ -143,7 +143,8 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     own = section_of(pair)
     candidates = list(dict.fromkeys([own, *((float(f), float(e)) for f, e in sections)]))
     costs: dict[Section, float] = {}
-    shared = {"store": WindowStore(), **(shared or {})}
+    shared = dict(shared or {})
+    shared.setdefault("store", WindowStore())
     for sec in candidates:
         estimator = Estimator(with_section(pair, sec), est, sim,
                               modifiers=model.modifiers if model is not None else None, **shared)
