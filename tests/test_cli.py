@@ -39,6 +39,13 @@ def test_robot_by_unknown_name_is_a_clear_error(tmp_path, capsys):
     assert "no_such_robot" in err and "paper_platform" in err
 
 
+def test_noise_redraws_belong_to_the_foreign_study(tmp_path, capsys):
+    for args in (["--quick", "--redraws", "2"], ["--foreign", str(tmp_path), "--redraws", "-1"]):
+        assert main(["study", *args, "--out", str(tmp_path / "o")]) == 2
+        assert "--redraws" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_importing_any_module_changes_nothing_process_wide():
     code = """
 import importlib, os, pkgutil, sys

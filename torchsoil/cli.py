@@ -183,6 +183,9 @@ def parser() -> argparse.ArgumentParser:
     mode.add_argument("--foreign", type=Path, metavar="DIR", help="directory of foreign terrain pairs")
     p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
     p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
+    p.add_argument("--redraws", type=int, default=0, metavar="R",
+                   help="with --foreign: also fit R other draws of each pair's noise (its dropouts, streaks and "
+                        "map offset moved), for the model error's spread over draws (default 0)")
     _settings_options(p)
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default 1; with --engine: "
                                                              "per drive, = --set fleet.cpus_per_task=N)")
@@ -455,13 +458,16 @@ def cmd_study(args) -> int:
     from torchsoil.fleet import make_engine
     from torchsoil.runner import torch_threads
 
+    if args.redraws and args.foreign is None or args.redraws < 0:
+        raise ValueError(f"--redraws {args.redraws}: a count >= 0, and only with --foreign")
     on_engine = any(getattr(args, k) is not None for k in ("engine", "workers", "ray_address"))
     settings = _settings(args, [f"fleet.cpus_per_task={args.threads}"] if on_engine and args.threads else [])
     engine = make_engine(args.engine or "local", args.workers, args.ray_address, settings.fleet) if on_engine \
         else nullcontext()
     with torch_threads(args.threads or 1), engine as eng:
         if args.foreign is not None:
-            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings, engine=eng))
+            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings, engine=eng,
+                              redraws=args.redraws))
         elif args.randomized is not None:
             cases = randomized_cases(args.randomized, args.null, args.seed)
             print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings, engine=eng))

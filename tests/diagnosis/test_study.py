@@ -8,7 +8,14 @@ import numpy as np
 import pytest
 
 from torchsoil.diagnosis import study_cases as sc
-from torchsoil.diagnosis.study import confusion, error_rates, model_error, run_foreign, truth_coefficients
+from torchsoil.diagnosis.study import (
+    confusion,
+    error_rates,
+    model_error,
+    redraw_noise,
+    run_foreign,
+    truth_coefficients,
+)
 from torchsoil.robot import paper_platform
 from torchsoil.settings import Settings
 from torchsoil.synth import effects as fx
@@ -112,6 +119,57 @@ def test_model_error_by_hand():
     assert model_error(h_sim, clean) == pytest.approx((0.008 + 4 * 0.002) / 5)
 
 
+def _noisy_pair(corridor, noise_f, noise_b):
+    """A pair on a sloping noise-free ground (float32 maps, as TerrainPair keeps them)
+    with the given noise fields, NaN outside `corridor`."""
+    X, Y = corridor.shape
+    clean_f = np.add.outer(0.01 * np.arange(X), 0.003 * np.arange(Y))
+    clean_b = clean_f - 0.02 * (np.arange(Y) % 3 == 0)[None]
+    mk = lambda f, b: TerrainPair(0.02, (0.0, 0.0), f, b, np.array([[0.0, 0, 0, 0, 0, 0, 0]]),  # noqa: E731
+                                  paper_platform().wheels, 0.14)
+    measured = mk(np.where(corridor, clean_f + noise_f, np.nan), np.where(corridor, clean_b + noise_b, np.nan))
+    return measured, mk(clean_f, clean_b)
+
+
+def test_redrawn_noise_moves_the_noise_and_keeps_the_corridor():
+    X, Y = 60, 8
+    corridor = np.zeros((X, Y), bool)
+    corridor[:, 1:7] = True                                        # the same under a mirror across
+    noise_f = 1e-4 * np.arange(X * Y, dtype=np.float64).reshape(X, Y)  # every value its own
+    noise_f[[5, 30, 31], [2, 4, 4]] = np.nan                       # dropouts
+    noise_b = 0.005 + 1e-5 * np.arange(X * Y, dtype=np.float64).reshape(X, Y)[::-1]   # a 5 mm map offset
+    pair, clean = _noisy_pair(corridor, noise_f, noise_b)
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        new = redraw_noise(pair, clean, rng, offset=0.002)
+        nf, nb = new.h_front - clean.h_front, new.h_back - clean.h_back
+        assert np.isnan(nf[~corridor]).all() and np.isnan(nb[~corridor]).all()
+        # the corridor's own values, moved: the same dropouts and values, elsewhere
+        before = np.sort(noise_f[corridor & np.isfinite(noise_f)])
+        assert np.isnan(nf[corridor]).sum() == 3 and np.isnan(new.h_front).sum() == np.isnan(pair.h_front).sum()
+        assert np.allclose(np.sort(nf[corridor & np.isfinite(nf)]), before, atol=1e-6)
+        assert not np.allclose(np.nan_to_num(nf[corridor]), np.nan_to_num(noise_f[corridor]))
+        # the after map keeps its spread, with an offset of at most 2 mm instead of 5
+        spread = noise_b[corridor] - np.median(noise_b[corridor])
+        assert abs(np.median(nb[corridor])) <= 0.002 + 1e-6
+        assert np.allclose(np.sort(nb[corridor] - np.median(nb[corridor])), np.sort(spread), atol=1e-6)
+
+
+def test_redrawn_noise_fills_what_a_moved_corridor_leaves_bare():
+    X, Y = 50, 10
+    rows = np.arange(X)[:, None]
+    corridor = np.abs(np.arange(Y)[None] - (2 + rows * 6 // X)) <= 1   # a band drifting across
+    noise = 1e-4 * np.arange(X * Y, dtype=np.float64).reshape(X, Y)
+    pair, clean = _noisy_pair(corridor, noise, noise)
+    new = redraw_noise(pair, clean, np.random.default_rng(0))
+    nf = new.h_front - clean.h_front
+    assert np.isfinite(nf[corridor]).all() and np.isnan(nf[~corridor]).all()   # no dropout, nothing lost
+    values = noise[corridor]
+    assert np.abs(nf[corridor][:, None] - values[None]).min(1).max() < 1e-6  # every value one of the map's own
+    with pytest.raises(ValueError, match="too short"):
+        redraw_noise(*_noisy_pair(corridor[:30], noise[:30], noise[:30]), np.random.default_rng(0))
+
+
 def test_truth_coefficients_by_hand():
     v = np.array([0.5, 1.0, 1.5, 0.5, 1.5])
     windows = [{"d1": 0.02 * (1 + 0.6 * (s - 1.0)), "d2": 0.02 * (1 + 0.6 * (s - 1.0)), "speed": s,
@@ -153,7 +211,7 @@ def test_foreign_study_runs_on_a_pair_in_the_foreign_layout(tmp_path):
 
     (tmp_path / "robot.yaml").write_text(yaml.safe_dump(paper_platform().to_dict()))
     settings = Settings().replace(diagnosis={"n_fit": 0})
-    table = run_foreign(tmp_path, tmp_path / "out", settings)
+    table = run_foreign(tmp_path, tmp_path / "out", settings, redraws=1)
     rec = json.loads((tmp_path / "out" / "cases.jsonl").read_text())
     assert rec["case"] == "tiny" and rec["want"] == "adequate"
     assert "| tiny |" in table and "false alarms on null drives" in table and "model error" in table
@@ -161,6 +219,10 @@ def test_foreign_study_runs_on_a_pair_in_the_foreign_layout(tmp_path):
     # a fraction of the 3 mm noise; the noisy pair cannot do better
     assert 0 < rec["model_error_clean_mm"] < 1.0
     assert rec["model_error_mm"] > rec["model_error_clean_mm"]
+    # another draw of the pair's noise: as far from the noise-free fit, not a copy of the pair's
+    (other,) = rec["model_error_redraws_mm"]
+    assert rec["model_error_clean_mm"] < other < 3 * rec["model_error_mm"] and other != rec["model_error_mm"]
+    assert f"| {other - rec['model_error_clean_mm']:+.2f} / " in table and "(1) |" in table
     assert 0 < rec["model_error_fitted_clean_mm"] < 1.0 and rec["d_mm"] > 5    # the world digs a rut
     assert "diagnosis' section and dig order" in table
     # the per-window series a study is re-scored from offline: one held-out cost per window [mm]

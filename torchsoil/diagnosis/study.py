@@ -15,10 +15,12 @@ run. The table lists the drives in the order of the cases, however they finished
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import sys
 import time
+import zlib
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -300,6 +302,42 @@ def model_error(h_sim: np.ndarray, clean: TerrainPair, changed: float = CHANGED)
     return float(np.mean(np.abs(h_sim[zone] - cb[zone]))) if zone.any() else math.nan
 
 
+def redraw_noise(pair: TerrainPair, clean: TerrainPair, rng: np.random.Generator, offset: float = 0.002
+                 ) -> TerrainPair:
+    """The pair with another draw of its measurement noise, for a model error that does not
+    rest on one draw (recordings of the same world with other seeds).
+
+    Each map's noise field (measured minus noise-free [m], its dropouts and occlusion streaks
+    NaN) moves along the grid's first axis by a random number of rows (wrapping; at least 20,
+    beyond the noise's own correlation) and is mirrored across at random. The measured
+    corridor (cells either map measured) keeps its place: the moved dropouts and streaks
+    that land in it stay NaN, and its cells that the moved field's own corridor does not
+    reach draw a value from the map's noise. The after-map's median offset to the noise-free
+    ground is replaced by one drawn uniformly within +-offset [m]."""
+    corridor = np.isfinite(pair.h_front) | np.isfinite(pair.h_back)
+    X = corridor.shape[0]
+    if X < 41:
+        raise ValueError(f"a grid of {X} rows is too short to move the noise by 20 rows or more")
+    maps = []
+    for measured, truth in ((pair.h_front, clean.h_front), (pair.h_back, clean.h_back)):
+        noise = measured.astype(np.float64) - truth.astype(np.float64)
+        values = noise[np.isfinite(noise) & corridor]
+        if values.size == 0:
+            raise ValueError("a map has no measured cell: no noise to redraw")
+        shift, mirror = int(rng.integers(20, X - 19)), bool(rng.random() < 0.5)
+        moved, reach = np.roll(noise, shift, 0), np.roll(corridor, shift, 0)
+        if mirror:
+            moved, reach = moved[:, ::-1], reach[:, ::-1]
+        fill = ~reach & corridor
+        moved[fill] = rng.choice(values, int(fill.sum()))
+        moved[~corridor] = np.nan
+        maps.append((truth, moved, values))
+    (tf, nf, _), (tb, nb, vb) = maps
+    nb = nb - float(np.median(vb)) + float(rng.uniform(-offset, offset))
+    return dataclasses.replace(pair, h_front=(tf + nf).astype(pair.h_front.dtype),
+                               h_back=(tb + nb).astype(pair.h_back.dtype))
+
+
 def truth_coefficients(truth: dict) -> dict[str, float]:
     """The catalogue coefficient (torchsoil.diagnosis.catalogue) that matches the truth's
     per-window values, where they carry it: k_speed from a line of sinkage against speed
@@ -327,9 +365,10 @@ def truth_coefficients(truth: dict) -> dict[str, float]:
     return {}
 
 
-def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
+def foreign_case(directory: Path, name: str, settings: Settings, redraws: int = 0) -> dict:
     """The record of one foreign pair: its diagnosis, the truth's coefficients and, with
-    noise-free surfaces, the model error fitted to the pair and to the surfaces [mm]."""
+    noise-free surfaces, the model error fitted to the pair and to the surfaces [mm], and
+    fitted to `redraws` other draws of the pair's noise (`redraw_noise`, seeded by the name)."""
     t0 = time.perf_counter()
     pair, clean, truth = load_foreign(directory, name)
     exp = truth["expected"]
@@ -339,6 +378,9 @@ def foreign_case(directory: Path, name: str, settings: Settings) -> dict:
     if clean is not None:
         extra["model_error_mm"] = 1e3 * model_error(simulated_back(pair, settings), clean)
         extra["model_error_clean_mm"] = 1e3 * model_error(simulated_back(clean, settings), clean)
+        rng = np.random.default_rng(zlib.crc32(name.encode()))
+        extra["model_error_redraws_mm"] = [1e3 * model_error(simulated_back(redraw_noise(pair, clean, rng), settings),
+                                                             clean) for _ in range(redraws)]
         # the same with the nuisance model the diagnosis fitted (tyre section, dig order)
         fitted, sec = _fitted_nuisance(diag, pair, settings)
         extra["model_error_fitted_mm"] = 1e3 * model_error(simulated_back(with_section(pair, sec), fitted), clean)
@@ -366,18 +408,19 @@ def _fitted_nuisance(diag, pair, settings: Settings) -> tuple[Settings, tuple[fl
 
 
 def run_foreign(directory: Path, out: Path, settings: Settings | None = None, names: list[str] | None = None,
-                engine=None) -> str:
+                engine=None, redraws: int = 0) -> str:
     """Diagnose every foreign pair in `directory` (`foreign_case`, in this process or as tasks
     of `engine`) and measure the estimator's model error: the mean |simulated H_b - noise-free
     H_b| [mm] where the ground changed (CHANGED), fitted to the pair and fitted to the
-    noise-free surfaces themselves; plus prediction cost over noise floor and the fitted
-    coefficients against the truth's. Appends to out/cases.jsonl (drives already there are
-    skipped), writes out/confusion.md and returns it."""
+    noise-free surfaces themselves, and on `redraws` other draws of each pair's noise; plus
+    prediction cost over noise floor and the fitted coefficients against the truth's. Appends
+    to out/cases.jsonl (drives already there are skipped), writes out/confusion.md and
+    returns it."""
     out = Path(out)
     done = _resume(out)
     settings = settings or Settings()
     names = names or foreign_names(directory)
-    calls = [(Path(directory), name, settings) for name in names if name not in done]
+    calls = [(Path(directory), name, settings, redraws) for name in names if name not in done]
     for rec in _each(foreign_case, calls, engine, "foreign"):
         done[rec["case"]] = rec
         _append(out, rec)
@@ -389,17 +432,22 @@ def run_foreign(directory: Path, out: Path, settings: Settings | None = None, na
 
 def model_error_table(records: list[dict]) -> str:
     """Markdown: per drive, the model error on the pair and on the noise-free surfaces [mm],
+    the excess on other draws of the pair's noise (mean / max, when any were run),
     prediction cost over noise floor before and after, and fitted against true coefficients."""
     lines = [f"model error: mean |simulated H_b - noise-free H_b| where the noise-free ground changed by more "
              f"than {1e3 * CHANGED:g} mm", "",
-             "| drive | model error [mm] | fitted to noise-free [mm] | excess [mm] | the same under the "
+             "| drive | model error [mm] | fitted to noise-free [mm] | excess [mm] | excess on other noise draws, "
+             "mean / max (draws) [mm] | the same under the "
              "diagnosis' section and dig order [mm] | d fitted / truth [mm] | prediction / floor before -> after "
-             "| fitted | truth |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| fitted | truth |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in records:
         e, c = r.get("model_error_mm", math.nan), r.get("model_error_clean_mm", math.nan)
         ef, cf = r.get("model_error_fitted_mm", math.nan), r.get("model_error_fitted_clean_mm", math.nan)
         floor = r.get("noise_floor") or math.nan
-        lines.append(f"| {r['case']} | {e:.2f} | {c:.2f} | {e - c:+.2f} | {ef:.2f} / {cf:.2f} ({ef - cf:+.2f}) | "
+        other = np.asarray(r.get("model_error_redraws_mm") or [], np.float64) - c
+        redrawn = f"{other.mean():+.2f} / {other.max():+.2f} ({len(other)})" if len(other) else "-"
+        lines.append(f"| {r['case']} | {e:.2f} | {c:.2f} | {e - c:+.2f} | {redrawn} | "
+                     f"{ef:.2f} / {cf:.2f} ({ef - cf:+.2f}) | "
                      f"{r.get('d_mm', math.nan):.1f} / {r.get('d_truth_mm', math.nan):.1f} | "
                      f"{r['cost_before']['prediction'] / floor:.2f} -> {r['cost_after']['prediction'] / floor:.2f} | "
                      f"{r['parameters'] or '-'} | "
