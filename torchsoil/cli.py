@@ -458,7 +458,7 @@ def cmd_study(args) -> int:
     from torchsoil.fleet import make_engine
     from torchsoil.runner import torch_threads
 
-    if args.redraws and args.foreign is None or args.redraws < 0:
+    if args.redraws < 0 or (args.redraws and args.foreign is None):
         raise ValueError(f"--redraws {args.redraws}: a count >= 0, and only with --foreign")
     on_engine = any(getattr(args, k) is not None for k in ("engine", "workers", "ray_address"))
     settings = _settings(args, [f"fleet.cpus_per_task={args.threads}"] if on_engine and args.threads else [])
