@@ -276,6 +276,14 @@ def test_tread_prints_a_periodic_pattern_on_the_rut_floor():
     assert 0.0015 < amplitude(on) < 0.0045          # law: amp / 2 = 3.5 mm
     assert amplitude(off) < 2e-4
     assert amplitude(on, 0.37) < 5e-4
+    # the marks are the wheels', not the simulation's: the same whatever length of drive the
+    # world digs at a time, and nothing at that length (each lug marks the cell the wheel's
+    # centre passes, also behind a chunk's first pose; 0.13 m does not divide the chunks)
+    tread = {"tread": {"amp": 0.007, "wavelength": 0.13}}
+    a = {c: world({**scenario(STRAIGHT, tread), "world": {"chunk": c}}) for c in (0.1, 0.4)}
+    assert amplitude(a[0.1], 0.13) > 0.001
+    assert amplitude(a[0.1], 0.13) == pytest.approx(amplitude(a[0.4], 0.13), rel=0.05)
+    assert amplitude(a[0.1], 0.1) < 2e-4 and amplitude(a[0.4], 0.4) < 2e-4
 
 
 def test_effect_laws_and_errors():

@@ -224,12 +224,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         passes = _pass_index(n_visits[win], turn, turn_dug[:, i0:i1, j0:j1], wheel_passes[win])
         depth = (sf["d"][win][None] * track_scale[robot.track][:, None, None] * fcell
                  * np.asarray(fx.pass_depth_factor(eff, passes)))
-        if "tread" in eff:
-            wg = _wheel_xy(gp, wxy)
-            warc = np.concatenate([np.zeros((K, 1)), np.cumsum(
-                np.linalg.norm(np.diff(wg, axis=1), axis=-1), 1)], 1) + float(traj.arc[idx[0]])
-            depth = depth + fx.tread_depth(eff, np.take_along_axis(warc, pidx.reshape(K, -1), 1)
-                                           .reshape(pidx.shape))
+        if "tread" in eff:          # a lug marks the cell where the wheel's centre passes it
+            depth = depth + fx.tread_depth(eff, geom["arc"])
 
         h[win], deposits, covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
                                                            sf["chi"][win], config, section, first=idx[0] == 0,
@@ -373,8 +369,10 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
     each wheel's path length at the chunk's first pose, m (default 0), so that the arc bins
     of consecutive chunks line up.
     Returns {poses (M, 4), dist (K, X, Y) [m, inf beyond reach], lateral (K, X, Y) [m, left
-    positive], pose (K, X, Y) int index of the nearest pose, bin (K, X, Y) int arc bin of
-    2 cells along the wheel's path}.
+    positive], pose (K, X, Y) int index of the nearest pose, arc (K, X, Y) the wheel's path
+    length where its centre passes the cell [m] (the nearest pose's plus the cell's offset
+    along the heading: cells behind the chunk's first pose come before it), bin (K, X, Y) int
+    arc bin of 2 cells along the wheel's path}.
     """
     p = poses.copy()
     p[:, 3] = np.unwrap(p[:, 3])
@@ -393,6 +391,7 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
     lateral = np.zeros(shape)
     pose = np.zeros(shape, dtype=np.int64)
     bins = np.zeros(shape, dtype=np.int64)
+    cell_arc = np.zeros(shape)
     ahead = np.zeros(shape, dtype=bool)
     behind = np.zeros(shape, dtype=bool)
     for k in range(K):
@@ -420,7 +419,8 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
         behind[sub] = (hit & (ii == 0) & (along < 0)).reshape(sh)
         pose[sub] = ii.reshape(sh)
         bins[sub] = np.floor(arc[ii] / (2 * grid.dx)).astype(np.int64).reshape(sh)
-    return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "bin": bins, "ahead": ahead,
+        cell_arc[sub] = np.where(hit, arc[ii] + along, 0.0).reshape(sh)
+    return {"poses": p, "dist": dist, "lateral": lateral, "pose": pose, "arc": cell_arc, "bin": bins, "ahead": ahead,
             "behind": behind, "dx": grid.dx}
 
 
