@@ -184,10 +184,12 @@ def poses_from(t, x, y, yaw, roll=None, pitch=None):
     return np.column_stack([t, x, y, z, z if roll is None else roll, z if pitch is None else pitch, yaw])
 
 
-def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05):
-    """East along y = 0 for L, half circle left, west along y = 2R, half circle left, east again."""
+def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05, offset=0.0):
+    """East along y = 0 for L, half circle left, west along y = 2R, half circle left (radius
+    R - offset / 2), east again along y = offset."""
     pts = []
-    s = np.arange(0, 2 * L + 2 * math.pi * R + L / 2, v * dt)
+    R2 = R - offset / 2
+    s = np.arange(0, 2 * L + math.pi * (R + R2) + L / 2, v * dt)
     for si in s:
         if si < L:
             pts.append((si, 0.0, 0.0))
@@ -196,10 +198,10 @@ def racetrack(R=1.5, L=4.0, v=1.0, dt=0.05):
             pts.append((L + R * math.sin(a), R - R * math.cos(a), a))
         elif si < 2 * L + math.pi * R:
             pts.append((L - (si - L - math.pi * R), 2 * R, math.pi))
-        elif si < 2 * L + 2 * math.pi * R:
-            a = (si - 2 * L - math.pi * R) / R
-            pts.append((-R * math.sin(a), R + R * math.cos(a), math.pi + a))
+        elif si < 2 * L + math.pi * (R + R2):
+            a = (si - 2 * L - math.pi * R) / R2
+            pts.append((-R2 * math.sin(a), 2 * R - R2 + R2 * math.cos(a), math.pi + a))
         else:
-            pts.append((si - 2 * L - 2 * math.pi * R, 0.0, 2 * math.pi))
+            pts.append((si - 2 * L - math.pi * (R + R2), offset, 2 * math.pi))
     p = np.array(pts)
     return poses_from(s / v, p[:, 0], p[:, 1], p[:, 2])

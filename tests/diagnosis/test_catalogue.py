@@ -19,10 +19,10 @@ REQUIRED = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage", "
 
 
 class Window:
-    """The two fields of a WindowData that extensions read."""
+    """The fields of a WindowData that extensions read."""
 
-    def __init__(self, geom):
-        self.geom = geom
+    def __init__(self, geom, grid=None):
+        self.geom, self.grid = geom, grid
         self.spec = type("S", (), {"s0": 0.0, "s1": 1.0})()
         self.crop = (0, 0, 0, 0)
 
@@ -41,7 +41,7 @@ def setup():
     rng = np.random.default_rng(0)
     h = torch.as_tensor(0.002 * rng.standard_normal(grid.shape))
     theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
-    return robot, drive, geom, h, theta
+    return robot, drive, geom, h, theta, grid
 
 
 def test_catalogue_holds_the_format_ids():
@@ -51,10 +51,10 @@ def test_catalogue_holds_the_format_ids():
 
 @pytest.mark.parametrize("ext_id", REQUIRED)
 def test_zero_coefficient_is_the_base_model(setup, ext_id):
-    robot, drive, geom, h, theta = setup
+    robot, drive, geom, h, theta, grid = setup
     model = ExtensionModel(CATALOGUE[ext_id], 0.0, drive, robot)
     a = simulate(h, geom, theta).h
-    b = simulate(h, geom, theta, modifiers=model.modifiers(Window(geom), theta)).h
+    b = simulate(h, geom, theta, modifiers=model.modifiers(Window(geom, grid), theta)).h
     assert torch.allclose(a, b, atol=1e-12)
 
 
@@ -76,7 +76,7 @@ def test_lateral_term_shifts_load_between_sides(setup):
 
 
 def test_wider_footprint_and_steeper_walls_change_the_rut(setup):
-    robot, drive, geom, h, theta = setup
+    robot, drive, geom, h, theta, _ = setup
     base = simulate(h, geom, theta).h
     wide = ExtensionModel(CATALOGUE["footprint_width"], 0.3, drive, robot)
     hw = simulate(h, geom, theta, modifiers=wide.modifiers(Window(geom), theta)).h
@@ -95,19 +95,23 @@ def test_coefficient_outside_bounds_is_named(setup):
         ExtensionModel(CATALOGUE["cohesive_walls"], -0.2, drive, robot)
 
 
-def _racetrack_hardening(view: str, dig_order: str = "robot"):
+def _racetrack_hardening(view: str, dig_order: str = "robot", offset: float = 0.0):
     """The hardening term at k = -0.5 on the racetrack: (arc (N,) of its poses [m], robot,
-    scale(sel) -> (K, n) sinkage factor of the poses sel)."""
+    scale(sel, wheels) -> the sinkage factors of the footprint cells of the poses sel under
+    the wheels `wheels` (K,) bool, within a quarter wheel width of the wheel's centre line)."""
     robot = paper_platform()
-    poses = racetrack()
+    poses = racetrack(offset=offset)
     drive = DriveSignals.from_poses(poses, robot)
-    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
+    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05 if offset == 0 else 0.01)
     theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
     model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, view, dig_order)
 
-    def scale(sel):
+    def scale(sel, wheels=None):
         geom = wheel_geometry(grid, poses[sel], robot, dtype=torch.float64)
-        return model.modifiers(Window(geom), theta).depth_scale[0]
+        f = model.modifiers(Window(geom, grid), theta).depth_scale[0]
+        wheels = torch.ones(len(robot.wheels), dtype=torch.bool) if wheels is None else wheels
+        core = (geom.lateral.abs() < robot.wheel_width / 4) & (geom.dist < robot.wheel_width / 4)
+        return f[core & wheels[geom.wheel]]
 
     return drive.signals["arc_length"], robot, scale
 
@@ -130,6 +134,36 @@ def test_hardening_counts_passes_as_the_pair_shows_them():
         _racetrack_hardening("newest")
 
 
+@pytest.mark.parametrize("view", ["first_view", "last_visit"])
+def test_hardening_acts_on_the_ground_a_wheel_pressed(view):
+    """The racetrack's last straight runs 0.2 m beside its first (0.07 m footprints): no
+    cell under its wheels was pressed before, so they dig fresh soil (factor 1). 0.05 m
+    beside it, a wheel's cells within a footprint radius of the first lap's wheel line
+    (0.07 m) sink at 1 + k, those more than one cell (0.01 m) beyond it at 1."""
+    arc, robot, scale = _racetrack_hardening(view, offset=0.2)
+    last = (arc > arc[-1] - 1.2) & (arc < arc[-1] - 0.2)
+    beside = scale(last)
+    assert len(beside) > 100
+    torch.testing.assert_close(beside, torch.ones_like(beside))
+
+    poses = racetrack(offset=0.05)
+    drive = DriveSignals.from_poses(poses, robot)
+    arc = drive.signals["arc_length"]
+    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.01)
+    geom = wheel_geometry(grid, poses[(arc > arc[-1] - 1.2) & (arc < arc[-1] - 0.2)], robot, dtype=torch.float64)
+    model = ExtensionModel(CATALOGUE["multi_pass_hardening"], -0.5, drive, robot, view, "robot")
+    theta = ParamSpec.base(2).make(1, d1=0.03, d2=0.03, chi=0.3, beta=0.5)
+    f = model.modifiers(Window(geom, grid), theta).depth_scale[0]
+    _, ys = grid.centers()
+    y = torch.as_tensor(ys)[geom.cell % grid.shape[1]]
+    old_line = torch.where(y > 0.0, torch.full_like(y, 0.5), torch.full_like(y, -0.5))  # first lap's wheels
+    under = geom.dist <= geom.radius
+    pressed, fresh = under & ((y - old_line).abs() <= 0.069), under & ((y - old_line).abs() >= 0.081)
+    assert pressed.sum() > 200 and fresh.sum() > 200
+    torch.testing.assert_close(f[pressed], torch.full_like(f[pressed], 0.5))
+    torch.testing.assert_close(f[fresh], torch.ones_like(f[fresh]))
+
+
 def test_hardening_counts_wheel_passes_when_the_wheels_dig_in_turn():
     """Under dig_order "wheel" a rear wheel in its front wheel's rut runs the second pass. On
     the racetrack's second lap (first view, k = -0.5), the front wheels find two earlier
@@ -138,9 +172,10 @@ def test_hardening_counts_wheel_passes_when_the_wheels_dig_in_turn():
     wheels dig fresh ground and the rear ones at 1/2."""
     arc, robot, scale = _racetrack_hardening("first_view", "wheel")
     front = torch.as_tensor(robot.wheels[:, 0] > 0)
-    first = scale((arc > 2.0) & (arc < 3.0))          # rear wheels on the front ones' ground
-    again = scale(arc > arc[-1] - 0.5)                 # base_link at x 1.5-2, rear wheels beyond 0.69
-    torch.testing.assert_close(first[front], torch.ones_like(first[front]))
-    torch.testing.assert_close(first[~front], torch.full_like(first[~front], 0.5))
-    torch.testing.assert_close(again[front], torch.full_like(again[front], 1 / 3))
-    torch.testing.assert_close(again[~front], torch.full_like(again[~front], 0.25))
+    first = (arc > 2.0) & (arc < 3.0)                  # rear wheels on the front ones' ground
+    again = arc > arc[-1] - 0.5                        # base_link at x 1.5-2, rear wheels beyond 0.69
+    for sel, f_front, f_rear in ((first, 1.0, 0.5), (again, 1 / 3, 0.25)):
+        got_front, got_rear = scale(sel, front), scale(sel, ~front)
+        assert len(got_front) > 10 and len(got_rear) > 10
+        torch.testing.assert_close(got_front, torch.full_like(got_front, f_front))
+        torch.testing.assert_close(got_rear, torch.full_like(got_rear, f_rear))

@@ -193,6 +193,31 @@ def test_multi_pass_hardening_second_pass_sinks_less():
     assert extra_hard < 0.7 * extra_plain
 
 
+def test_ground_the_robot_only_came_near_does_not_harden():
+    """Wheels digging all at once (dig order "robot", where hardening counts the robot's
+    visits): a loop whose second half-turn is 0.1 m tighter runs its last straight 0.2 m
+    beside the first one, each wheel 0.2 m from the first visit's wheel, beyond its footprint
+    (0.07 m) and the 0.03 m band where it deposits, but within the two wheel widths the world
+    counts as a visit. The ground there was never pressed, so hardening (k -0.6) leaves those
+    ruts as deep as without it; on the loop that runs over its own ruts they are shallower."""
+    beside = [{"straight": 2.5, "speed": 1.0}, {"arc": 1.4, "angle_deg": 180, "speed": 1.0},
+              {"straight": 2.5, "speed": 1.0}, {"arc": 1.3, "angle_deg": 180, "speed": 1.0},
+              {"straight": 3.0, "speed": 1.0}]
+    hard = {"multi_pass_hardening": {"form": "linear", "k": -0.6}}
+    depth = {}
+    for name, segs in (("beside", beside), ("over", LOOP)):
+        for fx_ in ("plain", "hard"):
+            scn = scenario(segs, effects=hard if fx_ == "hard" else None)
+            scn["world"] = {"dig_order": "robot"}
+            w = world(scn)
+            y_new = 0.2 if name == "beside" else 0.0
+            assert w.n_visits[np.ix_((w.grid.centers()[0] > 1.0) & (w.grid.centers()[0] < 2.0),
+                                     np.abs(w.grid.centers()[1] - y_new - 0.5) < 0.02)].min() == 2
+            depth[name, fx_] = np.mean([rut_depth(w, (1.0, 2.0), y_new + side, half=0.02) for side in (0.5, -0.5)])
+    assert depth["beside", "hard"] == pytest.approx(depth["beside", "plain"], abs=0.0005)
+    assert depth["over", "hard"] < depth["over", "plain"] - 0.005
+
+
 def test_speed_dependent_sinkage_deeper_when_faster():
     segs = [{"straight": 4.0, "speed": 0.5}, {"straight": 4.0, "speed": 1.5}]
     on = world(scenario(segs, {"speed_dependent_sinkage": {"k": 0.6}}, accel_limit=2.0))

@@ -7,7 +7,7 @@ saturation): the diagnosis must still name the term.
 
 | id | law | coefficient |
 | --- | --- | --- |
-| multi_pass_hardening | sinkage x (1 + n)^log2(1 + k), n earlier passes | k [-]: 2nd pass / 1st - 1 (< 0: hardening) |
+| multi_pass_hardening | sinkage x (1 + n)^log2(1 + k), n earlier passes over the cell | k [-]: 2nd / 1st - 1 |
 | speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)) | k [-] |
 | slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
 | lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
@@ -22,7 +22,9 @@ Passes follow a power law in the pass number (1 + n) rather than a line: a line 
 second pass's factor goes negative by the third pass of strong hardening, while soil hardens
 by ever smaller steps (each pass compacts what the last one left). Under the dig order
 "wheel" every wheel's pass counts (a rear wheel in its front wheel's rut runs the second),
-under "robot" the robot's visits.
+under "robot" the robot's visits. Passes are counted cell by cell under each footprint: ground
+hardens where a wheel pressed it, so a wheel that half overlaps an old rut sinks less over
+that half only, and one that runs beside it (a lane change, the end of a loop) digs fresh soil.
 """
 
 from __future__ import annotations
@@ -84,20 +86,14 @@ def get(ext_id: str) -> Extension:
 
 
 def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.ndarray, k: float,
-                 reference: dict[str, float], before: bool = False, by_wheel: bool = False) -> np.ndarray:
-    """(K, N) sinkage factor of a depth term at (N, 4) resampled poses t, x, y, yaw.
+                 reference: dict[str, float]) -> np.ndarray:
+    """(K, N) sinkage factor of a pose-driven depth term (speed, slip, lateral load) at (N, 4)
+    resampled poses t, x, y, yaw; multi-pass hardening acts cell by cell (`entry_passes`).
 
-    reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed). before:
-    count the passes before each pose's own (when every visit is simulated), not all but
-    the last (DriveSignals.passes). by_wheel: passes are wheel passes, not robot visits (the
-    wheels dig in turn, SimConfig.dig_order "wheel": a rear wheel in its front wheel's rut
-    runs a second pass)."""
+    reference: {signal: value} where the factor is 1 (e.g. the drive's mean speed)."""
     K, N = len(robot.wheels), len(poses4)
     t = poses4[:, 0]
-    if ext.id == "multi_pass_hardening":
-        n = drive.pose_passes(poses4, robot, before=before, by_wheel=by_wheel).astype(np.float64)
-        return np.clip((1.0 + n) ** math.log2(1.0 + k), 0.05, 10.0)
-    elif ext.id == "speed_dependent_sinkage":
+    if ext.id == "speed_dependent_sinkage":
         v0 = max(reference.get("speed", 1.0), 1e-3)
         x = np.broadcast_to(drive.at("speed", t) / v0 - 1.0, (K, N))
     elif ext.id == "slip_sinkage":
@@ -108,6 +104,27 @@ def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.n
     else:
         raise ValueError(f"{ext.id} is not a sinkage term")
     return np.clip(1.0 + k * x, 0.05, 10.0)
+
+
+def entry_passes(drive: DriveSignals, geom, grid, before: bool = False, by_wheel: bool = False) -> np.ndarray:
+    """(E,) earlier passes over the cell of each footprint entry of `geom` (WheelGeometry on
+    `grid`, one entry per cell under one wheel at its nearest pose): soil hardens where a wheel
+    pressed it, so an earlier wheel counts fully where its centre came within the footprint
+    radius of the cell, and its share fades to none one cell beyond (`DriveSignals.passes`;
+    before, by_wheel as there, at the arc of the entry's pose)."""
+    X, Y = geom.shape
+    cell = geom.cell.cpu().numpy()
+    xs, ys = grid.centers()
+    pts = np.stack([xs[cell // Y], ys[cell % Y]], 1)
+    arc = drive.at("arc_length", geom.poses[:, 0].cpu().numpy()[geom.pose.cpu().numpy()])
+    wheel = geom.wheel.cpu().numpy() if by_wheel else None
+    r = float(geom.radius)
+    return drive.passes(pts, arc, before, wheel, reach=(r, r + float(geom.dx)))
+
+
+def pass_factor(n: np.ndarray, k: float) -> np.ndarray:
+    """Sinkage factor (1 + n)^log2(1 + k) after n earlier passes, clipped to [0.05, 10]."""
+    return np.clip((1.0 + np.asarray(n, np.float64)) ** math.log2(1.0 + k), 0.05, 10.0)
 
 
 class ExtensionModel:
@@ -145,13 +162,17 @@ class ExtensionModel:
         if self.ext.kind == "depth":
             key = (wd.spec.s0, wd.spec.s1, wd.crop, int(geom.poses.shape[0]), float(geom.poses[0, 0]))
             if key not in self._cache:
-                poses4 = geom.poses.cpu().numpy()
-                f = depth_factor(self.ext, self.drive, self.robot, poses4, self.k, self.reference,
-                                 before=self.view == "first_view", by_wheel=self.by_wheel)
+                before = self.view == "first_view"
+                if self.ext.id == "multi_pass_hardening":       # (E,): cell by cell
+                    f = pass_factor(entry_passes(self.drive, geom, wd.grid, before, self.by_wheel), self.k)
+                else:                                           # (K, N): wheel by pose
+                    f = depth_factor(self.ext, self.drive, self.robot, geom.poses.cpu().numpy(), self.k,
+                                     self.reference)
                 self._cache[key] = torch.as_tensor(f, **kw)
                 if len(self._cache) > 64:          # the held-out offsets revisit windows up to 6 back
                     self._cache.pop(next(iter(self._cache)))
-            return Modifiers(depth_scale=self._cache[key][None].expand(B, -1, -1))
+            f = self._cache[key]
+            return Modifiers(depth_scale=f[None].expand(B, *f.shape))
         if self.ext.kind == "radius":
             return Modifiers(radius_scale=torch.full((B,), 1.0 + self.k, **kw))
         if self.ext.kind == "wall":

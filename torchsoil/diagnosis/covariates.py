@@ -88,9 +88,11 @@ class DriveSignals:
     the drive, resampled every `spacing` m; wheel_arc: (M,) base_link arc length there, m.
     inner, radius: an earlier wheel passing within `inner` m of a point (its footprint)
     counts as a full pass there, one passing `radius` m away or farther not at all, and in
-    between the share falls linearly: the load of a wheel compacts the soil beside its
-    footprint too, fading over about two wheel widths (a path that joins an old track at an
-    angle runs on compacted ground before its wheels meet the old ruts). gap: base_link
+    between the share falls linearly. For the `passes` covariate (where a window's poses run
+    near old tracks, for the location evidence) the share fades over about two wheel widths:
+    a path that joins an old track at an angle comes near it before its wheels meet the old
+    ruts. The hardening law itself counts the passes over each cell under a footprint
+    (`passes(reach=...)`, `catalogue.entry_passes`). gap: base_link
     travel [m] after which coming back counts as a new pass. wheel_of: (M,) index of the wheel
     each wheel point belongs to (needed to count wheel passes, `passes(wheel=...)`); lag:
     base_link travel [m] by which another wheel's pass must precede a wheel's own to count
@@ -129,7 +131,7 @@ class DriveSignals:
         return np.interp(np.asarray(t, np.float64), self.signals["t"], self.signals[name])
 
     def passes(self, points: np.ndarray, arc: np.ndarray, before: bool = False,
-               wheel: np.ndarray | None = None) -> np.ndarray:
+               wheel: np.ndarray | None = None, reach: tuple[float, float] | None = None) -> np.ndarray:
         """Passes before the last one over the ground at `points` (..., 2) [m]: distinct visits
         (separated by more than `gap` of base_link travel) of any wheel within `radius`, each
         weighted by its closest wheel's distance (1 within `inner`, falling linearly to 0 at
@@ -146,11 +148,15 @@ class DriveSignals:
         (the multi-pass count of wheels digging in turn, where a rear wheel runs on the ground
         its front wheel has just passed): the passes whose centre (the share-weighted mean arc
         of a wheel's hits) lies more than `lag` of travel before that wheel's own pass (the
-        pose's with `before`, else its last over the point)."""
+        pose's with `before`, else its last over the point).
+
+        reach: (inner, radius) [m] in place of the drive's (`inner`, `radius`): how near an
+        earlier wheel's centre must have come to count fully, and to count at all."""
         pts = np.asarray(points, np.float64).reshape(-1, 2)
+        inner, radius = (self.inner, self.radius) if reach is None else reach
         if self._tree is None:
             self._tree = cKDTree(self.wheel_points)
-        hits = self._tree.query_ball_point(pts, self.radius)
+        hits = self._tree.query_ball_point(pts, radius)
         n_hits = np.fromiter((len(h) for h in hits), np.int64, len(hits))
         out = np.zeros(len(pts))
         if n_hits.sum() == 0:
@@ -165,8 +171,8 @@ class DriveSignals:
         order = np.lexsort((a, kw, i))
         i, j, a, kw = i[order], j[order], a[order], kw[order]
         dist = np.linalg.norm(self.wheel_points[j] - pts[i], axis=1)
-        share = np.clip((self.radius - dist) / max(self.radius - self.inner, 1e-9), 0.0, 1.0)
-        split = self.radius if by_wheel else self.gap             # a wheel that left the disc came back
+        share = np.clip((radius - dist) / max(radius - inner, 1e-9), 0.0, 1.0)
+        split = radius if by_wheel else self.gap                  # a wheel that left the disc came back
         first = np.flatnonzero(np.r_[True, (i[1:] != i[:-1]) | (kw[1:] != kw[:-1]) | (np.diff(a) > split)])
         best = np.maximum.reduceat(share, first)                         # closest wheel of each visit
         owner = i[first]

@@ -22,7 +22,9 @@ MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avo
 class Modifiers(NamedTuple):
     """Hooks through which model extensions change the base physics (all optional).
 
-    depth_scale:   (B, K, N) factor on the sinkage of wheel k at resampled pose n.
+    depth_scale:   (B, K, N) factor on the sinkage of wheel k at resampled pose n, or (B, E)
+                   one per footprint entry (WheelGeometry.cell: a cell under one wheel), for
+                   soil that changes cell by cell (ground driven before).
     radius_scale:  (B,) factor on the footprint radius (contact patch wider or narrower).
     tan_beta_wall: (B,) tangent of the angle at which dug cells (rut walls and floor)
                    settle; deposits keep tan(beta).
@@ -93,7 +95,9 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     dt = theta.dtype
     fp = geom.nominal if modifiers.radius_scale is None else footprint(geom, modifiers.radius_scale, dt)
     depth = d[:, geom.track[geom.wheel]]                                   # (B, E)
-    if modifiers.depth_scale is not None:
+    if modifiers.depth_scale is not None and modifiers.depth_scale.ndim == 2:
+        depth = depth * modifiers.depth_scale.to(dt).expand(B, -1)
+    elif modifiers.depth_scale is not None:
         K, N = geom.n_wheels, geom.poses.shape[0]
         scale = modifiers.depth_scale.to(dt).reshape(B, K * N)
         depth = depth * scale[:, geom.wheel * N + geom.pose]

@@ -6,9 +6,10 @@ own cells (sinkage d and angle of repose beta per cell, chi per chunk). The refe
 height h~ of a cell is taken from the surface just before the robot's current visit to it,
 so both wheels of a track dig to the same depth and a later pass digs from the rut the
 earlier one left. A visit starts when a wheel comes near a cell after the robot has
-travelled more than `revisit_gap` since it last did. Multi-pass hardening counts those visits;
-when the axles dig in turn (world.dig_order "wheel") it counts wheel passes instead, so a rear
-wheel in its front wheel's rut runs the second pass.
+travelled more than `revisit_gap` since it last did. Multi-pass hardening counts the visits
+in which a footprint covered the cell (soil hardens where a wheel pressed it, not where the
+robot only came near); when the axles dig in turn (world.dig_order "wheel") it counts wheel
+passes instead, so a rear wheel in its front wheel's rut runs the second pass.
 """
 
 from __future__ import annotations
@@ -137,12 +138,15 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
 
     # dig_order "wheel": per turn r < R - 1, the surface the axles of turns <= r left in this visit
     # (no deposits), and per turn where its wheels dug in this visit; reset when the surface
-    # settles. wheel_passes: how many wheels dug each cell in the visits before (hardening
-    # counts wheel passes under "wheel", the robot's visits under "robot")
+    # settles. wheel_passes: how many wheels dug each cell in the visits before; dug_visits: in
+    # how many visits before a footprint covered it (hardening counts wheel passes under
+    # "wheel", the robot's visits under "robot": soil hardens where a wheel pressed it, not
+    # where the robot only came near)
     n_axles = len(np.unique(np.round(robot.wheels[:, 0], 6)))
     lead = [h.copy() for _ in range(n_axles - 1)] if config.dig_order == "wheel" else []
     turn_dug = np.zeros((n_axles if lead else 0, *grid.shape), dtype=bool)
     wheel_passes = np.zeros(grid.shape, dtype=np.int64)
+    dug_visits = np.zeros(grid.shape, dtype=np.int64)
 
     def settle(which: np.ndarray | None = None):
         """Relax the pending cells (those of `which`, default all) once, as one pass's digs."""
@@ -159,6 +163,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         h[box] = rr.h[0].numpy()
         done = sel.copy()
         pending[done] = False
+        dug_visits[done] += dug[done]
         dug[done] = False
         _start_visit(lead, turn_dug, wheel_passes, h, done)
 
@@ -221,7 +226,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         fcell = np.take_along_axis(fpose, pidx.reshape(K, -1), 1).reshape(pidx.shape)
         ref, turn = _turn_reference(h_ref[win], lead, turn_dug, win, gp, pidx, robot.wheels[:, 0],
                                     config.ref_radius * radius0, dx)
-        passes = _pass_index(n_visits[win], turn, turn_dug[:, i0:i1, j0:j1], wheel_passes[win])
+        passes = _pass_index(dug_visits[win], turn, turn_dug[:, i0:i1, j0:j1], wheel_passes[win])
         depth = (sf["d"][win][None] * track_scale[robot.track][:, None, None] * fcell
                  * np.asarray(fx.pass_depth_factor(eff, passes)))
         if "tread" in eff:          # a lug marks the cell where the wheel's centre passes it
@@ -283,14 +288,15 @@ def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray
         turn_dug[(slice(r, r + 1), *win)] |= (covered & (turn == r)).any(0)[None]
 
 
-def _pass_index(n_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndarray,
+def _pass_index(dug_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndarray,
                 wheel_passes: np.ndarray) -> np.ndarray:
-    """The pass each wheel runs over each cell, 1 = first: (1, X, Y) robot visits when the
-    wheels dig all at once (turn None); else (K, X, Y) wheel passes: those of earlier visits
+    """The pass each wheel runs over each cell, 1 = first: (1, X, Y) one plus the robot's
+    earlier visits whose footprints covered the cell (dug_visits) when the wheels dig all at
+    once (turn None); else (K, X, Y) wheel passes: those of earlier visits
     (wheel_passes (X, Y)) plus the turns before the wheel's own (turn (K, X, Y)) that dug the
     cell in this visit (turn_dug (R, X, Y)), plus one."""
     if turn is None:
-        return np.maximum(n_visits, 1)[None]
+        return dug_visits[None] + 1
     ahead = np.cumsum(turn_dug, 0) - turn_dug
     return wheel_passes[None] + np.take_along_axis(ahead, turn, 0) + 1
 
