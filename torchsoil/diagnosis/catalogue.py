@@ -107,8 +107,8 @@ def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.n
 
 
 def entry_passes(drive: DriveSignals, geom, grid, before: bool = False, by_wheel: bool = False) -> np.ndarray:
-    """(E,) earlier passes over the cell of each footprint entry of `geom` (WheelGeometry on
-    `grid`, one entry per cell under one wheel at its nearest pose): soil hardens where a wheel
+    """(E,) earlier passes over the cell of each entry of `geom` (WheelGeometry on `grid`: a
+    cell near one wheel's path, at the wheel's nearest pose to it): soil hardens where a wheel
     pressed it, so an earlier wheel counts fully where its centre came within the footprint
     radius of the cell, and its share fades to none one cell beyond (`DriveSignals.passes`;
     before, by_wheel as there, at the arc of the entry's pose)."""
