@@ -112,7 +112,7 @@ def entry_passes(drive: DriveSignals, geom, grid, before: bool = False, by_wheel
     pressed it, so an earlier wheel counts fully where its centre came within the footprint
     radius of the cell, and its share fades to none one cell beyond (`DriveSignals.passes`;
     before, by_wheel as there, at the arc of the entry's pose)."""
-    X, Y = geom.shape
+    Y = geom.shape[1]
     cell = geom.cell.cpu().numpy()
     xs, ys = grid.centers()
     pts = np.stack([xs[cell // Y], ys[cell % Y]], 1)
