@@ -18,9 +18,10 @@ import numpy as np
 import torch
 
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel
+from torchsoil.diagnosis.checkpoint import PassCache, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, paired_improvement
-from torchsoil.estimator import Estimator
+from torchsoil.estimator import Estimator, Stitcher
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.windows import WindowStore
 
@@ -37,7 +38,9 @@ class Pass:
     windows.PathIndex the pass used (shared by the passes of one diagnosis); nuisance: the map
     offset it removed from H_b (nuisance.MapNuisance or None; shared likewise); view: what
     H_f holds on revisited ground (Estimator.view; shared likewise); store: the prepared
-    windows (windows.WindowStore; shared likewise)."""
+    windows (windows.WindowStore; shared likewise). h_sim: (X, Y) simulated H_b over the
+    drive, each cell from the window whose centre is nearest (estimator.Stitcher), m, when
+    the pass was asked to stitch it."""
 
     k: float
     rows: list[dict]
@@ -50,6 +53,7 @@ class Pass:
     nuisance: object = None
     view: str | None = None
     store: object = None
+    h_sim: np.ndarray | None = None
 
     @property
     def held_out(self) -> np.ndarray:
@@ -64,7 +68,8 @@ class Pass:
 def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
              profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
-             index=None, nuisance=None, view: str | None = None, store: WindowStore | None = None) -> Pass:
+             index=None, nuisance=None, view: str | None = None, store: WindowStore | None = None,
+             stitch: bool = False, cache: PassCache | None = None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
     on_window: optional callable(k, WindowOutput, estimator) called after every window.
@@ -72,9 +77,20 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
     recomputing it; nuisance, view and store likewise (Pass.nuisance, Pass.view, Pass.store;
-    a new store when None)."""
+    a new store when None). stitch: also keep the simulated H_b over the drive (Pass.h_sim).
+    cache: where finished passes are kept (checkpoint.PassCache): a pass found there is read
+    back (on_window is then not called), a new one is saved."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
                           nuisance=nuisance, view=view, store=store if store is not None else WindowStore())
+    shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view,
+              "store": estimator.store}
+    label = "base" if model is None else model.ext.id
+    what = (None if model is None else model.k, section_of(pair), sim.dig_order, tuple(offsets), profiles, stitch,
+            None if theta0 is None else tuple(np.asarray(theta0.cpu(), np.float64).round(12).tolist()))
+    done = cache.load(label, what) if cache is not None else None
+    if done is not None:
+        return dataclasses.replace(done, **shared)
+    stitcher = Stitcher(pair.h_front.shape, estimator.index.s) if stitch else None
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
@@ -94,6 +110,8 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
             ok = o.fit is not None and back is not None and "few_valid" not in back.flags
             costs.append(estimator.predict(o.fit.theta, back)[1] if ok else np.nan)
         backward.append(costs)
+        if stitcher is not None and o.h_sim is not None:
+            stitcher.add(o.data, o.h_sim)
         if prof is not None and o.h_sim is not None:
             i0, i1, j0, j1 = o.data.crop
             c = o.row["s"]
@@ -104,9 +122,12 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
             on_window(k, o, estimator)
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
-    return Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
-                np.array(backward, np.float64).reshape(len(rows), len(offsets)), estimator.index,
-                estimator.nuisance, estimator.view, estimator.store)
+    out = Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
+               np.array(backward, np.float64).reshape(len(rows), len(offsets)),
+               h_sim=stitcher.h_sim if stitcher is not None else None, **shared)
+    if cache is not None:
+        cache.save(label, what, portable(out))
+    return out
 
 
 Section = tuple[float, float]
@@ -123,7 +144,7 @@ def with_section(pair, section: Section):
 
 
 def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int = 3, progress=None,
-                model: ExtensionModel | None = None, shared: dict | None = None
+                model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
                 ) -> tuple[Section, dict[Section, float], dict]:
     """The tyre section as a nuisance: the footprint taper (flat fraction f, exponent e;
     sim.sinkage.taper) that fits the drive best.
@@ -138,7 +159,8 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     extension with a fixed coefficient to fit the section under (a wider footprint and a
     fuller section both widen the rut: a footprint term must beat the base model at its
     best section, with the section it needs itself). shared: run_pass's index, nuisance and
-    view (and store), when already known. Returns (best (f, e), {(f, e): mean residual, m},
+    view (and store), when already known. cache: where each section's score is kept and read
+    back (checkpoint.PassCache). Returns (best (f, e), {(f, e): mean residual, m},
     {index, nuisance, view, store}: run_pass's keywords for later passes)."""
     own = section_of(pair)
     candidates = list(dict.fromkeys([own, *((float(f), float(e)) for f, e in sections)]))
@@ -150,9 +172,15 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
                               modifiers=model.modifiers if model is not None else None, **shared)
         shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view,
                   "store": estimator.store}
-        estimator.windows = estimator.windows[::max(1, every)]
-        res = [o.row["residual"] for o in estimator.run()]
-        costs[sec] = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+        what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
+        cost = cache.load("section", what) if cache is not None else None
+        if cost is None:
+            estimator.windows = estimator.windows[::max(1, every)]
+            res = [o.row["residual"] for o in estimator.run()]
+            cost = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+            if cache is not None:
+                cache.save("section", what, cost)
+        costs[sec] = cost
         if progress is not None:
             progress.set_postfix_str(f"tyre section f={sec[0]:.2f} e={sec[1]:.2f}")
     best = min(candidates, key=lambda c: (costs[c], c != own))
@@ -217,14 +245,16 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
 
 def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, drive: DriveSignals, base: Pass,
                   block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
-                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = ()) -> CandidateFit:
+                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
+                  cache: PassCache | None = None) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
     refinement, then two-fold cross-validated held-out costs and the paired comparison with
     the base pass (which must have been scored with the same `offsets`). sections: tyre
     sections (f, e) (`fit_section`) a footprint or wall term's passes choose their own from
     (the pair's is the base model's): a wider footprint and a fuller section both widen the
     rut, and steeper walls and a rounder section trade off (a flat tread's rut relaxed at the
-    soil's angle looks like a rounder tyre's standing)."""
+    soil's angle looks like a rounder tyre's standing). cache: where finished passes are kept and
+    read back (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
     shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view, "store": base.store}
     sec: dict[float, Section] = {0.0: section_of(pair)}
@@ -236,9 +266,9 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
         model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order)
         sec[k] = sec[0.0]
         if ext.kind in ("radius", "wall") and sections:
-            sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared)[0]
+            sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
         passes[k] = run_pass(with_section(pair, sec[k]), est, sim, model,
-                             profiles=True, theta0=theta0, offsets=offsets, **shared)
+                             profiles=True, theta0=theta0, offsets=offsets, cache=cache, **shared)
         if progress is not None:
             progress.update(1)
 

@@ -7,6 +7,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from torchsoil import provenance
+from torchsoil.diagnosis.checkpoint import PassCache
 from torchsoil.diagnosis.report import write_all
 from torchsoil.diagnosis.run import diagnose, n_steps
 from torchsoil.robot import Robot
@@ -14,7 +15,7 @@ from torchsoil.runner import load_input, pipeline_settings, run_record, torch_th
 from torchsoil.settings import Settings
 
 OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covariate.png", "cross_sections.png",
-           "prediction_costs.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline")
+           "prediction_costs.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "passes")
 
 
 def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
@@ -25,8 +26,10 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
 
     Writes out_dir/run.json (what made the folder; another run's folder is refused unless
     `overwrite`), diagnosis.json, report.md, figures and TensorBoard events; returns the
-    diagnosis.json dict. robot_yaml (`lidars:`) and extrinsics ({frame or topic: [x, y, z,
-    roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's. rows: a list that
+    diagnosis.json dict. Each finished estimator pass is kept in out_dir/passes
+    (checkpoint.PassCache): the same diagnosis run again into out_dir (after an interruption)
+    reads them back and runs only the rest. robot_yaml (`lidars:`) and extrinsics ({frame or
+    topic: [x, y, z, roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's. rows: a list that
     receives the base model's window rows (params.csv rows: s [m], d1..dT [m], chi, beta [deg],
     costs [m], flags), for summaries of many diagnoses (torchsoil.fleet)."""
     settings = settings or Settings()
@@ -38,7 +41,10 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
     cfg = settings.diagnosis
     with torch_threads(threads), tqdm(total=n_steps(cfg), unit="pass", desc="diagnosing",
                                       disable=not progress) as bar:
-        diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar)
+        key = provenance.cache_key(record, "sim", "estimator", "diagnosis", "pipeline") | {
+            "torchsoil": record["torchsoil"]}
+        diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar,
+                        cache=PassCache(out / "passes", key))
         bar.update(bar.total - bar.n)
     if rows is not None:
         rows.extend(diag.base.rows)

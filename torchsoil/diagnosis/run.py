@@ -10,6 +10,7 @@ import numpy as np
 from scipy import stats
 
 from torchsoil.diagnosis import catalogue
+from torchsoil.diagnosis.checkpoint import PassCache
 from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, window_signals
 from torchsoil.diagnosis.fit import (
     CandidateFit,
@@ -22,7 +23,6 @@ from torchsoil.diagnosis.fit import (
     with_section,
 )
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
-from torchsoil.estimator import Stitcher
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 
 
@@ -167,7 +167,8 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
                                                    f"held-out cost vs change r = {c2.r:+.2f} (n_eff {c2.n_eff:.1f})"}
 
 
-def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None):
+def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None,
+                       cache: PassCache | None = None):
     """The tyre section and the dig order as nuisances (`fit_section`; SimConfig.dig_order):
     the section searched over cfg.sections under sim's order, then each other order of
     cfg.dig_orders at the best few sections; the lowest mean window residual wins.
@@ -183,11 +184,11 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     def best_few(costs):
         return tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
 
-    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress)
+    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache)
     orders, tried = {sim.dig_order: costs[best]}, best_few(costs)
     for order in dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order):
         alt = sim.replace(dig_order=order)
-        b, c, shared = fit_section(pair, est, alt, tried, shared=shared)
+        b, c, shared = fit_section(pair, est, alt, tried, shared=shared, cache=cache)
         orders[order] = c[b]
         if c[b] < costs[best]:
             sim, best, costs = alt, b, c
@@ -200,28 +201,24 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
 
 
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
-             sim: SimConfig | None = None, progress=None) -> Diagnosis:
+             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
     estimator and simulator settings (their sections; defaults when None). progress:
-    optional tqdm-like bar (update(n))."""
+    optional tqdm-like bar (update(n)). cache: where the finished passes are kept
+    (checkpoint.PassCache): a diagnosis run again with the same cache reads them back, so an
+    interrupted one resumes where it stopped."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress)
+    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache)
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
     window, stride = est.window, est.stride
-    holder: dict = {}
 
-    def keep(k, o, est):
-        if "stitch" not in holder:
-            holder["stitch"] = Stitcher(pair.h_front.shape, est.index.s)
-            holder["s"] = est.index.s
-            holder["h_back"] = est.h_back
-        if o.h_sim is not None:
-            holder["stitch"].add(o.data, o.h_sim)
+    def tell(k, o, est):
         if progress is not None and k % 5 == 0:
             progress.set_postfix_str(f"base window {k}")
 
-    base = run_pass(pair, est, sim, profiles=True, on_window=keep, offsets=cfg.offsets, **shared)
+    base = run_pass(pair, est, sim, profiles=True, on_window=tell, offsets=cfg.offsets, stitch=True, cache=cache,
+                    **shared)
     if progress is not None:
         progress.update(1)
     rows = base.rows
@@ -248,7 +245,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
-                          theta0, progress, cfg.offsets, tried)
+                          theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
@@ -330,10 +327,10 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     }
     from torchsoil.diagnosis.report import explain
 
-    nan_map = np.full(pair.h_back.shape, np.nan)
-    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov},
-                     holder["stitch"].h_sim - holder["h_back"] if "stitch" in holder else nan_map,
-                     holder.get("s", np.full(pair.h_back.shape, np.nan)))
+    h_back = np.asarray(pair.h_back, np.float64)
+    if base.nuisance is not None:
+        h_back = h_back - base.nuisance.field               # as the estimator fitted it (Estimator.h_back)
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, base.h_sim - h_back, base.index.s)
     summary["explanation"] = explain(diag)
     return diag
 

@@ -1,0 +1,105 @@
+"""A diagnosis keeps its finished passes and, run again, resumes from them: the kept results
+read back as written, another run's folder is emptied rather than reused, a damaged file is
+recomputed, and an interrupted diagnosis ends with the verdict and costs of one run straight
+through, running only the passes it had not finished."""
+
+import json
+
+import numpy as np
+import pytest
+
+from torchsoil.diagnosis import DiagnosisConfig, diagnose
+from torchsoil.diagnosis import fit as fit_module
+from torchsoil.diagnosis.checkpoint import KEY_FILE, PassCache
+from torchsoil.diagnosis.study_cases import scenario
+from torchsoil.synth.scenario import make_terrain_pair
+from torchsoil.terrain import TerrainPair
+
+
+def test_kept_values_read_back_under_their_own_name_only(tmp_path):
+    cache = PassCache(tmp_path / "p", {"input": "a"})
+    value = {"rows": [{"s": 0.4, "d1": 0.03}], "costs": np.arange(5.0)}
+    cache.save("base", (0.0, (0.5, 1.0), "robot"), value)
+    back = cache.load("base", (0.0, (0.5, 1.0), "robot"))
+    assert back["rows"] == value["rows"] and np.array_equal(back["costs"], value["costs"])
+    assert cache.load("base", (0.0, (0.5, 1.0), "wheel")) is None           # another dig order
+    assert cache.load("speed_dependent_sinkage", (0.0, (0.5, 1.0), "robot")) is None
+    assert cache.hits == 1 and len(cache) == 1
+    assert not list((tmp_path / "p").glob("*.tmp"))
+
+
+def test_another_runs_folder_is_emptied_and_the_same_runs_kept(tmp_path):
+    PassCache(tmp_path / "p", {"input": "a"}).save("base", (1,), 1.5)
+    assert PassCache(tmp_path / "p", {"input": "a"}).load("base", (1,)) == 1.5
+    other = PassCache(tmp_path / "p", {"input": "b"})
+    assert other.load("base", (1,)) is None and len(other) == 0
+    assert json.loads((tmp_path / "p" / KEY_FILE).read_text()) == {"input": "b"}
+
+
+def test_a_damaged_file_is_recomputed_not_trusted(tmp_path):
+    cache = PassCache(tmp_path / "p", {"input": "a"})
+    cache.save("base", (1,), list(range(1000)))
+    path = next((tmp_path / "p").glob("base-*.pkl"))
+    path.write_bytes(path.read_bytes()[:100])                                 # cut off mid-write
+    assert cache.load("base", (1,)) is None
+
+
+class Interrupt(Exception):
+    pass
+
+
+class StopAfter:
+    """A progress bar that interrupts the diagnosis after n passes (as a killed job would)."""
+
+    def __init__(self, n):
+        self.n = n
+
+    def update(self, k=1):
+        self.n -= k
+        if self.n <= 0:
+            raise Interrupt
+
+    def set_postfix_str(self, text):
+        pass
+
+
+@pytest.fixture(scope="module")
+def short_drive():
+    sc = scenario("speed_dependent_sinkage")
+    sc["trajectory"] = {"segments": [{"straight": 3.0, "speed": 1.3}, {"straight": 3.0, "speed": 0.6}]}
+    return TerrainPair.from_mapping(make_terrain_pair(sc, seed=3))
+
+
+def test_an_interrupted_diagnosis_resumes_and_ends_as_one_run_straight_through(tmp_path, short_drive, monkeypatch):
+    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
+    straight = diagnose(short_drive, cfg).summary
+
+    cache = PassCache(tmp_path / "passes", {"input": "short"})
+    with pytest.raises(Interrupt):
+        diagnose(short_drive, cfg, progress=StopAfter(3), cache=cache)
+    kept = len(cache)
+    assert kept >= 2                                          # the base pass and a candidate's
+
+    runs = []
+    original = fit_module.Estimator.run
+    monkeypatch.setattr(fit_module.Estimator, "run", lambda self, *a, **k: runs.append(1) or original(self, *a, **k))
+    again = PassCache(tmp_path / "passes", {"input": "short"})
+    resumed = diagnose(short_drive, cfg, cache=again).summary
+    assert again.hits == kept and runs and len(runs) == len(again) - kept
+    assert resumed == straight
+
+
+def test_the_command_run_again_into_its_folder_reads_every_pass_back(tmp_path, short_drive, monkeypatch):
+    from torchsoil.diagnosis.job import diagnose_input
+    from torchsoil.settings import load_settings
+
+    short_drive.save(tmp_path / "short.npz")
+    settings = load_settings(overrides=["diagnosis.n_fit=1", "diagnosis.sections=[]", "diagnosis.dig_orders=[]",
+                                        "diagnosis.refine_steps=0"])
+    first = diagnose_input(tmp_path / "short.npz", tmp_path / "out", settings, progress=False, tensorboard=False)
+    runs = []
+    original = fit_module.Estimator.run
+    monkeypatch.setattr(fit_module.Estimator, "run", lambda self, *a, **k: runs.append(1) or original(self, *a, **k))
+    again = diagnose_input(tmp_path / "short.npz", tmp_path / "out", settings, progress=False, tensorboard=False)
+    assert runs == [] and again == first
+    assert json.loads((tmp_path / "out" / "diagnosis.json").read_text()) == json.loads(json.dumps(first))
