@@ -65,6 +65,12 @@ class Pass:
         return np.where(n > 0, total / np.maximum(n, 1), np.nan)
 
 
+def shared_of(done) -> dict:
+    """run_pass's keywords for later passes over the same pair (index, nuisance, view, store),
+    from an Estimator or a Pass."""
+    return {"index": done.index, "nuisance": done.nuisance, "view": done.view, "store": done.store}
+
+
 def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
              profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
@@ -82,8 +88,7 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     back (on_window is then not called), a new one is saved."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
                           nuisance=nuisance, view=view, store=store if store is not None else WindowStore())
-    shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view,
-              "store": estimator.store}
+    shared = shared_of(estimator)
     label = "base" if model is None else model.ext.id
     what = (None if model is None else model.k, section_of(pair), sim.dig_order, tuple(offsets), profiles, stitch,
             None if theta0 is None else tuple(np.asarray(theta0.cpu(), np.float64).round(12).tolist()))
@@ -170,8 +175,7 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     for sec in candidates:
         estimator = Estimator(with_section(pair, sec), est, sim,
                               modifiers=model.modifiers if model is not None else None, **shared)
-        shared = {"index": estimator.index, "nuisance": estimator.nuisance, "view": estimator.view,
-                  "store": estimator.store}
+        shared = shared_of(estimator)
         what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
         cost = cache.load("section", what) if cache is not None else None
         if cost is None:
@@ -256,7 +260,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     soil's angle looks like a rounder tyre's standing). cache: where finished passes are kept and
     read back (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
-    shared = {"index": base.index, "nuisance": base.nuisance, "view": base.view, "store": base.store}
+    shared = shared_of(base)
     sec: dict[float, Section] = {0.0: section_of(pair)}
 
     def run(k: float) -> None:
