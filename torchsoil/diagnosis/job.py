@@ -43,9 +43,11 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
                                       disable=not progress) as bar:
         key = provenance.cache_key(record, "sim", "estimator", "diagnosis", "pipeline") | {
             "torchsoil": record["torchsoil"]}
-        diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar,
-                        cache=PassCache(out / "passes", key))
+        cache = PassCache(out / "passes", key)
+        diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar, cache=cache)
         bar.update(bar.total - bar.n)
+    if cache.hits and progress:
+        tqdm.write(f"resumed: {cache.hits} finished passes and section scores read back from {cache.dir}")
     if rows is not None:
         rows.extend(diag.base.rows)
     write_all(diag, pair, out, Path(input_path).name, tb=tensorboard)
