@@ -1,13 +1,18 @@
 """Diagnosis benchmark: wall time of a whole diagnosis of the 20 m `speed_dependent_sinkage`
-drive (10 m with quick=True) and what it found (fitted coefficient, held-out z, costs)."""
+drive (10 m with quick=True) and what it found (fitted coefficient, held-out z, costs); the
+same diagnosis run again on its kept passes (`diagnosis.checkpoint`, an interrupted run's
+resume); and, without quick, the time per window of the base pass and of a hardening
+candidate's pass on out-and-back drives 20 and 100 m long (a diagnosis grows with the drive)."""
 
 from __future__ import annotations
 
+import tempfile
 import time
 
 
 def run(quick: bool = False) -> dict[str, float]:
     from torchsoil.diagnosis import diagnose
+    from torchsoil.diagnosis.checkpoint import PassCache
     from torchsoil.settings import merge
     from torchsoil.synth.scenario import load_scenario, make_terrain_pair
     from torchsoil.terrain import TerrainPair
@@ -18,12 +23,22 @@ def run(quick: bool = False) -> dict[str, float]:
             "segments": [{"straight": 2.0, "speed": v} for v in (1.0, 0.5, 1.5, 0.6, 1.4)],
             "accel_limit": 1.0}}))
     pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=0))
-    t0 = time.perf_counter()
-    diag = diagnose(pair)
-    secs = time.perf_counter() - t0
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        diag = diagnose(pair, cache=PassCache(tmp, {"bench": "diagnosis"}))
+        secs = time.perf_counter() - t0
+        again = PassCache(tmp, {"bench": "diagnosis"})
+        t0 = time.perf_counter()
+        diagnose(pair, cache=again)
+        resume = time.perf_counter() - t0
     fit = {f.ext.id: f for f in diag.fits}.get("speed_dependent_sinkage")
     s = diag.summary
+    scaling = {} if quick else {f"diagnosis_{name}_ms_per_window_{length}m": v
+                                for length in (20, 100) for name, v in _pass_times(length).items()}
     return {
+        **scaling,
+        "diagnosis_resume_seconds": resume,
+        "diagnosis_passes_kept": float(again.hits),
         "diagnosis_seconds": secs,
         "diagnosis_named_speed": float(s["missing_physics"] == "speed_dependent_sinkage"),
         "diagnosis_k_speed": fit.k if fit else float("nan"),
@@ -31,3 +46,32 @@ def run(quick: bool = False) -> dict[str, float]:
         "diagnosis_prediction_before_mm": 1e3 * s["cost_before"]["prediction"],
         "diagnosis_prediction_after_mm": 1e3 * s["cost_after"]["prediction"],
     }
+
+
+def _pass_times(length: float) -> dict[str, float]:
+    """ms per window of the base pass (preparing the windows too) and of a hardening pass at
+    k -0.5 (windows prepared), on an out-and-back drive of `length` m."""
+    from torchsoil.diagnosis.catalogue import ExtensionModel, get
+    from torchsoil.diagnosis.covariates import DriveSignals
+    from torchsoil.diagnosis.fit import run_pass, shared_of
+    from torchsoil.diagnosis.study_cases import scenario
+    from torchsoil.settings import Settings
+    from torchsoil.synth.scenario import make_terrain_pair
+    from torchsoil.terrain import TerrainPair
+
+    sc = scenario("multi_pass_hardening")
+    sc["trajectory"] = {"segments": [{"straight": length / 2, "speed": 1.0},
+                                     {"arc": 1.5, "angle_deg": 180, "speed": 0.8},
+                                     {"straight": length / 2, "speed": 1.0}]}
+    pair = TerrainPair.from_mapping(make_terrain_pair(sc, seed=1))
+    st = Settings()
+    t0 = time.perf_counter()
+    base = run_pass(pair, st.estimator, st.sim, profiles=True)
+    t_base = time.perf_counter() - t0
+    model = ExtensionModel(get("multi_pass_hardening"), -0.5, DriveSignals.from_poses(pair.poses, pair.robot),
+                           pair.robot, base.view, st.sim.dig_order)
+    t0 = time.perf_counter()
+    run_pass(pair, st.estimator, st.sim, model, profiles=True, **shared_of(base))
+    t_hard = time.perf_counter() - t0
+    n = len(base.rows)
+    return {"base_pass": 1e3 * t_base / n, "hardening_pass": 1e3 * t_hard / n}

@@ -118,3 +118,25 @@ def test_estimator_removes_a_map_offset():
     assert e.nuisance.offset == pytest.approx(0.002, abs=3e-4)
     assert all(r["map_offset"] == pytest.approx(0.002, abs=4e-4) for r in rows)
     assert np.abs(on[:, :2] - ref[:, :2]).mean() < 0.5 * np.abs(off[:, :2] - ref[:, :2]).mean()
+
+
+def test_drift_along_the_drive_solved_banded_as_the_dense_robust_fit_would():
+    # the drift's hat basis is fitted without forming it (tridiagonal normal equations); the
+    # same Huber fit on the dense basis, built here by interpolating each knot's unit vector
+    # and solved by numpy's lstsq, gives the same knot values and robust std
+    from torchsoil.nuisance import _huber_hats, _huber_lstsq
+
+    rng = np.random.default_rng(4)
+    knots = np.linspace(0.0, 40.0, 9)
+    s = np.sort(rng.uniform(-1.0, 41.0, 3000))                # a few positions beyond the ends
+    s = s[(s < 14.0) | (s > 21.0)]                             # a knot (at 15 and 20 m) few cells reach
+    truth = np.sin(knots / 7.0) * 1e-3
+    y = np.interp(s, knots, truth) + rng.normal(0.0, 3e-4, len(s))
+    y[rng.choice(len(s), 60, replace=False)] += 0.01          # outliers the Huber weights put down
+    dense = np.stack([np.interp(s, knots, np.eye(len(knots))[i]) for i in range(len(knots))], axis=1)
+    for ridge in (50.0, 2.0):
+        want, want_sigma = _huber_lstsq(dense, y, ridge=ridge)
+        got, got_sigma = _huber_hats(s, knots, y, ridge=ridge)
+        assert np.allclose(got, want, rtol=0, atol=1e-12) and math.isclose(got_sigma, want_sigma, rel_tol=1e-9)
+    reached = [0, 1, 2, 5, 6, 7, 8]                            # with a light ridge, the drift put in
+    assert np.abs(got[reached] - truth[reached]).max() < 1e-4
