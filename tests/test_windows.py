@@ -10,7 +10,7 @@ from torchsoil.settings import EstimatorConfig
 from torchsoil.sim import SimConfig
 from torchsoil.sim.geometry import wheel_positions
 from torchsoil.terrain import TerrainPair
-from torchsoil.windows import WindowStore, _stopped, front_view, path_index, plan_windows, prepare_window
+from torchsoil.windows import WindowStore, _latest_hit, _stopped, front_view, path_index, plan_windows, prepare_window
 
 
 def test_plan_windows():
@@ -115,6 +115,24 @@ def test_ground_belongs_to_the_last_pass_whose_wheels_went_over_it(pair):
     assert s_at[0.0] == pytest.approx(back_s, abs=0.05)     # under the return's left wheel
     assert s_at[-0.5] == pytest.approx(1.5, abs=0.05)
     assert s_at[1.0] == pytest.approx(back_s, abs=0.05)
+
+
+def test_latest_hit_matches_a_search_of_every_point():
+    """The chunked backward search against all (K, N) points at once, on a path that crosses
+    itself (a figure eight, two wheels), with one radius for all cells and one per cell: the
+    latest point index within the radius, -1 where none is."""
+    rng = np.random.default_rng(3)
+    u = np.linspace(0, 4 * np.pi, 1500)
+    centre = np.column_stack([2 * np.sin(u / 2), np.sin(u)])
+    points = np.stack([centre + [0, 0.3], centre - [0, 0.3]])               # (2, N, 2)
+    cells = rng.uniform([-2.5, -1.5], [2.5, 1.5], (3000, 2))
+    dist = np.linalg.norm(points[:, None] - cells[None, :, None], axis=-1)   # (K, C, N)
+    for radius in (0.1, rng.uniform(0.0, 0.4, len(cells))):
+        within = (dist <= np.broadcast_to(radius, (len(cells),))[None, :, None]).any(0)
+        want = np.where(within.any(1), within.shape[1] - 1 - np.argmax(within[:, ::-1], 1), -1)
+        got = _latest_hit(cells, points, radius, chunk=97)
+        assert (want >= 0).sum() > 500 and (want < 0).sum() > 100
+        np.testing.assert_array_equal(got, want)
 
 
 def _ruts(grid: Grid, poses: np.ndarray, robot, depth: float, sigma: float = 0.03) -> np.ndarray:

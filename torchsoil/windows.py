@@ -67,55 +67,66 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch:
     if len(again):
         touch = robot.wheel_width if touch is None else touch
         span = 2 * (np.abs(robot.wheels[:, 0]).max() + touch)
-        last = _last_wheel_pass(cells[again], dense[:, 1:3], wheels, dense_arc, touch, span)
+        last = _last_wheel_pass(cells[again], dense[:, 1:3], wheels, dense_arc, touch, span, i[again])
         i[again[last >= 0]] = last[last >= 0]
         rest = again[last < 0]
         if len(rest):
-            near = tree.query_ball_point(cells[rest], r=d[rest] + 2 * grid.dx, return_sorted=False)
-            i[rest] = [max(k) for k in near]
+            i[rest] = _latest_hit(cells[rest], dense[None, :, 1:3], d[rest] + 2 * grid.dx)
     s = np.full(len(cells), np.nan)
     s[hit] = dense_arc[i[hit]]
     wd, _ = cKDTree(wheels.reshape(-1, 2)).query(cells, distance_upper_bound=reach)
     return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc)
 
 
-def _latest_hit(cells: np.ndarray, wheels: np.ndarray, touch: float, chunk: int = 200) -> np.ndarray:
-    """(C,) latest path point index whose (K, N, 2) wheel positions came within `touch` [m] of
-    each (C, 2) cell, -1 where none did. The path is searched backwards `chunk` points at a
-    time, and a cell leaves the search at its first hit: only the latest pass's points are
-    gathered, not every pass's (a lawn's cells lie under two)."""
-    n = wheels.shape[1]
+def _latest_hit(cells: np.ndarray, points: np.ndarray, radius, chunk: int = 200) -> np.ndarray:
+    """(C,) latest index n whose (K, N, 2) points[:, n] came within `radius` [m] (a scalar or one
+    per cell, (C,)) of each (C, 2) cell, -1 where none did. The path is searched backwards
+    `chunk` points at a time, over the cells near that stretch only, and a cell leaves the
+    search at its first hit: the work grows with the drive's length, not with its square."""
+    radius = np.broadcast_to(np.asarray(radius, dtype=float), (len(cells),))
+    n = points.shape[1]
     last = np.full(len(cells), -1)
-    todo = np.arange(len(cells))
+    if len(cells) == 0:
+        return last
+    pending = np.ones(len(cells), dtype=bool)
+    cell_tree = cKDTree(cells)
+    r_max = float(radius.max())
     for b in range(n, 0, -chunk):
         a = max(0, b - chunk)
-        pts = wheels[:, a:b].reshape(-1, 2)
-        c = todo[np.all((cells[todo] >= pts.min(0) - touch) & (cells[todo] <= pts.max(0) + touch), axis=1)]
+        pts = points[:, a:b].reshape(-1, 2)
+        lo, hi = pts.min(0), pts.max(0)
+        near = np.asarray(cell_tree.query_ball_point((lo + hi) / 2, np.hypot(*(hi - lo)) / 2 + r_max), dtype=np.int64)
+        c = near[pending[near]] if len(near) else near
         if len(c) == 0:
             continue
-        hits = cKDTree(pts).query_ball_point(cells[c], r=touch, return_sorted=False)
+        hits = cKDTree(pts).query_ball_point(cells[c], r=radius[c], return_sorted=False)
         counts = np.fromiter(map(len, hits), np.int64, len(hits))
         sel = np.flatnonzero(counts)
         if len(sel):
             flat = np.fromiter(chain.from_iterable(hits), np.int64, int(counts.sum())) % (b - a)
             last[c[sel]] = np.maximum.reduceat(flat, (np.cumsum(counts) - counts)[sel]) + a
-            todo = np.setdiff1d(todo, c[sel], assume_unique=True)
-            if len(todo) == 0:
+            pending[c[sel]] = False
+            if not pending.any():
                 break
     return last
 
 
 def _last_wheel_pass(cells: np.ndarray, xy: np.ndarray, wheels: np.ndarray, arc: np.ndarray, touch: float,
-                     span: float, chunk: int = 20000) -> np.ndarray:
+                     span: float, nearest: np.ndarray, chunk: int = 20000) -> np.ndarray:
     """(C,) index of the path point nearest each (C, 2) cell among the (N, 2) points of the
     last pass whose (K, N, 2) wheel positions came within `touch` [m] of it: the points up
-    to `span` m of arc before the last one with a wheel that near; -1 where no wheel was."""
+    to `span` m of arc before the last one with a wheel that near; -1 where no wheel was.
+    `nearest` (C,) is each cell's nearest point on the whole path: where it lies in that
+    pass it is the answer, and only the other cells are searched."""
     last = _latest_hit(cells, wheels, touch)
     out = np.full(len(cells), -1)
     sel = np.flatnonzero(last >= 0)
+    lo = np.searchsorted(arc, arc[last[sel]] - span)
+    inside = (nearest[sel] >= lo) & (nearest[sel] <= last[sel])
+    out[sel[inside]] = nearest[sel[inside]]
+    sel, lo = sel[~inside], lo[~inside]
     if len(sel) == 0:
         return out
-    lo = np.searchsorted(arc, arc[last[sel]] - span)
     width = int((last[sel] - lo).max()) + 1
     for a in range(0, len(sel), chunk):
         c, j, lo_c = sel[a:a + chunk], last[sel[a:a + chunk]], lo[a:a + chunk]
