@@ -1,5 +1,6 @@
 import numpy as np
 import pytest
+import torch
 from scipy.spatial import cKDTree
 
 from tests.drive_by_hand import racetrack
@@ -51,6 +52,24 @@ def test_prepare_window_masks(pair):
     assert ground_x.min() >= spec.s0 - 0.03 and ground_x.max() <= spec.s1 + 0.03
     assert (wd.weight.numpy() > 0).sum() > 0.9 * (wd.ground.numpy() & (wd.weight.numpy() > 0)).sum()
     assert not (wd.floor.numpy() & (wd.weight.numpy() > 0)).any()  # beside the rut, not in it
+
+
+def test_a_window_holds_its_crop_and_not_the_whole_grid(pair):
+    """A window's ground is the cells whose arc length falls in its span, within half the
+    corridor of the path (as read off the full grid), and every tensor it keeps owns only
+    the crop's memory: a view into a full-grid array would keep that array alive per window,
+    memory that grows with the drive's length times its grid."""
+    idx = path_index(pair.grid, pair.poses, pair.robot, 1.6)
+    est = EstimatorConfig()
+    for spec in plan_windows(3.0, 0.8, 0.4)[1:4]:
+        full = (idx.s >= spec.s0) & (idx.s < spec.s1) & (idx.offset <= est.corridor / 2)
+        np.testing.assert_array_equal(idx.ground(spec.s0, spec.s1, est.corridor), np.argwhere(full))
+        wd = prepare_window(pair, idx, spec, est, SimConfig())
+        i0, i1, j0, j1 = wd.crop
+        np.testing.assert_array_equal(wd.ground.numpy(), full[i0:i1, j0:j1])
+        for name in ("h_front", "h_ref", "h_back", "h_measured", "weight", "floor", "ground"):
+            t = getattr(wd, name)
+            assert t.untyped_storage().nbytes() == t.numel() * t.element_size(), name
 
 
 def test_unmeasured_window_is_flagged(pair):
@@ -231,7 +250,8 @@ def test_a_window_simulates_every_wheel_pass_over_its_ground(lap_and_a_half):
 
 
 def test_a_full_window_store_prepares_anew_instead_of_growing():
-    store, made = WindowStore(max_windows=2), []
+    """A store of 2 kB keeps the first two 1 kB windows (128 float64 each) and no more."""
+    store, made = WindowStore(max_bytes=2048), []
     for key in (1, 2, 3, 3, 1):
-        store.get(key, lambda k=key: made.append(k) or k)
-    assert made == [1, 2, 3, 3] and len(store) == 2
+        store.get(key, lambda k=key: made.append(k) or (torch.zeros(64, dtype=torch.float64), np.zeros(64)))
+    assert made == [1, 2, 3, 3] and len(store) == 2 and store.nbytes == 2048

@@ -26,13 +26,26 @@ class PathIndex(NamedTuple):
 
     s: arc length of the nearest base_link path point, m. offset: distance to the base_link
     path, m. wheel_dist: distance to the nearest wheel path, m. arc: (N,) arc length at each
-    pose, m.
+    pose, m. order: flat indices of the cells with a finite s, sorted by s, and s_sorted their
+    s (so that a window finds its ground without a pass over the whole grid).
     """
 
     s: np.ndarray
     offset: np.ndarray
     wheel_dist: np.ndarray
     arc: np.ndarray
+    order: np.ndarray | None = None
+    s_sorted: np.ndarray | None = None
+
+    def ground(self, s0: float, s1: float, corridor: float) -> np.ndarray:
+        """(G, 2) cells (i, j), in row-major order, whose s lies in [s0, s1) [m] and that lie
+        within corridor / 2 [m] of the base_link path."""
+        if self.order is None:
+            return np.argwhere((self.s >= s0) & (self.s < s1) & (self.offset <= corridor / 2))
+        a, b = np.searchsorted(self.s_sorted, [s0, s1])
+        flat = np.sort(self.order[a:b])
+        flat = flat[self.offset.ravel()[flat] <= corridor / 2]
+        return np.stack(np.unravel_index(flat, self.s.shape), 1)
 
 
 def path_arc(poses: np.ndarray) -> np.ndarray:
@@ -75,7 +88,9 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch:
     s = np.full(len(cells), np.nan)
     s[hit] = dense_arc[i[hit]]
     wd, _ = cKDTree(wheels.reshape(-1, 2)).query(cells, distance_upper_bound=reach)
-    return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc)
+    order = np.flatnonzero(np.isfinite(s))
+    order = order[np.argsort(s[order], kind="stable")]
+    return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc, order, s[order])
 
 
 def _latest_hit(cells: np.ndarray, points: np.ndarray, radius, chunk: int = 200) -> np.ndarray:
@@ -221,12 +236,15 @@ class WindowStore:
     A diagnosis runs the estimator over the same drive some thirty times, and preparing a
     window (crop, masks, wheel geometry) is about a quarter of a run. Share a store, like the
     PathIndex, only among estimators over the same pair and map nuisance; the key holds what
-    may differ between them (tyre section, settings, view, device, the window's span). At
-    most `max_windows` are kept (about 0.4 MB each with the default corridor and 2 cm cells);
-    beyond that, windows are prepared anew each time."""
+    may differ between them (tyre section, settings, view, device, the window's span). Windows
+    are kept while their tensors take at most `max_bytes` (0.4 MB for a window of a single
+    pass with the default corridor and 2 cm cells, several MB where earlier visits are driven
+    first); beyond that, windows are prepared anew each time, so that an hour's drive does
+    not hold every window in memory."""
 
-    def __init__(self, max_windows: int = 1500):
-        self.max_windows = max_windows
+    def __init__(self, max_bytes: int = 2 << 30):
+        self.max_bytes = max_bytes
+        self.nbytes = 0
         self._kept: dict[tuple, WindowData | None] = {}
 
     def __len__(self) -> int:
@@ -237,9 +255,23 @@ class WindowStore:
         if key in self._kept:
             return self._kept[key]
         wd = prepare()
-        if len(self._kept) < self.max_windows:
+        size = _nbytes(wd)
+        if self.nbytes + size <= self.max_bytes:
             self._kept[key] = wd
+            self.nbytes += size
         return wd
+
+
+def _nbytes(x) -> int:
+    """Bytes held by the tensors and arrays in x (nested tuples, NamedTuples, dataclasses)."""
+    if isinstance(x, torch.Tensor):
+        return x.numel() * x.element_size()
+    if isinstance(x, np.ndarray):
+        return x.nbytes
+    if isinstance(x, (tuple, list)):
+        return sum(_nbytes(v) for v in x)
+    fields = getattr(x, "__dataclass_fields__", None)
+    return sum(_nbytes(getattr(x, f)) for f in fields) if fields else 0
 
 
 def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
@@ -381,17 +413,20 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     (`WindowData.earlier`)."""
     robot = pair.robot
     w = robot.wheel_width
-    ground_full = (index.s >= spec.s0) & (index.s < spec.s1) & (index.offset <= est.corridor / 2)
-    near = index.wheel_dist <= max(est.weight_width * w, sim_reach(robot, sim))
-    cells = np.argwhere(ground_full & near)
+    on_ground = index.ground(spec.s0, spec.s1, est.corridor)                     # (G, 2) cells
+    near = index.wheel_dist[on_ground[:, 0], on_ground[:, 1]] <= max(est.weight_width * w, sim_reach(robot, sim))
+    cells = on_ground[near]
     if len(cells) == 0:
         return None
     margin = int(np.ceil(0.1 / pair.dx))
-    X, Y = ground_full.shape
+    X, Y = index.s.shape
     i0, j0 = np.maximum(cells.min(0) - margin, 0)
     i1, j1 = np.minimum(cells.max(0) + margin + 1, (X, Y))
     crop = (int(i0), int(i1), int(j0), int(j1))
     sl = (slice(i0, i1), slice(j0, j1))
+    inside = on_ground[np.all((on_ground >= (i0, j0)) & (on_ground < (i1, j1)), axis=1)]
+    ground = np.zeros((i1 - i0, j1 - j0), dtype=bool)
+    ground[inside[:, 0] - i0, inside[:, 1] - j0] = True
     grid = pair.grid.crop(*crop)
 
     reach = np.abs(robot.wheels[:, 0]).max() + w / 2 + 0.1
@@ -419,7 +454,6 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     if not measured_f.all():  # gaps: nearest measured value (kept out of the cost)
         idx = ndimage.distance_transform_edt(~measured_f, return_distances=False, return_indices=True)
         hf = hf[tuple(idx)]
-    ground = ground_full[sl]
     zone = ground & (index.wheel_dist[sl] <= est.weight_width * w)
     weight = zone & np.isfinite(raw) & np.isfinite(hb)
     floor = (ground & np.isfinite(raw) & np.isfinite(hb) & (index.wheel_dist[sl] >= est.floor_inner * w)
