@@ -33,7 +33,7 @@ def run(quick: bool = False) -> dict[str, float]:
         resume = time.perf_counter() - t0
     fit = {f.ext.id: f for f in diag.fits}.get("speed_dependent_sinkage")
     s = diag.summary
-    scaling = {} if quick else {f"diagnosis_{name}_ms_per_window_{length}m": v
+    scaling = {} if quick else {f"diagnosis_{name}_{length}m": v
                                 for length in (20, 100) for name, v in _pass_times(length).items()}
     return {
         **scaling,
@@ -50,11 +50,14 @@ def run(quick: bool = False) -> dict[str, float]:
 
 def _pass_times(length: float) -> dict[str, float]:
     """ms per window of the base pass (preparing the windows too) and of a hardening pass at
-    k -0.5 (windows prepared), on an out-and-back drive of `length` m."""
+    k -0.5 (windows prepared), and the seconds an estimator's setup takes (path index, map
+    offset, view), on an out-and-back drive of `length` m: all three should grow no faster
+    than the drive."""
     from torchsoil.diagnosis.catalogue import ExtensionModel, get
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import run_pass, shared_of
     from torchsoil.diagnosis.study_cases import scenario
+    from torchsoil.estimator import Estimator
     from torchsoil.settings import Settings
     from torchsoil.synth.scenario import make_terrain_pair
     from torchsoil.terrain import TerrainPair
@@ -66,6 +69,9 @@ def _pass_times(length: float) -> dict[str, float]:
     pair = TerrainPair.from_mapping(make_terrain_pair(sc, seed=1))
     st = Settings()
     t0 = time.perf_counter()
+    Estimator(pair, st.estimator, st.sim)
+    t_setup = time.perf_counter() - t0
+    t0 = time.perf_counter()
     base = run_pass(pair, st.estimator, st.sim, profiles=True)
     t_base = time.perf_counter() - t0
     model = ExtensionModel(get("multi_pass_hardening"), -0.5, DriveSignals.from_poses(pair.poses, pair.robot),
@@ -74,4 +80,5 @@ def _pass_times(length: float) -> dict[str, float]:
     run_pass(pair, st.estimator, st.sim, model, profiles=True, **shared_of(base))
     t_hard = time.perf_counter() - t0
     n = len(base.rows)
-    return {"base_pass": 1e3 * t_base / n, "hardening_pass": 1e3 * t_hard / n}
+    return {"base_pass_ms_per_window": 1e3 * t_base / n, "hardening_pass_ms_per_window": 1e3 * t_hard / n,
+            "estimator_setup_seconds": t_setup}
