@@ -64,7 +64,7 @@ class MapNuisance(NamedTuple):
 
 
 def _hat_rows(s: np.ndarray, knots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The piecewise-linear basis ("hat" functions) on knots (K,, K >= 2) at positions s (N,),
+    """The piecewise-linear basis ("hat" functions) on knots (K,) (K >= 2) at positions s (N,),
     two non-zeros per row: (N,) the knot k left of each position (its right neighbour k + 1
     carries the rest) and (N,) the weight u of k + 1 (1 - u on k); constant beyond the ends."""
     k = np.clip(np.searchsorted(knots, s, side="right") - 1, 0, len(knots) - 2)
