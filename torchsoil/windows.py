@@ -238,8 +238,8 @@ class WindowStore:
     PathIndex, only among estimators over the same pair and map nuisance; the key holds what
     may differ between them (tyre section, settings, view, device, the window's span). Windows
     are kept while their tensors take at most `max_bytes` (0.2 to 0.5 MB a window with the
-    default corridor and 2 cm cells); beyond that, windows are prepared anew each time, so that an hour's drive does
-    not hold every window in memory."""
+    default corridor and 2 cm cells); beyond that, windows are prepared anew each time, so
+    that an hour's drive does not hold every window in memory."""
 
     def __init__(self, max_bytes: int = 2 << 30):
         self.max_bytes = max_bytes
