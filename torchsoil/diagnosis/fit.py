@@ -269,6 +269,8 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
             return
         model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order)
         sec[k] = sec[0.0]
+        if progress is not None:
+            progress.set_postfix_str(f"{ext.id} k={k:+.3g}")
         if ext.kind in ("radius", "wall") and sections:
             sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
         passes[k] = run_pass(with_section(pair, sec[k]), est, sim, model,
