@@ -250,8 +250,14 @@ def test_a_window_simulates_every_wheel_pass_over_its_ground(lap_and_a_half):
 
 
 def test_a_full_window_store_prepares_anew_instead_of_growing():
-    """A store of 2 kB keeps the first two 1 kB windows (128 float64 each) and no more."""
+    """A store of 2 kB keeps the first two 1 kB windows (64 float64 and, nested, 128 int32
+    each) and no more."""
     store, made = WindowStore(max_bytes=2048), []
+
+    def window(key):
+        made.append(key)
+        return torch.zeros(64, dtype=torch.float64), (torch.zeros(128, dtype=torch.int32),)
+
     for key in (1, 2, 3, 3, 1):
-        store.get(key, lambda k=key: made.append(k) or (torch.zeros(64, dtype=torch.float64), np.zeros(64)))
+        store.get(key, lambda k=key: window(k))
     assert made == [1, 2, 3, 3] and len(store) == 2 and store.nbytes == 2048

@@ -34,14 +34,12 @@ class PathIndex(NamedTuple):
     offset: np.ndarray
     wheel_dist: np.ndarray
     arc: np.ndarray
-    order: np.ndarray | None = None
-    s_sorted: np.ndarray | None = None
+    order: np.ndarray
+    s_sorted: np.ndarray
 
     def ground(self, s0: float, s1: float, corridor: float) -> np.ndarray:
         """(G, 2) cells (i, j), in row-major order, whose s lies in [s0, s1) [m] and that lie
         within corridor / 2 [m] of the base_link path."""
-        if self.order is None:
-            return np.argwhere((self.s >= s0) & (self.s < s1) & (self.offset <= corridor / 2))
         a, b = np.searchsorted(self.s_sorted, [s0, s1])
         flat = np.sort(self.order[a:b])
         flat = flat[self.offset.ravel()[flat] <= corridor / 2]
@@ -262,15 +260,10 @@ class WindowStore:
 
 
 def _nbytes(x) -> int:
-    """Bytes held by the tensors and arrays in x (nested tuples, NamedTuples, dataclasses)."""
+    """Bytes held by the tensors in x (a tensor or nested tuples and NamedTuples of them)."""
     if isinstance(x, torch.Tensor):
         return x.numel() * x.element_size()
-    if isinstance(x, np.ndarray):
-        return x.nbytes
-    if isinstance(x, (tuple, list)):
-        return sum(_nbytes(v) for v in x)
-    fields = getattr(x, "__dataclass_fields__", None)
-    return sum(_nbytes(getattr(x, f)) for f in fields) if fields else 0
+    return sum(_nbytes(v) for v in x) if isinstance(x, tuple) else 0
 
 
 def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
