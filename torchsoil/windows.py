@@ -380,10 +380,14 @@ def earlier_poses(pair, before: int, ground_xy: np.ndarray, reach: float) -> lis
     if before <= 0 or len(ground_xy) == 0:
         return []
     poses = np.asarray(pair.poses[:before], np.float64)
-    wheels = wheel_positions(poses[:, [0, 1, 2, 6]], pair.robot.wheels[:, :2])        # (K, N, 2)
+    margin = np.hypot(*np.abs(pair.robot.wheels[:, :2]).max(0)) + reach       # base_link to a wheel's reach
+    box = np.all((poses[:, 1:3] >= ground_xy.min(0) - margin) & (poses[:, 1:3] <= ground_xy.max(0) + margin), 1)
+    near = np.flatnonzero(box)                                                 # only these can reach the ground
+    if len(near) == 0:
+        return []
+    wheels = wheel_positions(poses[near][:, [0, 1, 2, 6]], pair.robot.wheels[:, :2])  # (K, n, 2)
     dist, _ = cKDTree(ground_xy).query(wheels.reshape(-1, 2), distance_upper_bound=reach)
-    on = np.isfinite(dist).reshape(wheels.shape[:2]).any(0)
-    idx = np.flatnonzero(on)
+    idx = near[np.isfinite(dist).reshape(wheels.shape[:2]).any(0)]
     if len(idx) == 0:
         return []
     breaks = np.flatnonzero(np.diff(idx) > 1)
