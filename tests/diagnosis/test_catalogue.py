@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from tests.drive_by_hand import racetrack
-from torchsoil.diagnosis.catalogue import CATALOGUE, ExtensionModel, depth_factor
+from torchsoil.diagnosis import catalogue
+from torchsoil.diagnosis.catalogue import CATALOGUE, ExtensionModel, PassCounts, depth_factor
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.grid import Grid
 from torchsoil.robot import paper_platform
@@ -132,6 +133,36 @@ def test_hardening_counts_passes_as_the_pair_shows_them():
     assert torch.allclose(last_visit(again), half)
     with pytest.raises(ValueError, match="view"):
         _racetrack_hardening("newest")
+
+
+def test_hardening_models_share_their_pass_counts_across_coefficients(monkeypatch):
+    """The pass counts do not depend on k: models at three coefficients sharing a PassCounts
+    count each window once and give the factors of models that count alone, (1 + n)^log2(1 + k);
+    a full PassCounts keeps nothing more and still counts."""
+    robot = paper_platform()
+    poses = racetrack()
+    drive = DriveSignals.from_poses(poses, robot)
+    arc = drive.signals["arc_length"]
+    grid = Grid.covering(-2.0, -1.5, 6.0, 4.5, 0.05)
+    geom = wheel_geometry(grid, poses[arc > arc[-1] - 1.2], robot, dtype=torch.float64)
+    theta = ParamSpec.base(robot.n_tracks).make(1, d1=0.03, d2=0.03, chi=0.3, beta=0.5)
+    calls = []
+    count = catalogue.entry_passes
+    monkeypatch.setattr(catalogue, "entry_passes", lambda *a, **kw: calls.append(1) or count(*a, **kw))
+    hard = CATALOGUE["multi_pass_hardening"]
+    shared = PassCounts()
+    for k in (-0.6, -0.3, 0.3):
+        f = ExtensionModel(hard, k, drive, robot, "last_visit", counts=shared).modifiers(Window(geom, grid), theta)
+        alone = ExtensionModel(hard, k, drive, robot, "last_visit").modifiers(Window(geom, grid), theta)
+        torch.testing.assert_close(f.depth_scale, alone.depth_scale, rtol=0, atol=0)
+        n = count(drive, geom, grid)
+        torch.testing.assert_close(f.depth_scale[0], torch.as_tensor((1 + n) ** math.log2(1 + k)))
+    assert len(calls) == 1 + 3 and shared.nbytes == geom.cell.shape[0] * 8
+    assert n.max() >= 1                                   # the last straight is driven twice
+    full = PassCounts(max_bytes=0)
+    for k in (-0.6, -0.3):
+        ExtensionModel(hard, k, drive, robot, "last_visit", counts=full).modifiers(Window(geom, grid), theta)
+    assert len(calls) == 6 and full.nbytes == 0
 
 
 @pytest.mark.parametrize("view", ["first_view", "last_visit"])

@@ -127,6 +127,25 @@ def pass_factor(n: np.ndarray, k: float) -> np.ndarray:
     return np.clip((1.0 + np.asarray(n, np.float64)) ** math.log2(1.0 + k), 0.05, 10.0)
 
 
+class PassCounts:
+    """Earlier passes (E,) per simulated visit of a window, kept for the hardening term's
+    passes at other coefficients, up to `max_bytes` (then new counts are computed and not kept:
+    the passes go over the windows in order, so the first ones kept are the ones read back)."""
+
+    def __init__(self, max_bytes: int = 256 << 20):
+        self.max_bytes, self.nbytes, self._n = max_bytes, 0, {}
+
+    def get(self, key: tuple, count) -> np.ndarray:
+        """The counts kept under `key`, else count() (kept while there is room)."""
+        n = self._n.get(key)
+        if n is None:
+            n = np.asarray(count())
+            if self.nbytes + n.nbytes <= self.max_bytes:
+                self._n[key] = n
+                self.nbytes += n.nbytes
+        return n
+
+
 class ExtensionModel:
     """An extension with a fixed coefficient, applied to the windows of one drive.
 
@@ -141,10 +160,13 @@ class ExtensionModel:
     last visit only, and passes count all visits but the last (DriveSignals.passes).
     dig_order: the simulator's (SimConfig.dig_order); under "wheel" passes count every
     wheel's pass (a rear wheel in the front wheel's rut runs its second), under "robot"
-    the robot's visits (its wheels dig as one)."""
+    the robot's visits (its wheels dig as one).
+    counts: a dict shared by the models of one drive, view and dig order at other
+    coefficients (`PassCounts`): the hardening term's pass counts do not depend on k, and
+    counting them is most of its cost."""
 
     def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot, view: str = "last_visit",
-                 dig_order: str = "robot"):
+                 dig_order: str = "robot", counts: PassCounts | None = None):
         lo, hi = ext.bounds
         if not (lo <= k <= hi):
             raise ValueError(f"{ext.id}: coefficient {ext.parameter} = {k} outside [{lo}, {hi}]")
@@ -154,6 +176,7 @@ class ExtensionModel:
         self.by_wheel = dig_order == "wheel"
         self.reference = {"speed": float(np.mean(drive.signals["speed"]))}
         self._cache: dict[tuple, torch.Tensor] = {}
+        self.counts = PassCounts() if counts is None else counts
 
     def modifiers(self, wd, theta: torch.Tensor, geom=None) -> Modifiers:
         B = theta.shape[0]
@@ -164,7 +187,9 @@ class ExtensionModel:
             if key not in self._cache:
                 before = self.view == "first_view"
                 if self.ext.id == "multi_pass_hardening":       # (E,): cell by cell
-                    f = pass_factor(entry_passes(self.drive, geom, wd.grid, before, self.by_wheel), self.k)
+                    n = self.counts.get((*key, before, self.by_wheel),
+                                        lambda: entry_passes(self.drive, geom, wd.grid, before, self.by_wheel))
+                    f = pass_factor(n, self.k)
                 else:                                           # (K, N): wheel by pose
                     f = depth_factor(self.ext, self.drive, self.robot, geom.poses.cpu().numpy(), self.k,
                                      self.reference)

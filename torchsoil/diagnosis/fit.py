@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchsoil.diagnosis.catalogue import Extension, ExtensionModel
+from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts
 from torchsoil.diagnosis.checkpoint import PassCache, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, paired_improvement
@@ -262,12 +262,13 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     passes: dict[float, Pass] = {0.0: base}
     shared = shared_of(base)
     sec: dict[float, Section] = {0.0: section_of(pair)}
+    counts = PassCounts()
 
     def run(k: float) -> None:
         k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
-        model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order)
+        model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts)
         sec[k] = sec[0.0]
         if progress is not None:
             progress.set_postfix_str(f"{ext.id} k={k:+.3g}")
