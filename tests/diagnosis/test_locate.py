@@ -4,8 +4,17 @@ lines, paired comparisons and the cross-track zones."""
 import math
 
 import numpy as np
+import pytest
 
-from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line, zone_of
+from torchsoil.diagnosis.locate import (
+    ZONES,
+    combined_z,
+    correlation,
+    gain_correlation,
+    paired_improvement,
+    spectral_line,
+    zone_of,
+)
 
 
 def ar1(rng, n, phi):
@@ -105,6 +114,59 @@ def test_a_trend_through_zero_is_no_gain():
     hits = sum(paired_improvement(trend + lfilter([1], [1, -0.5], rng.standard_normal(24)), np.zeros(24))[2] > 1.96
                for _ in range(400))
     assert hits / 400 < 0.08                                      # nominal 0.025
+
+
+def test_combined_z_by_hand():
+    """Stouffer's z of two tests: independent, sqrt(2) times their mean; fully dependent,
+    their mean; a negative correlation is not trusted (as independent); an own-fit z not
+    measured leaves the held-out z alone."""
+    assert combined_z(2.0, 2.0, 0.0) == pytest.approx(2.0 * math.sqrt(2.0))
+    assert combined_z(2.0, 1.0, 1.0) == pytest.approx(1.5)
+    assert combined_z(2.0, 1.0, 0.5) == pytest.approx(3.0 / math.sqrt(3.0))
+    assert combined_z(2.0, -1.0, -0.8) == pytest.approx(1.0 / math.sqrt(2.0))
+    assert combined_z(1.7, math.inf, 0.0) == 1.7 and combined_z(1.7, math.nan, 0.0) == 1.7
+
+
+def test_gain_correlation_of_block_means_about_their_line():
+    """Six blocks of four windows: the correlation of the block means' scatter about a line
+    (numpy's polyfit here), clipped at 0; a NaN window drops out of both series; fewer than
+    three blocks give 1."""
+    rng = np.random.default_rng(2)
+    ma, mb = rng.standard_normal(6), rng.standard_normal(6)
+    ga, gb = np.repeat(ma, 4) + 0.3 * np.arange(24), np.repeat(mb, 4) - 0.1 * np.arange(24)
+    x = np.arange(6.0)
+    ra, rb = (m - np.polyval(np.polyfit(x, m, 1), x) for m in (ga.reshape(6, 4).mean(1), gb.reshape(6, 4).mean(1)))
+    want = max(float(np.corrcoef(ra, rb)[0, 1]), 0.0)
+    zero = np.zeros(24)
+    assert gain_correlation(ga, zero, gb, zero) == pytest.approx(want)
+    assert gain_correlation(ga, zero, 2 * ga + 5, zero) == pytest.approx(1.0)
+    assert gain_correlation(ga, zero, -ga, zero) == 0.0
+    holed = np.r_[ga[:1], np.nan, ga[1:23]]                           # window 1 unmeasured: the rest shift up
+    assert gain_correlation(holed, np.zeros(24), np.r_[gb[:1], 0.0, gb[1:23]], zero) == pytest.approx(
+        gain_correlation(ga[:23], zero[:23], gb[:23], zero[:23]))
+    assert gain_correlation(ga[:8], zero[:8], gb[:8], zero[:8]) == 1.0
+
+
+def test_combined_test_counts_one_piece_of_evidence_once():
+    """No gain, only noise: when the own-fit gain is the held-out gain's own noise again
+    (the same windows' misfit seen twice), the combination must not count it twice; when it
+    is independent noise it keeps the level too. A gain on both tests, each short of the
+    level alone, passes it together."""
+    rng = np.random.default_rng(8)
+    zero, level, n = np.zeros(32), 1.96, 400
+    same = indep = 0
+    for _ in range(n):
+        a, b = 3e-4 * rng.standard_normal(32), 3e-4 * rng.standard_normal(32)
+        za, zb = paired_improvement(a, zero)[2], paired_improvement(b, zero)[2]
+        zs = paired_improvement(0.5 * a, zero)[2]
+        same += combined_z(za, zs, gain_correlation(a, zero, 0.5 * a, zero)) > level
+        indep += combined_z(za, zb, gain_correlation(a, zero, b, zero)) > level
+    assert same / n < 0.05 and indep / n < 0.05                      # nominal 0.025
+    a = 1.2e-4 + 3e-4 * rng.standard_normal(32)
+    b = 1.2e-4 + 3e-4 * rng.standard_normal(32)
+    za, zb = paired_improvement(a, zero)[2], paired_improvement(b, zero)[2]
+    zc = combined_z(za, zb, gain_correlation(a, zero, b, zero))
+    assert max(za, zb) < level < zc
 
 
 def test_zones_across_the_rut():

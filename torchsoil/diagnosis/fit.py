@@ -20,7 +20,7 @@ import torch
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts
 from torchsoil.diagnosis.checkpoint import PassCache, portable
 from torchsoil.diagnosis.covariates import DriveSignals
-from torchsoil.diagnosis.locate import Profiles, paired_improvement
+from torchsoil.diagnosis.locate import Profiles, combined_z, gain_correlation, paired_improvement
 from torchsoil.estimator import Estimator, Stitcher
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.windows import WindowStore
@@ -205,12 +205,14 @@ class CandidateFit:
     k: coefficient fitted on all windows (best mean prediction, refined). k_fold: the
     coefficient each fold was scored with (chosen on the other fold). prediction: (W,)
     cross-validated next-window cost per window [m]; held_out: the same for the mean of the
-    next- and previous-window costs. improvement, se, z: paired per-window improvement of
-    held_out over the base model. passes: every pass run, by coefficient; sections: the tyre
+    next- and previous-window costs. improvement, se, held_z: paired per-window improvement
+    of held_out over the base model. passes: every pass run, by coefficient; sections: the tyre
     section (f, e) each was run with (fit_section), by coefficient. own_z: the paired z of
     the improvement of the windows' own residuals (by fold) over the base model's: a
     term that predicts the neighbouring ground better while it fits its own windows worse is
-    standing in for something else that changes along the drive, such as the soil."""
+    standing in for something else that changes along the drive, such as the soil.
+    z: the two tests' evidence together (`locate.combined_z`), the statistic it is accepted
+    on."""
 
     ext: Extension
     k: float
@@ -225,6 +227,7 @@ class CandidateFit:
     accepted: bool = False
     sections: dict[float, Section] | None = None
     own_z: float = 0.0
+    held_z: float = 0.0
 
 
 def _mean(x: np.ndarray, sel: np.ndarray) -> float:
@@ -293,9 +296,11 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     pred, held, res = (by_fold({k: getattr(passes[k], name) for k in ks}, k_fold, lab)
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
-    imp, se, z = paired_improvement(base.held_out, held)
+    imp, se, held_z = paired_improvement(base.held_out, held)
     own_z = paired_improvement(base.residual, res)[2]
-    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z)
+    z = combined_z(held_z, own_z, gain_correlation(base.held_out, held, base.residual, res))
+    return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z,
+                        held_z=held_z)
 
 
 def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:

@@ -127,6 +127,46 @@ def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[f
     return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
 
 
+def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float = 1e-9) -> float:
+    """Correlation, clipped to [0, 1], of two paired gains (base - ext, each on the same (W,)
+    windows) along the drive, as `paired_improvement` sees them: the block means, on the
+    windows where all four costs are measured, about a line through them (about their mean
+    with fewer than 5 blocks), over the blocks where either term changed a cost by more than
+    `same`. 1 (nothing gained by combining) with fewer than 3 such blocks or no scatter."""
+    a = np.asarray(base_a, np.float64) - np.asarray(ext_a, np.float64)
+    b = np.asarray(base_b, np.float64) - np.asarray(ext_b, np.float64)
+    ok = np.isfinite(a) & np.isfinite(b)
+    a, b = a[ok], b[ok]
+    nb = len(a) // max(1, block)
+    ba, bb = a[: nb * block].reshape(nb, block), b[: nb * block].reshape(nb, block)
+    keep = (np.abs(ba).max(1, initial=0.0) > same) | (np.abs(bb).max(1, initial=0.0) > same)
+    if keep.sum() < 3:
+        return 1.0
+    x = np.flatnonzero(keep).astype(np.float64)
+    x -= x.mean()
+
+    def scatter(m):
+        m = m - m.mean()
+        return m - x * float((x * m).sum() / (x * x).sum()) if len(m) >= 5 else m
+
+    sa, sb = scatter(ba[keep].mean(1)), scatter(bb[keep].mean(1))
+    den = math.sqrt(float((sa * sa).sum() * (sb * sb).sum()))
+    return float(np.clip((sa * sb).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
+
+
+def combined_z(z_held: float, z_own: float, rho: float) -> float:
+    """Stouffer's z of two one-sided paired tests of one term on the same windows, whose
+    statistics correlate by rho: (z_held + z_own) / sqrt(2 + 2 rho). The held-out test
+    scores each window's fit on its neighbours' ground (where the term's covariate changes
+    between windows), the own-fit test the window on its own ground (where it changes within
+    it): a missing term gains in both, while a term standing in for a misfit of the base
+    model gains on one at the other's expense. rho is clipped to [0, 1] (a negative estimate
+    from a few blocks is not trusted); z_own not finite (not measured): z_held alone."""
+    if not math.isfinite(z_own) or not math.isfinite(z_held):
+        return z_held
+    return (z_held + z_own) / math.sqrt(2.0 + 2.0 * min(max(rho, 0.0), 1.0))
+
+
 def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(0.08, 2.0)) -> dict:
     """Strongest line in the periodogram of a series spaced dx [m] apart (NaN gaps filled by
     linear interpolation, linear trend removed), against the local background (mean of the

@@ -109,7 +109,8 @@ def _explain(diag) -> str:
         return (f"The base model leaves out: {f.ext.description} ({f.ext.id}). Adding it with {k} = {v:.3g} "
                 f"lowers the cost of predicting the next window from {_mm(before['prediction'])} to "
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
-                f"z = {f.z:.1f} against {ev['z_accept'][f.ext.id]:.1f} allowed by noise, coefficient chosen on other "
+                f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "
+                f"allowed by noise; coefficient chosen on other "
                 f"windows than those it is scored on). The mismatch lies on the "
                 f"{where['cross_track'].replace('_', ' ')}"
                 f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "
@@ -282,18 +283,22 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
               f"{ln['ratio']:.1f} x background at {ln['wavelength']:.2f} m (p = {ln['p']:.2g}). Location tests "
               f"need |z| > {ev['z_locate']:.2f}; berms are not tested (their height follows the soil parameters).",
               "", "## Candidates", "",
-              "| id | location evidence | fitted | held-out prediction | z (needed) | accepted |",
+              "| id | location evidence | fitted | held-out prediction | z: held-out, own fit -> both (needed) "
+              "| accepted |",
               "| --- | --- | --- | --- | --- | --- |"]
     fitted = {f.ext.id: f for f in diag.fits}
     for i, e in ev["candidates"].items():
         f = fitted.get(i)
         lines.append(f"| {i} | {e['statistic']} (p = {e['p']:.2g}) | "
                      + (f"{f.ext.parameter} = {f.k:.3g} (folds {f.k_fold[0]:.3g}, {f.k_fold[1]:.3g}) | "
-                        f"{_mm(float(np.nanmean(f.prediction)))} | {f.z:.1f} ({ev['z_accept'][i]:.2f}) | "
+                        f"{_mm(float(np.nanmean(f.prediction)))} | {f.held_z:.2f}, {f.own_z:.2f} -> {f.z:.2f} "
+                        f"({ev['z_accept'][i]:.2f}) | "
                         f"{f.accepted} |" if f else
                         "not fitted | | | |"))
-    lines += ["", "Acceptance: paired per-window improvement z above the level in brackets and the same "
-              "coefficient sign chosen on both folds. The levels spend a family-wise 5 % over the fitted "
+    lines += ["", "Acceptance: the paired per-window improvement of the held-out costs (each window's fit "
+              "scored on its neighbours' ground) and of the windows' own fits, combined as Stouffer's z with "
+              "their correlation along the drive, above the level in brackets; the windows' own fit not worse; "
+              "the same coefficient sign chosen on both folds. The levels spend a family-wise 5 % over the fitted "
               "candidates in their order by location evidence, most on the leading one (fallback procedure).",
               "", "## Costs", "",
               f"- before: residual {_mm(s['cost_before']['residual'])}, "

@@ -29,7 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
-from torchsoil.diagnosis.locate import paired_improvement
+from torchsoil.diagnosis.locate import combined_z, gain_correlation, paired_improvement
 from torchsoil.diagnosis.report import mean_sinkage
 from torchsoil.diagnosis.run import accept_in_order, diagnose, gain_material
 from torchsoil.settings import DiagnosisConfig, Settings
@@ -62,14 +62,14 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
 
 
 def held_out_tests(diag) -> list[dict]:
-    """Each fitted candidate's held-out test: coefficient (all windows and per fold), paired z,
-    the z it needed, its mean held-out gain [mm], the paired z of its windows' own residuals
-    and its location evidence p (a study compares
-    these across settings more finely than verdicts)."""
+    """Each fitted candidate's test: coefficient (all windows and per fold), its z (held-out
+    and own-fit evidence together, `locate.combined_z`) and the z it needed, the held-out
+    paired z and mean gain [mm], the paired z of its windows' own residuals and its location
+    evidence p (a study compares these across settings more finely than verdicts)."""
     need, ev = diag.evidence["z_accept"], diag.evidence["candidates"]
     return [{"id": f.ext.id, "k": round(f.k, 4), "k_fold": [round(k, 4) for k in f.k_fold],
              "z": round(f.z, 3), "z_needed": round(need[f.ext.id], 3), "gain_mm": round(1e3 * f.improvement, 5),
-             "own_z": round(f.own_z, 3),
+             "held_z": round(f.held_z, 3), "own_z": round(f.own_z, 3),
              "p_location": ev[f.ext.id]["p"], "accepted": bool(f.accepted)} for f in diag.fits]
 
 
@@ -99,11 +99,12 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
            own_fit_z: float = _DIAG.own_fit_z) -> tuple[list[dict], str | None]:
     """A case record's held-out tests redone from its `series` (held_out_series), as the
     diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
-    folds of block_m [m] at the estimator's stride [m]), the paired z against the base pass,
-    and acceptance in order of location evidence (`run.accept_in_order`), a term's mean gain
+    folds of block_m [m] at the estimator's stride [m]), the paired z of the held-out costs and
+    of the windows' own residuals against the base pass and their combined z
+    (`locate.combined_z`; records without residual series: the held-out z alone), and
+    acceptance in order of location evidence (`run.accept_in_order`), a term's mean gain
     at least gain_materiality times the base's mean held-out cost and its windows' own fit
-    no worse than -own_fit_z (paired z of the residuals; records without residual series
-    skip this check). Change any of these
+    no worse than -own_fit_z (records without residual series skip this check). Change any of these
     (or patch the statistic) to re-score a study without running the estimator again.
     Returns (the tests with k_fold and z recomputed, the id the diagnosis would name or None)."""
     def arr(x):
@@ -117,13 +118,16 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
         held = {float(k): arr(v) for k, v in ser["passes"][t["id"]].items()}
         held[0.0] = base
         k_fold = fold_choice(held, lab)
-        gain, _, z = paired_improvement(base, by_fold(held, k_fold, lab))     # series in mm
-        own_z = math.inf
+        ext = by_fold(held, k_fold, lab)
+        gain, _, held_z = paired_improvement(base, ext)     # series in mm
+        own_z, z = math.inf, held_z
         if "residuals" in ser:
             res = {float(k): arr(v) for k, v in ser["residuals"][t["id"]].items()}
             res[0.0] = arr(ser["base_residual"])
-            own_z = paired_improvement(res[0.0], by_fold(res, k_fold, lab))[2]
-        out.append({**t, "k_fold": list(k_fold), "z": z, "gain_mm": gain, "own_z": own_z})
+            own = by_fold(res, k_fold, lab)
+            own_z = paired_improvement(res[0.0], own)[2]
+            z = combined_z(held_z, own_z, gain_correlation(base, ext, res[0.0], own))
+        out.append({**t, "k_fold": list(k_fold), "z": z, "held_z": held_z, "gain_mm": gain, "own_z": own_z})
     fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"], accepted=False)
             for t in out]
     material = gain_material(gain_materiality, base)
