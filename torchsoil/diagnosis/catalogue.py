@@ -161,9 +161,9 @@ class ExtensionModel:
     dig_order: the simulator's (SimConfig.dig_order); under "wheel" passes count every
     wheel's pass (a rear wheel in the front wheel's rut runs its second), under "robot"
     the robot's visits (its wheels dig as one).
-    counts: a dict shared by the models of one drive, view and dig order at other
-    coefficients (`PassCounts`): the hardening term's pass counts do not depend on k, and
-    counting them is most of its cost."""
+    counts: a `PassCounts` shared by the models of one drive at other coefficients: the
+    hardening term's pass counts do not depend on k, and counting them is most of the term's
+    own cost (kept by window, visit, view and dig order)."""
 
     def __init__(self, ext: Extension, k: float, drive: DriveSignals, robot: Robot, view: str = "last_visit",
                  dig_order: str = "robot", counts: PassCounts | None = None):

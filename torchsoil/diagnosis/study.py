@@ -223,7 +223,7 @@ def confusion(records: list[dict]) -> str:
     lines += ["", f"right: {right}/{len(records)}",
               f"false alarms on null drives: {e['false_alarms']}/{e['nulls']} (rate {rate})",
               f"wrong id named: {e['wrong_id']}", f"time per case: {e['seconds_per_case']:.0f} s", "",
-              "| case | verdict | parameters | prediction before -> after [mm] | held-out z (needed) |",
+              "| case | verdict | parameters | prediction before -> after [mm] | z (needed) |",
               "| --- | --- | --- | --- | --- |"]
     for r in records:
         lines.append(f"| {r['case']} | {_label(r['verdict'], r['id'])} | {r['parameters']} | "
@@ -233,7 +233,7 @@ def confusion(records: list[dict]) -> str:
 
 
 def _margin(r: dict) -> str:
-    """The held-out z of the true term against the z it needed (of the nearest to acceptance
+    """The z of the true term against the z it needed (of the nearest to acceptance
     when the drive has no catalogue effect), '-' for records without tests."""
     tests = r.get("tests")
     if tests is None:
