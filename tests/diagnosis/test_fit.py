@@ -66,7 +66,7 @@ def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
     assert not evidence_for(walls, rows, {}, zones(-6.0, -1e-4), *args, z_locate=3.1, material=3e-4)["testable"]
 
 
-def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
+def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance_or_nothing_to_test():
     from types import SimpleNamespace
 
     from torchsoil.diagnosis.run import accept_in_order, thresholds
@@ -89,6 +89,20 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance():
     # ... a later one more, unless the ones before it were accepted and passed their level on
     assert used[1] == pytest.approx(stats.norm.isf(0.03 + 0.01))
     fits = [fit(1.0), fit(2.3), fit(0.0)]
+    used = accept_in_order(fits, p, 0.05, 0.6)
+    assert [f.accepted for f in fits] == [False, False, False]
+    assert used[1] == pytest.approx(stats.norm.isf(0.01))
+    # a candidate left at 0 on both folds is the base model: it has nothing to test and passes
+    # its level on; one at 0 on a single fold was tested (and not accepted), and does not
+    zero = fit(1.0)
+    zero.k_fold = (0.0, 0.0)
+    half = fit(1.0)
+    half.k_fold = (0.0, -0.3)
+    fits = [zero, fit(1.8), fit(0.0)]
+    used = accept_in_order(fits, p, 0.05, 0.6)
+    assert [f.accepted for f in fits] == [False, True, False]
+    assert used[1] == pytest.approx(stats.norm.isf(0.03 + 0.01))
+    fits = [half, fit(1.8), fit(0.0)]
     used = accept_in_order(fits, p, 0.05, 0.6)
     assert [f.accepted for f in fits] == [False, False, False]
     assert used[1] == pytest.approx(stats.norm.isf(0.01))

@@ -76,12 +76,14 @@ def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead
     """Set `accepted` on fits (in order of their location evidence p) by the fallback
     procedure, each also needing a mean held-out improvement of `material` [m] and its
     windows' own fit no worse than `own_z` (`fit.accept`); returns the z level each was
-    tested at."""
+    tested at. A candidate whose coefficient is 0 on both folds is the base model on every
+    window (each fold's coefficient chosen on the other fold's windows found nothing better):
+    it has no test to spend its level on, and passes it on as an accepted one does."""
     levels, carry, used = thresholds(p, alpha, lead_share), 0.0, []
     for f, a in zip(fits, levels, strict=True):
         z = float(stats.norm.isf(a + carry))
         f.accepted = accept(f, z, material, own_z)
-        carry = a + carry if f.accepted else 0.0
+        carry = a + carry if f.accepted or not any(f.k_fold) else 0.0
         used.append(z)
     return used
 
