@@ -231,3 +231,40 @@ def test_foreign_study_runs_on_a_pair_in_the_foreign_layout(tmp_path):
     assert all(c is None or 0 < c < 20 for c in ser["base"]) and sum(c is not None for c in ser["base"]) >= 4
     assert (tmp_path / "out" / "confusion.md").read_text() == table
     assert run_foreign(tmp_path, tmp_path / "out", settings) == table               # resumed: nothing redone
+
+
+def test_a_record_re_scores_a_term_that_left_ground_alone_as_the_diagnosis_did():
+    """A pass-count term leaves the costs of windows off revisited ground as they were, up to
+    the simulator's rounding (here 2e-8 m, above locate.SAME, so the diagnosis keeps those
+    blocks): the record keeps enough digits for the offline test to keep them too."""
+    from types import SimpleNamespace
+
+    from torchsoil.diagnosis.fit import by_fold, fold_choice, folds
+    from torchsoil.diagnosis.locate import combined_z, gain_correlation, paired_improvement
+    from torchsoil.diagnosis.study import held_out_series, retest
+
+    rng = np.random.default_rng(3)
+    W = 48
+    touched = np.arange(W) % 16 < 8                           # revisited ground: 2 blocks of 4 in 4
+    base, res0 = 3e-3 + 3e-4 * rng.standard_normal(W), 2.5e-3 + 3e-4 * rng.standard_normal(W)
+
+    def ext(x, gain):
+        return x - np.where(touched, gain + 5e-5 * rng.standard_normal(W), 2e-8 * rng.standard_normal(W))
+
+    held = {0.0: base, -0.5: ext(base, 1e-4), 0.3: ext(base, -1e-4)}
+    res = {0.0: res0, -0.5: ext(res0, 5e-5), 0.3: ext(res0, -5e-5)}
+    passes = {k: SimpleNamespace(held_out=held[k], residual=res[k]) for k in held}
+    diag = SimpleNamespace(windows={"s": 0.4 * np.arange(W)}, base=passes[0.0],
+                           fits=[SimpleNamespace(ext=SimpleNamespace(id="multi_pass_hardening"), passes=passes)])
+    rec = json.loads(json.dumps({"series": held_out_series(diag), "tests": [
+        {"id": "multi_pass_hardening", "p_location": 0.01}]}))
+    (t,), _ = retest(rec)
+
+    lab = folds(W, 6)                                          # as the diagnosis scores it, in metres
+    k_fold = fold_choice(held, lab)
+    e, o = by_fold(held, k_fold, lab), by_fold(res, k_fold, lab)
+    z_held = paired_improvement(base, e)[2]
+    z = combined_z(z_held, paired_improvement(res0, o)[2], gain_correlation(base, e, res0, o))
+    assert t["k_fold"] == list(k_fold) and t["held_z"] == pytest.approx(z_held, abs=1e-3)
+    assert t["z"] == pytest.approx(z, abs=1e-3)
+    assert abs(paired_improvement(base, e, same=1e-7)[2] - z_held) > 0.05   # the untouched blocks count

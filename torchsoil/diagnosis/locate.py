@@ -32,6 +32,9 @@ def zone_of(offset: np.ndarray, radius: float, dx: float) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ statistics
+SAME = 1e-9  # [m] two costs this close are the same: the term changed nothing there
+
+
 def lag1(x: np.ndarray) -> float:
     """Lag-1 autocorrelation of a series (0 for fewer than 4 values or no variance)."""
     x = np.asarray(x, np.float64)
@@ -79,7 +82,7 @@ def correlation(x, y) -> Correlation:
     return Correlation(r, n, ne, float(2 * stats.t.sf(abs(t), dof)))
 
 
-def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[float, float, float]:
+def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[float, float, float]:
     """Per-window improvement base - ext [m] of two cost series on the same windows.
 
     Neighbouring windows share ground (and held-out costs reach several windows), so the
@@ -127,7 +130,7 @@ def paired_improvement(base, ext, block: int = 4, same: float = 1e-9) -> tuple[f
     return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
 
 
-def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float = 1e-9) -> float:
+def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float = SAME) -> float:
     """Correlation, clipped to [0, 1], of two paired gains (base - ext, each on the same (W,)
     windows) along the drive, as `paired_improvement` sees them: the block means, on the
     windows where all four costs are measured, about a line through them (about their mean

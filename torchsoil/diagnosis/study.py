@@ -29,7 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
-from torchsoil.diagnosis.locate import combined_z, gain_correlation, paired_improvement
+from torchsoil.diagnosis.locate import SAME, combined_z, gain_correlation, paired_improvement
 from torchsoil.diagnosis.report import mean_sinkage
 from torchsoil.diagnosis.run import accept_in_order, diagnose, gain_material
 from torchsoil.settings import DiagnosisConfig, Settings
@@ -78,8 +78,8 @@ def held_out_series(diag) -> dict:
     offline under another test statistic: window centres s [m], each window's covariates, the
     base pass's held-out cost and every other candidate pass's, by coefficient, and the same
     for the windows' own residuals (`base_residual`, `residuals`) [mm]."""
-    def mm(x):
-        return [None if not np.isfinite(v) else round(1e3 * float(v), 4) for v in x]
+    def mm(x):  # to 1e-7 mm: blocks a term left alone (to SAME) stay recognisable offline
+        return [None if not np.isfinite(v) else round(1e3 * float(v), 7) for v in x]
 
     return {"s": [round(float(v), 3) for v in diag.windows["s"]],
             "covariates": {n: [round(float(v), 6) for v in x] for n, x in diag.windows.items() if n != "s"},
@@ -110,7 +110,8 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
     def arr(x):
         return np.array([np.nan if v is None else v for v in x], np.float64)
 
-    ser = rec["series"]
+    ser = rec["series"]                                      # in mm
+    same = 1e3 * SAME
     base = arr(ser["base"])
     lab = folds(len(base), int(round(block_m / stride)))
     out = []
@@ -119,14 +120,14 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
         held[0.0] = base
         k_fold = fold_choice(held, lab)
         ext = by_fold(held, k_fold, lab)
-        gain, _, held_z = paired_improvement(base, ext)     # series in mm
+        gain, _, held_z = paired_improvement(base, ext, same=same)
         own_z, z = math.inf, held_z
         if "residuals" in ser:
             res = {float(k): arr(v) for k, v in ser["residuals"][t["id"]].items()}
             res[0.0] = arr(ser["base_residual"])
             own = by_fold(res, k_fold, lab)
-            own_z = paired_improvement(res[0.0], own)[2]
-            z = combined_z(held_z, own_z, gain_correlation(base, ext, res[0.0], own))
+            own_z = paired_improvement(res[0.0], own, same=same)[2]
+            z = combined_z(held_z, own_z, gain_correlation(base, ext, res[0.0], own, same=same))
         out.append({**t, "k_fold": list(k_fold), "z": z, "held_z": held_z, "gain_mm": gain, "own_z": own_z})
     fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"], accepted=False)
             for t in out]
