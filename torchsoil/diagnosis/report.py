@@ -299,7 +299,9 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
               "scored on its neighbours' ground) and of the windows' own fits, combined as Stouffer's z with "
               "their correlation along the drive, above the level in brackets; the windows' own fit not worse; "
               "the same coefficient sign chosen on both folds. The levels spend a family-wise 5 % over the fitted "
-              "candidates in their order by location evidence, most on the leading one (fallback procedure).",
+              "candidates in their order by location evidence, most on the leading one (fallback procedure); "
+              "an accepted candidate's level passes to the next, and so does that of a candidate left at 0 "
+              "on both folds (the base model itself: nothing to test).",
               "", "## Costs", "",
               f"- before: residual {_mm(s['cost_before']['residual'])}, "
               f"prediction {_mm(s['cost_before']['prediction'])}",
