@@ -245,7 +245,7 @@ def test_a_record_re_scores_a_term_that_left_ground_alone_as_the_diagnosis_did()
 
     rng = np.random.default_rng(3)
     W = 48
-    touched = np.arange(W) % 16 < 8                           # revisited ground: 2 blocks of 4 in 4
+    touched = np.arange(W) % 16 < 8                           # revisited ground: 2 blocks in every 4
     base, res0 = 3e-3 + 3e-4 * rng.standard_normal(W), 2.5e-3 + 3e-4 * rng.standard_normal(W)
 
     def ext(x, gain):
