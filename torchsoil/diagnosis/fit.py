@@ -20,7 +20,7 @@ import torch
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts
 from torchsoil.diagnosis.checkpoint import PassCache, portable
 from torchsoil.diagnosis.covariates import DriveSignals
-from torchsoil.diagnosis.locate import Profiles, combined_z, gain_correlation, paired_improvement
+from torchsoil.diagnosis.locate import Profiles, term_test
 from torchsoil.estimator import Estimator, Stitcher
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.windows import WindowStore
@@ -296,9 +296,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     pred, held, res = (by_fold({k: getattr(passes[k], name) for k in ks}, k_fold, lab)
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
-    imp, se, held_z = paired_improvement(base.held_out, held)
-    own_z = paired_improvement(base.residual, res)[2]
-    z = combined_z(held_z, own_z, gain_correlation(base.held_out, held, base.residual, res))
+    imp, se, held_z, own_z, z = term_test(base.held_out, held, base.residual, res)
     return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z,
                         held_z=held_z)
 

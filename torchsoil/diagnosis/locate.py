@@ -82,6 +82,16 @@ def correlation(x, y) -> Correlation:
     return Correlation(r, n, ne, float(2 * stats.t.sf(abs(t), dof)))
 
 
+def _about_line(means: np.ndarray, place: np.ndarray) -> np.ndarray:
+    """Block means (n,) about the line through them along the drive (place: their block
+    numbers), or about their mean with fewer than 5 blocks."""
+    m = means - means.mean()
+    if len(m) < 5:
+        return m
+    x = place - place.mean()
+    return m - x * float((x * m).sum() / (x * x).sum())
+
+
 def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[float, float, float]:
     """Per-window improvement base - ext [m] of two cost series on the same windows.
 
@@ -116,12 +126,7 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
         return (float(d.mean()) if len(d) else 0.0), math.inf, 0.0
     means = blocks.mean(1)
     m = float(means.mean())
-    if nb >= 5:                                          # the scatter about the line through them
-        x = place - place.mean()
-        scatter = means - m - x * float((x * (means - m)).sum() / (x * x).sum())
-        fitted = 2
-    else:
-        scatter, fitted = means - m, 1
+    scatter, fitted = _about_line(means, place), 2 if nb >= 5 else 1
     n_eff = min(float(nb), max(effective_n(nb, means), fitted + 2.0))
     se = float(math.sqrt((scatter ** 2).sum() / (nb - fitted) / n_eff))
     if se <= 0:
@@ -145,14 +150,8 @@ def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float =
     keep = (np.abs(ba).max(1, initial=0.0) > same) | (np.abs(bb).max(1, initial=0.0) > same)
     if keep.sum() < 3:
         return 1.0
-    x = np.flatnonzero(keep).astype(np.float64)
-    x -= x.mean()
-
-    def scatter(m):
-        m = m - m.mean()
-        return m - x * float((x * m).sum() / (x * x).sum()) if len(m) >= 5 else m
-
-    sa, sb = scatter(ba[keep].mean(1)), scatter(bb[keep].mean(1))
+    place = np.flatnonzero(keep).astype(np.float64)
+    sa, sb = _about_line(ba[keep].mean(1), place), _about_line(bb[keep].mean(1), place)
     den = math.sqrt(float((sa * sa).sum() * (sb * sb).sum()))
     return float(np.clip((sa * sb).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
 
@@ -168,6 +167,21 @@ def combined_z(z_held: float, z_own: float, rho: float) -> float:
     if not math.isfinite(z_own) or not math.isfinite(z_held):
         return z_held
     return (z_held + z_own) / math.sqrt(2.0 + 2.0 * min(max(rho, 0.0), 1.0))
+
+
+def term_test(base_held, ext_held, base_res=None, ext_res=None, same: float = SAME
+              ) -> tuple[float, float, float, float, float]:
+    """One term's paired tests against the base model, on (W,) per-window costs: held-out
+    (each window's fit on its neighbours' ground) and, when given, the windows' own residuals,
+    combined (`combined_z`, with their `gain_correlation`). same: `paired_improvement`'s, in
+    the costs' unit. Returns (mean held-out gain, its se, held-out z, own-fit z (inf without
+    residuals), combined z (the held-out z without residuals))."""
+    gain, se, held_z = paired_improvement(base_held, ext_held, same=same)
+    if base_res is None:
+        return gain, se, held_z, math.inf, held_z
+    own_z = paired_improvement(base_res, ext_res, same=same)[2]
+    rho = gain_correlation(base_held, ext_held, base_res, ext_res, same=same)
+    return gain, se, held_z, own_z, combined_z(held_z, own_z, rho)
 
 
 def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(0.08, 2.0)) -> dict:

@@ -29,7 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
-from torchsoil.diagnosis.locate import SAME, combined_z, gain_correlation, paired_improvement
+from torchsoil.diagnosis.locate import SAME, term_test
 from torchsoil.diagnosis.report import mean_sinkage
 from torchsoil.diagnosis.run import accept_in_order, diagnose, gain_material
 from torchsoil.settings import DiagnosisConfig, Settings
@@ -119,15 +119,12 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
         held = {float(k): arr(v) for k, v in ser["passes"][t["id"]].items()}
         held[0.0] = base
         k_fold = fold_choice(held, lab)
-        ext = by_fold(held, k_fold, lab)
-        gain, _, held_z = paired_improvement(base, ext, same=same)
-        own_z, z = math.inf, held_z
+        base_res = own = None
         if "residuals" in ser:
             res = {float(k): arr(v) for k, v in ser["residuals"][t["id"]].items()}
-            res[0.0] = arr(ser["base_residual"])
+            base_res = res[0.0] = arr(ser["base_residual"])
             own = by_fold(res, k_fold, lab)
-            own_z = paired_improvement(res[0.0], own, same=same)[2]
-            z = combined_z(held_z, own_z, gain_correlation(base, ext, res[0.0], own, same=same))
+        gain, _, held_z, own_z, z = term_test(base, by_fold(held, k_fold, lab), base_res, own, same=same)
         out.append({**t, "k_fold": list(k_fold), "z": z, "held_z": held_z, "gain_mm": gain, "own_z": own_z})
     fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"], accepted=False)
             for t in out]
