@@ -532,11 +532,11 @@ def rotation(w):
     return R
 
 
-@njit(**_OPTS)
 def icp_step(T, H, g):
     """One Gauss-Newton update of icp.register: solve (H + 1e-9 I) delta = -g, turn delta
     (rotation about the sensor position T[:3, 3], then translation) into a (4, 4) step and
-    return (step @ T, max |delta|)."""
+    return (step @ T, max |delta|). Plain numpy: a 6 x 6 solve once per iteration, where
+    compiling numba's linalg.solve took most of the pipeline kernels' compile time."""
     A = H.copy()
     for a in range(6):
         A[a, a] += 1e-9

@@ -110,7 +110,8 @@ class _Relax(torch.autograd.Function):
     def forward(ctx, h, tan_beta, fx, fy, dx, tau, max_iter, fixed_iter, eps_scale):
         store = ctx.needs_input_grad[0] or ctx.needs_input_grad[1]
         hn = h.detach().cpu().numpy().copy()
-        tb = np.ascontiguousarray(np.broadcast_to(tan_beta.detach().cpu().numpy(), hn.shape))
+        # a writable copy: a read-only view would compile the kernels a second time
+        tb = np.array(np.broadcast_to(tan_beta.detach().cpu().numpy(), hn.shape), order="C")
         fxn, fyn = fx.cpu().numpy().astype(np.uint8), fy.cpu().numpy().astype(np.uint8)
         B = hn.shape[0]
         done = np.zeros(B, np.uint8)
