@@ -47,7 +47,10 @@ class Extension:
     """One catalogue term.
 
     id: FORMATS.md section 4 id. parameter: name of its coefficient. bounds: allowed range of
-    the coefficient. trials: coefficients tried when fitting (the best is refined). covariate:
+    the coefficient, of one sign where the physics has one (slip and load shifted onto a
+    wheel deepen its rut, hardening makes later ruts shallower: a fit of the other sign would
+    name physics the catalogue does not describe; `signs`). trials: coefficients tried when
+    fitting besides 0 (the best is refined). covariate:
     the signal the term follows (None: a shape term). zone: cross-track zone where it shows.
     kind: which hook it uses: depth | radius | wall.
     """
@@ -63,19 +66,28 @@ class Extension:
 
 
 CATALOGUE: dict[str, Extension] = {e.id: e for e in (
-    Extension("multi_pass_hardening", "k_pass", (-0.9, 2.0), (-0.6, -0.3, 0.3), "passes", "rut_floor", "depth",
+    Extension("multi_pass_hardening", "k_pass", (-0.9, 0.0), (-0.6, -0.3), "passes", "rut_floor", "depth",
               "each later pass over the same ground sinks less than the first"),
     Extension("speed_dependent_sinkage", "k_speed", (-0.9, 3.0), (-0.4, 0.4, 0.8), "speed", "rut_floor", "depth",
               "sinkage depends on travel speed"),
-    Extension("slip_sinkage", "k_slip", (-20.0, 20.0), (-4.0, 4.0, 8.0), "traction", "rut_floor", "depth",
+    Extension("slip_sinkage", "k_slip", (0.0, 20.0), (4.0, 8.0), "traction", "rut_floor", "depth",
               "sinkage grows with traction demand (acceleration, climbing)"),
-    Extension("lateral_load_transfer", "k_lateral", (-5.0, 8.0), (-1.5, 1.5, 3.0), "lateral_load", "rut_floor",
+    Extension("lateral_load_transfer", "k_lateral", (0.0, 8.0), (1.5, 3.0), "lateral_load", "rut_floor",
               "depth", "load, and so sinkage, shifts to the downhill or outer wheels with roll and turning"),
     Extension("cohesive_walls", "k_wall", (0.0, 9.0), (0.5, 1.5, 4.0), None, "rut_wall", "wall",
               "rut walls stand steeper than the angle at which deposited soil settles"),
     Extension("footprint_width", "k_width", (-0.4, 0.45), (-0.2, 0.15, 0.3), None, "rut_wall", "radius",
               "the contact patch is wider or narrower than the nominal wheel width"),
 )}
+
+
+def signs(ext: Extension) -> int:
+    """How many signs the term's coefficient may take: 2 where its bounds hold both (speed,
+    footprint width: either way is physical), else 1. A two-signed term's sign is chosen per
+    fold on the other fold's windows, which doubles its chance of a false alarm at a given z
+    (`run.level_z`)."""
+    lo, hi = ext.bounds
+    return 2 if lo < 0 < hi else 1
 
 
 def get(ext_id: str) -> Extension:

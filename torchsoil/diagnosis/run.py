@@ -71,17 +71,37 @@ def gain_material(share: float, base_held_out) -> float:
     return share * float(np.nanmean(np.asarray(base_held_out, np.float64)))
 
 
+def level_z(alpha: float, signs: int = 1) -> float:
+    """The combined z a term must exceed to be accepted at one-sided level alpha, for a
+    coefficient of `signs` possible signs (catalogue.signs).
+
+    Each fold is scored at the coefficient chosen on the other fold's windows, and a term is
+    only accepted when both folds chose the same sign. With no effect, a fold's statistic X_f
+    is centred normal and the other fold picks the sign that helped it, so the combined z is
+    (|X_0| + |X_1|) / sqrt(2) when the folds agree: a two-signed term's folds agree half the
+    time, a one-signed term's (k above 0 on both) a quarter. Since |X_0| + |X_1| <= t exactly
+    when |X_0 + X_1| and |X_0 - X_1| (independent, each sqrt(2) times a standard normal) are at
+    most t, P(z > c) = signs Q(c) (1 - Q(c)) with Q the normal tail: 0.095 at c 1.645 for a
+    two-signed term. The level solves signs Q (1 - Q) = alpha (z 1.95 for alpha 0.05 with two
+    signs, 1.62 with one). The folds' statistics correlate less than fully (held-out and
+    own-fit gains on other windows), which only makes this bound conservative."""
+    q = 0.5 * (1.0 - math.sqrt(max(0.0, 1.0 - 4.0 * alpha / signs)))
+    return float(stats.norm.isf(q))
+
+
 def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float,
-                    material: float = 0.0, own_z: float = -math.inf) -> list[float]:
+                    material: float = 0.0, own_z: float = -math.inf, signs: list[int] | None = None
+                    ) -> list[float]:
     """Set `accepted` on fits (in order of their location evidence p) by the fallback
     procedure, each also needing a mean held-out improvement of `material` [m] and its
     windows' own fit no worse than `own_z` (`fit.accept`); returns the z level each was
-    tested at. A candidate whose coefficient is 0 on both folds is the base model on every
+    tested at (`level_z`, for the number of signs each coefficient may take: `signs`, default
+    1 each). A candidate whose coefficient is 0 on both folds is the base model on every
     window (each fold's coefficient chosen on the other fold's windows found nothing better):
     it has no test to spend its level on, and passes it on as an accepted one does."""
     levels, carry, used = thresholds(p, alpha, lead_share), 0.0, []
-    for f, a in zip(fits, levels, strict=True):
-        z = float(stats.norm.isf(a + carry))
+    for f, a, m in zip(fits, levels, signs or [1] * len(fits), strict=True):
+        z = level_z(a + carry, m)
         f.accepted = accept(f, z, material, own_z)
         carry = a + carry if f.accepted or not any(f.k_fold) else 0.0
         used.append(z)
@@ -251,7 +271,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
-                                              cfg.lead_share, gain_min, -cfg.own_fit_z), strict=True))
+                                              cfg.lead_share, gain_min, -cfg.own_fit_z,
+                                              [catalogue.signs(f.ext) for f in fits]), strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
     best = accepted[0] if accepted else None
     pairwise = None

@@ -28,6 +28,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from torchsoil.diagnosis.catalogue import CATALOGUE, signs
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
 from torchsoil.diagnosis.locate import SAME, term_test
 from torchsoil.diagnosis.report import mean_sinkage
@@ -129,7 +130,8 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
     fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"], accepted=False)
             for t in out]
     material = gain_material(gain_materiality, base)
-    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material, -own_fit_z)
+    levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material, -own_fit_z,
+                             [signs(CATALOGUE[t["id"]]) for t in out])
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
     named = [t for t in out if t["accepted"]]
