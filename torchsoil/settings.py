@@ -301,6 +301,10 @@ class DiagnosisConfig(Section):
     gain_materiality: float = Field(0.0025, ge=0, description="an accepted term must lower the mean held-out "
                                                               "cost by at least this fraction of the base "
                                                               "model's")
+    effect_materiality: float = Field(0.05, ge=0, description="an accepted term must change the physics by at "
+                                                              "least this fraction at both folds' coefficients "
+                                                              "(catalogue.effect_size: the sinkage on a twentieth "
+                                                              "of the drive, the radius, the walls' slope)")
     own_fit_z: float = Field(0.0, ge=0, description="an accepted term must not make the windows' own fit worse: "
                                                    "the paired z of their residuals with it at least -own_fit_z "
                                                    "(a term that predicts neighbouring ground better but fits its "

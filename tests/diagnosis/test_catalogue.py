@@ -59,6 +59,20 @@ def test_zero_coefficient_is_the_base_model(setup, ext_id):
     assert torch.allclose(a, b, atol=1e-12)
 
 
+def test_effect_size_by_hand(setup):
+    """Half the drive at 0.6 m/s, half at 1.4 (mean 1.0): k_speed 0.5 changes the sinkage by
+    0.5 x 0.4; lateral load is sin(roll 0.05) + v x yaw rate 0.05 / g, largest at 1.4 m/s;
+    the other terms' change is |k|."""
+    robot, drive, *_ = setup
+    size = lambda eid, k: catalogue.effect_size(CATALOGUE[eid], k, drive, robot)  # noqa: E731
+    assert size("speed_dependent_sinkage", 0.5) == pytest.approx(0.2, abs=0.01)
+    assert size("speed_dependent_sinkage", -0.5) == pytest.approx(0.2, abs=0.01)
+    assert size("lateral_load_transfer", 2.0) == pytest.approx(2 * (math.sin(0.05) + 1.4 * 0.05 / 9.81), rel=0.01)
+    assert size("slip_sinkage", 0.0) == 0.0
+    assert (size("multi_pass_hardening", -0.3), size("footprint_width", -0.2), size("cohesive_walls", 1.5)) \
+        == pytest.approx((0.3, 0.2, 1.5))
+
+
 def test_speed_term_sinks_fast_poses_more(setup):
     robot, drive, geom, *_ = setup
     p4 = geom.poses.numpy()

@@ -83,6 +83,11 @@ def test_a_study_record_re_scores_offline_as_the_diagnosis_scored_it(speed_power
     gain = max(t["gain_mm"] for t in tests if t["accepted"]) / np.nanmean(base)
     _, none = retest(rec, CFG.block_m, 0.4, CFG.alpha_accept, CFG.lead_share, gain_materiality=1.5 * gain)
     assert none is None
+    # and an effect size asked above the named term's change to the sinkage
+    t = next(t for t in tests if t["accepted"])
+    assert t["effect"] == pytest.approx(fits[t["id"]].effect, rel=1e-3) and t["effect"] > CFG.effect_materiality
+    _, none = retest(rec, CFG.block_m, 0.4, CFG.alpha_accept, CFG.lead_share, effect_materiality=1.5 * t["effect"])
+    assert none is None
 
 
 def test_soil_varying_along_the_path_is_adequate(tmp_path):

@@ -44,6 +44,12 @@ def test_accept_needs_significance_material_gain_and_agreeing_folds():
     assert not accept(fit_with(3.0, (2.0, 4.0), own_z=-1.4), 2.1, own_z=0.0)
     assert accept(fit_with(3.0, (2.0, 4.0), own_z=0.3), 2.1, own_z=0.0)
     assert accept(fit_with(3.0, (2.0, 4.0), own_z=-1.4), 2.1)
+    # a change to the physics too small to be that cause: checked at both folds' coefficients
+    small = fit_with(3.0, (2.0, 4.0))
+    small.effects = {0.0: 0.0, 2.0: 0.03, 4.0: 0.2}
+    assert small.effect == 0.03
+    assert not accept(small, 2.1, effect=0.05) and accept(small, 2.1, effect=0.02)
+    assert accept(fit_with(3.0, (2.0, 4.0)), 2.1, effect=0.05)        # no effect sizes: not checked
 
 
 def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():

@@ -56,6 +56,18 @@ def test_a_steady_but_immaterial_gain_is_named_as_such():
     assert "this drive's length" not in text
 
 
+def test_a_steady_gain_from_a_negligible_coefficient_is_named_as_such():
+    """z above its level and a material gain, but k_speed 0.028 changes the sinkage by 0.9 %."""
+    f = SimpleNamespace(**vars(_fit("speed_dependent_sinkage", 0.028, 2.46, (0.028, 0.028))), improvement=6e-6,
+                        effect=0.009, own_z=1.5)
+    diag = _adequate([f], {"speed_dependent_sinkage": 1.95})
+    diag.evidence.update(gain_material=5.7e-6, effect_material=0.05)
+    text = explain(diag)
+    assert "z = 2.46 against 1.95 needed" in text
+    assert "it changes the model by 0.9 %, under the 5 % a named cause must" in text
+    assert "this drive's length" not in text
+
+
 def test_a_term_that_fits_its_own_windows_worse_is_named_as_a_stand_in():
     """z above its level and a material gain, but the windows' own residuals worse with it."""
     f = SimpleNamespace(**vars(_fit("speed_dependent_sinkage", 1.2, 3.15, (1.2, 1.2))), improvement=7e-5,

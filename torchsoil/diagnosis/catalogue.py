@@ -97,6 +97,11 @@ def get(ext_id: str) -> Extension:
         raise KeyError(f"unknown extension {ext_id!r}; catalogue: {sorted(CATALOGUE)}") from None
 
 
+def references(drive: DriveSignals) -> dict[str, float]:
+    """{signal: value} where a covariate term's factor is 1: the drive's mean speed [m/s]."""
+    return {"speed": float(np.mean(drive.signals["speed"]))}
+
+
 def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.ndarray, k: float,
                  reference: dict[str, float]) -> np.ndarray:
     """(K, N) sinkage factor of a pose-driven depth term (speed, slip, lateral load) at (N, 4)
@@ -116,6 +121,19 @@ def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.n
     else:
         raise ValueError(f"{ext.id} is not a sinkage term")
     return np.clip(1.0 + k * x, 0.05, 10.0)
+
+
+def effect_size(ext: Extension, k: float, drive: DriveSignals, robot: Robot, quantile: float = 0.95) -> float:
+    """How much the term at coefficient k changes the model [-], as a fraction: for the
+    covariate terms (speed, slip, lateral load) the `quantile` of |sinkage factor - 1| over
+    the drive's poses and wheels (the change it makes on a twentieth of the drive at least);
+    for the others |k|, the change of the second pass's sinkage (hardening), of the footprint
+    radius, or of the walls' tan(beta). A term that changes the physics by a percent is not
+    the cause of a mismatch, however steady its gain (DiagnosisConfig.effect_materiality)."""
+    if ext.kind != "depth" or ext.id == "multi_pass_hardening":
+        return abs(float(k))
+    f = depth_factor(ext, drive, robot, drive.poses4, k, references(drive))
+    return float(np.quantile(np.abs(f - 1.0), quantile))
 
 
 def entry_passes(drive: DriveSignals, geom, grid, before: bool = False, by_wheel: bool = False) -> np.ndarray:
@@ -186,7 +204,7 @@ class ExtensionModel:
             raise ValueError(f"view must be 'first_view' or 'last_visit', got {view!r}")
         self.ext, self.k, self.drive, self.robot, self.view = ext, float(k), drive, robot, view
         self.by_wheel = dig_order == "wheel"
-        self.reference = {"speed": float(np.mean(drive.signals["speed"]))}
+        self.reference = references(drive)
         self._cache: dict[tuple, torch.Tensor] = {}
         self.counts = PassCounts() if counts is None else counts
 

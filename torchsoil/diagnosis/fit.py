@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts
+from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts, effect_size
 from torchsoil.diagnosis.checkpoint import PassCache, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, term_test
@@ -212,7 +212,8 @@ class CandidateFit:
     term that predicts the neighbouring ground better while it fits its own windows worse is
     standing in for something else that changes along the drive, such as the soil.
     z: the two tests' evidence together (`locate.combined_z`), the statistic it is accepted
-    on."""
+    on. effects: the term's effect size at each coefficient run (`catalogue.effect_size`, a
+    fraction); effect: at the fold coefficients, the smaller of the two."""
 
     ext: Extension
     k: float
@@ -228,6 +229,13 @@ class CandidateFit:
     sections: dict[float, Section] | None = None
     own_z: float = 0.0
     held_z: float = 0.0
+    effects: dict[float, float] | None = None
+
+    @property
+    def effect(self) -> float:
+        if self.effects is None:
+            return math.inf
+        return min(self.effects.get(float(k), math.inf) for k in self.k_fold)
 
 
 def _mean(x: np.ndarray, sel: np.ndarray) -> float:
@@ -297,8 +305,9 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
     imp, se, held_z, own_z, z = term_test(base.held_out, held, base.residual, res)
+    effects = {k: effect_size(ext, k, drive, pair.robot) for k in ks}
     return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z,
-                        held_z=held_z)
+                        held_z=held_z, effects=effects)
 
 
 def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:
@@ -317,9 +326,11 @@ def by_fold(series: dict[float, np.ndarray], k_fold: tuple[float, float], lab: n
     return out
 
 
-def accept(fit: CandidateFit, z_crit: float, material: float = 0.0, own_z: float = -math.inf) -> bool:
+def accept(fit: CandidateFit, z_crit: float, material: float = 0.0, own_z: float = -math.inf,
+           effect: float = 0.0) -> bool:
     """The extension predicts held-out windows better than the noise allows, by a material
-    amount: paired z above z_crit, a mean improvement of at least `material` [m], the same
+    amount: paired z above z_crit, a mean improvement of at least `material` [m], a change
+    to the physics of at least `effect` at both folds' coefficients (CandidateFit.effect), the same
     non-zero coefficient sign chosen independently on both folds, and the windows' own fit no
     worse with it than `own_z` (the paired z of their residuals, CandidateFit.own_z):
     soil that changes where a covariate changes (a wetter patch where the robot slows into
@@ -327,5 +338,6 @@ def accept(fit: CandidateFit, z_crit: float, material: float = 0.0, own_z: float
     term then digs a step inside each window where the covariate changes, where the soil
     changes smoothly, and those windows fit worse."""
     a, b = fit.k_fold
-    return bool(fit.z > z_crit and fit.improvement >= material and a != 0 and b != 0
+    big = getattr(fit, "effect", math.inf) >= effect
+    return bool(fit.z > z_crit and fit.improvement >= material and big and a != 0 and b != 0
                 and np.sign(a) == np.sign(b) and fit.own_z >= own_z)

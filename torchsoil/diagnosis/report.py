@@ -73,6 +73,11 @@ def _nearest(diag) -> str:
     if f.z > need[f.ext.id] and f.improvement < material:
         return (f"{head}, but its held-out gain, {1e3 * f.improvement:.2g} mm, is under the {1e3 * material:.2g} mm "
                 f"a term must bring (diagnosis.gain_materiality): a steady but immaterial difference.")
+    effect = diag.evidence.get("effect_material", 0.0)
+    if f.z > need[f.ext.id] and getattr(f, "effect", math.inf) < effect:
+        return (f"{head}, but at that coefficient it changes the model by {100 * f.effect:.2g} %, under the "
+                f"{100 * effect:.2g} % a named cause must (diagnosis.effect_materiality): a steady difference too "
+                f"small to be that physics.")
     own_min = diag.evidence.get("own_z_min", -math.inf)
     if f.z > need[f.ext.id] and f.own_z < own_min:
         where = (f" where the {f.ext.covariate.replace('_', ' ')} changes" if f.ext.covariate is not None

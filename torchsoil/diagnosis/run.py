@@ -90,10 +90,11 @@ def level_z(alpha: float, signs: int = 1) -> float:
 
 
 def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float,
-                    material: float = 0.0, own_z: float = -math.inf, signs: list[int] | None = None
-                    ) -> list[float]:
+                    material: float = 0.0, own_z: float = -math.inf, signs: list[int] | None = None,
+                    effect: float = 0.0) -> list[float]:
     """Set `accepted` on fits (in order of their location evidence p) by the fallback
-    procedure, each also needing a mean held-out improvement of `material` [m] and its
+    procedure, each also needing a mean held-out improvement of `material` [m], an effect
+    size of `effect` (CandidateFit.effect) and its
     windows' own fit no worse than `own_z` (`fit.accept`); returns the z level each was
     tested at (`level_z`, for the number of signs each coefficient may take: `signs`, default
     1 each). A candidate whose coefficient is 0 on both folds is the base model on every
@@ -102,7 +103,7 @@ def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead
     levels, carry, used = thresholds(p, alpha, lead_share), 0.0, []
     for f, a, m in zip(fits, levels, signs or [1] * len(fits), strict=True):
         z = level_z(a + carry, m)
-        f.accepted = accept(f, z, material, own_z)
+        f.accepted = accept(f, z, material, own_z, effect)
         carry = a + carry if f.accepted or not any(f.k_fold) else 0.0
         used.append(z)
     return used
@@ -272,7 +273,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
-                                              [catalogue.signs(f.ext) for f in fits]), strict=True))
+                                              [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
+                      strict=True))
     accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
     best = accepted[0] if accepted else None
     pairwise = None
@@ -327,6 +329,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "rut_shape": prof.shape(z_loc),
                 "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
+                "effect_material": cfg.effect_materiality,
                 "own_z_min": -cfg.own_fit_z,
                 "candidates": ev,
                 "pairwise": pairwise,

@@ -70,7 +70,8 @@ def held_out_tests(diag) -> list[dict]:
     need, ev = diag.evidence["z_accept"], diag.evidence["candidates"]
     return [{"id": f.ext.id, "k": round(f.k, 4), "k_fold": [round(k, 4) for k in f.k_fold],
              "z": round(f.z, 3), "z_needed": round(need[f.ext.id], 3), "gain_mm": round(1e3 * f.improvement, 5),
-             "held_z": round(f.held_z, 3), "own_z": round(f.own_z, 3),
+             "held_z": round(f.held_z, 3), "own_z": round(f.own_z, 3), "effect": round(f.effect, 5),
+             "effects": {f"{k:.6g}": round(e, 6) for k, e in sorted((f.effects or {}).items())},
              "p_location": ev[f.ext.id]["p"], "accepted": bool(f.accepted)} for f in diag.fits]
 
 
@@ -97,7 +98,8 @@ _DIAG = DiagnosisConfig()
 
 def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha: float = _DIAG.alpha_accept,
            lead_share: float = _DIAG.lead_share, gain_materiality: float = _DIAG.gain_materiality,
-           own_fit_z: float = _DIAG.own_fit_z) -> tuple[list[dict], str | None]:
+           own_fit_z: float = _DIAG.own_fit_z, effect_materiality: float = _DIAG.effect_materiality
+           ) -> tuple[list[dict], str | None]:
     """A case record's held-out tests redone from its `series` (held_out_series), as the
     diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
     folds of block_m [m] at the estimator's stride [m]), the paired z of the held-out costs and
@@ -105,7 +107,9 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
     (`locate.combined_z`; records without residual series: the held-out z alone), and
     acceptance in order of location evidence (`run.accept_in_order`), a term's mean gain
     at least gain_materiality times the base's mean held-out cost and its windows' own fit
-    no worse than -own_fit_z (records without residual series skip this check). Change any of these
+    no worse than -own_fit_z (records without residual series skip this check), and its
+    effect size at both folds' coefficients at least effect_materiality (records without
+    `effects` skip this check). Change any of these
     (or patch the statistic) to re-score a study without running the estimator again.
     Returns (the tests with k_fold and z recomputed, the id the diagnosis would name or None)."""
     def arr(x):
@@ -126,12 +130,15 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
             base_res = res[0.0] = arr(ser["base_residual"])
             own = by_fold(res, k_fold, lab)
         gain, _, held_z, own_z, z = term_test(base, by_fold(held, k_fold, lab), base_res, own, same=same)
-        out.append({**t, "k_fold": list(k_fold), "z": z, "held_z": held_z, "gain_mm": gain, "own_z": own_z})
-    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"], accepted=False)
-            for t in out]
+        effects = {float(k): e for k, e in t.get("effects", {}).items()}
+        effect = min(effects.get(k, math.inf) for k in k_fold) if effects else math.inf
+        out.append({**t, "k_fold": list(k_fold), "z": z, "held_z": held_z, "gain_mm": gain, "own_z": own_z,
+                    "effect": effect})
+    fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"],
+                            effect=t["effect"], accepted=False) for t in out]
     material = gain_material(gain_materiality, base)
     levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material, -own_fit_z,
-                             [signs(CATALOGUE[t["id"]]) for t in out])
+                             [signs(CATALOGUE[t["id"]]) for t in out], effect_materiality)
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
     named = [t for t in out if t["accepted"]]
@@ -199,11 +206,13 @@ def _label(verdict, eid):
 
 def error_rates(records: list[dict]) -> dict:
     """false_alarms / nulls: drives without missing physics (expected `adequate`) given
-    another verdict; wrong_id: drives where a catalogue id was named that is not the true one
-    (nulls and out-of-catalogue effects included); seconds_per_case: mean wall time."""
+    another verdict; wrong_id: drives with an effect where a catalogue id was named that is
+    not the true one (out-of-catalogue effects included; a null drive named is a false alarm,
+    counted there); seconds_per_case: mean wall time."""
     nulls = [r for r in records if r["want"] == "adequate"]
     return {"nulls": len(nulls), "false_alarms": sum(r["verdict"] != "adequate" for r in nulls),
-            "wrong_id": sum(r["verdict"] == "missing_physics" and r["id"] != r["want_id"] for r in records),
+            "wrong_id": sum(r["verdict"] == "missing_physics" and r["id"] != r["want_id"]
+                            for r in records if r["want"] != "adequate"),
             "seconds_per_case": float(np.mean([r["seconds"] for r in records])) if records else math.nan}
 
 
