@@ -298,9 +298,11 @@ class DiagnosisConfig(Section):
     alpha_locate: float = Field(0.01, gt=0, lt=1, description="family-wise level of the location tests")
     materiality: float = Field(0.1, ge=0, description="a located zone must exceed this fraction of the "
                                                       "measured noise floor")
-    gain_materiality: float = Field(0.0025, ge=0, description="an accepted term must lower the mean held-out "
-                                                              "cost by at least this fraction of the base "
-                                                              "model's")
+    gain_materiality: float = Field(0.0, ge=0, description="an accepted term must lower the mean held-out "
+                                                           "cost by at least this fraction of the base model's "
+                                                           "(0: by anything; a real effect whose covariate varies "
+                                                           "within windows gains little across them, and "
+                                                           "effect_materiality keeps negligible coefficients out)")
     effect_materiality: float = Field(0.05, ge=0, description="an accepted term must change the physics by at "
                                                               "least this fraction at both folds' coefficients "
                                                               "(catalogue.effect_size: the sinkage on a twentieth "
