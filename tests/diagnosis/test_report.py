@@ -3,7 +3,7 @@
 from types import SimpleNamespace
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.report import explain
+from torchsoil.diagnosis.report import effect_text, explain
 
 
 def _adequate(fits, z_accept):
@@ -93,3 +93,12 @@ def test_an_unexplained_rut_says_where_across_the_rut_the_recording_differs():
     assert "the recording lies above the model at the centre line (by 1.00 mm)." in explain(d)
     d.evidence["rut_shape"] = []
     assert "Across the rut" not in explain(d)
+
+
+def test_an_accepted_term_says_how_much_it_changes_the_model():
+    speed = SimpleNamespace(ext=catalogue.get("speed_dependent_sinkage"), k=-0.4, effects={0.0: 0.0, -0.4: 0.234})
+    assert effect_text(speed) == " At that coefficient the term changes the sinkage by 23 % or more on a " \
+                                 "twentieth of the drive."
+    hard = SimpleNamespace(ext=catalogue.get("multi_pass_hardening"), k=-0.45, effects={-0.45: 0.45})
+    assert "sinkage of a second pass over the same ground by 45 %" in effect_text(hard)
+    assert effect_text(SimpleNamespace(ext=speed.ext, k=0.2, effects=None)) == ""

@@ -103,6 +103,21 @@ def shape_text(runs) -> str:
     return ", ".join(parts)
 
 
+WHAT_CHANGES = {"multi_pass_hardening": "sinkage of a second pass over the same ground",
+                "footprint_width": "footprint radius", "cohesive_walls": "slope (tangent) dug cells stand at"}
+
+
+def effect_text(f) -> str:
+    """How much an accepted term changes the model at its coefficient (CandidateFit.effects,
+    catalogue.effect_size), as a sentence; empty without effect sizes."""
+    e = (getattr(f, "effects", None) or {}).get(float(f.k))
+    if e is None or not math.isfinite(e):
+        return ""
+    if f.ext.id in WHAT_CHANGES:
+        return f" At that coefficient the term changes the {WHAT_CHANGES[f.ext.id]} by {100 * e:.0f} %."
+    return f" At that coefficient the term changes the sinkage by {100 * e:.0f} % or more on a twentieth of the drive."
+
+
 def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
@@ -116,7 +131,7 @@ def _explain(diag) -> str:
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
                 f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "
                 f"allowed by noise; coefficient chosen on other "
-                f"windows than those it is scored on). The mismatch lies on the "
+                f"windows than those it is scored on).{effect_text(f)} The mismatch lies on the "
                 f"{where['cross_track'].replace('_', ' ')}"
                 f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "
                 f"Noise floor {_mm(s['noise_floor'])}.")
