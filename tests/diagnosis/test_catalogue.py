@@ -60,17 +60,32 @@ def test_zero_coefficient_is_the_base_model(setup, ext_id):
 
 
 def test_effect_size_by_hand(setup):
-    """Half the drive at 0.6 m/s, half at 1.4 (mean 1.0): k_speed 0.5 changes the sinkage by
-    0.5 x 0.4; lateral load is sin(roll 0.05) + v x yaw rate 0.05 / g, largest at 1.4 m/s;
-    the other terms' change is |k|."""
+    """2 s at 0.6 m/s (1.2 m), 2 s at 1.4 (2.8 m): over the ground the mean speed is
+    (1.2 x 0.6 + 2.8 x 1.4) / 4 = 1.16 m/s, and k_speed 0.5 changes the sinkage on the slow
+    30 % of it by 0.5 x (1 - 0.6 / 1.16) = 0.241; lateral load is sin(roll 0.05) + v x yaw
+    rate 0.05 / g, largest at 1.4 m/s (70 % of the ground); the other terms' change is |k|."""
     robot, drive, *_ = setup
     size = lambda eid, k: catalogue.effect_size(CATALOGUE[eid], k, drive, robot)  # noqa: E731
-    assert size("speed_dependent_sinkage", 0.5) == pytest.approx(0.2, abs=0.01)
-    assert size("speed_dependent_sinkage", -0.5) == pytest.approx(0.2, abs=0.01)
+    assert size("speed_dependent_sinkage", 0.5) == pytest.approx(0.241, abs=0.01)
+    assert size("speed_dependent_sinkage", -0.5) == pytest.approx(0.241, abs=0.01)
     assert size("lateral_load_transfer", 2.0) == pytest.approx(2 * (math.sin(0.05) + 1.4 * 0.05 / 9.81), rel=0.01)
     assert size("slip_sinkage", 0.0) == 0.0
     assert (size("multi_pass_hardening", -0.3), size("footprint_width", -0.2), size("cohesive_walls", 1.5)) \
         == pytest.approx((0.3, 0.2, 1.5))
+
+
+def test_speed_reference_and_effect_size_weigh_ground_not_time():
+    """20 m at 1 m/s, 60 s standing still, 20 m at 2 m/s: over the ground the mean speed is
+    1.5 m/s (over time 0.3), and k_speed 0.5 changes the sinkage by 0.5 x 1/3 on either half."""
+    robot = paper_platform()
+    t = np.arange(0.0, 90.0, 0.05)
+    v = np.where(t < 20, 1.0, np.where(t < 80, 0.0, 2.0))
+    x = np.concatenate([[0], np.cumsum(v[:-1] * 0.05)])
+    poses = np.column_stack([t, x, 0 * t, 0 * t, 0 * t, 0 * t, 0 * t])
+    drive = DriveSignals.from_poses(poses, robot)
+    assert catalogue.references(drive)["speed"] == pytest.approx(1.5, abs=0.02)
+    size = catalogue.effect_size(CATALOGUE["speed_dependent_sinkage"], 0.5, drive, robot)
+    assert size == pytest.approx(0.5 / 3, abs=0.01)
 
 
 def test_speed_term_sinks_fast_poses_more(setup):

@@ -8,7 +8,7 @@ saturation): the diagnosis must still name the term.
 | id | law | coefficient |
 | --- | --- | --- |
 | multi_pass_hardening | sinkage x (1 + n)^log2(1 + k), n earlier passes over the cell | k [-]: 2nd / 1st - 1 |
-| speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)) | k [-] |
+| speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)), v_mean over the ground driven | k [-] |
 | slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
 | lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
 | cohesive_walls | dug cells settle at tan(beta) * (1 + k) | k >= 0 [-] (walls up to vertical) |
@@ -97,9 +97,20 @@ def get(ext_id: str) -> Extension:
         raise KeyError(f"unknown extension {ext_id!r}; catalogue: {sorted(CATALOGUE)}") from None
 
 
+def ground_times(drive: DriveSignals, spacing: float = 0.02) -> np.ndarray:
+    """(M,) times [s] at which the robot passes every `spacing` m of its path: a signal
+    sampled there is weighted by the ground driven, not by the time spent (a robot standing
+    still digs nothing). The recorded times when the robot never moves."""
+    arc, t = drive.signals["arc_length"], drive.signals["t"]
+    keep = np.concatenate([[True], np.diff(arc) > 0])
+    s = np.arange(0.0, float(arc[-1]), spacing)
+    return np.interp(s, arc[keep], t[keep]) if len(s) > 1 and keep.sum() > 1 else t
+
+
 def references(drive: DriveSignals) -> dict[str, float]:
-    """{signal: value} where a covariate term's factor is 1: the drive's mean speed [m/s]."""
-    return {"speed": float(np.mean(drive.signals["speed"]))}
+    """{signal: value} where a covariate term's factor is 1: the drive's mean speed [m/s]
+    over the ground driven (time spent standing still does not lower it)."""
+    return {"speed": float(np.mean(drive.at("speed", ground_times(drive))))}
 
 
 def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.ndarray, k: float,
@@ -126,13 +137,15 @@ def depth_factor(ext: Extension, drive: DriveSignals, robot: Robot, poses4: np.n
 def effect_size(ext: Extension, k: float, drive: DriveSignals, robot: Robot, quantile: float = 0.95) -> float:
     """How much the term at coefficient k changes the model [-], as a fraction: for the
     covariate terms (speed, slip, lateral load) the `quantile` of |sinkage factor - 1| over
-    the drive's poses and wheels (the change it makes on a twentieth of the drive at least);
+    the ground driven and the wheels (`ground_times`: the change it makes on a twentieth of
+    the drive at least);
     for the others |k|, the change of the second pass's sinkage (hardening), of the footprint
     radius, or of the walls' tan(beta). A term that changes the physics by a percent is not
     the cause of a mismatch, however steady its gain (DiagnosisConfig.effect_materiality)."""
     if ext.kind != "depth" or ext.id == "multi_pass_hardening":
         return abs(float(k))
-    f = depth_factor(ext, drive, robot, drive.poses4, k, references(drive))
+    t = ground_times(drive)
+    f = depth_factor(ext, drive, robot, np.pad(t[:, None], ((0, 0), (0, 3))), k, references(drive))
     return float(np.quantile(np.abs(f - 1.0), quantile))
 
 
