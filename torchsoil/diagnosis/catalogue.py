@@ -138,10 +138,10 @@ def effect_size(ext: Extension, k: float, drive: DriveSignals, robot: Robot, qua
     """How much the term at coefficient k changes the model [-], as a fraction: for the
     covariate terms (speed, slip, lateral load) the `quantile` of |sinkage factor - 1| over
     the ground driven and the wheels (`ground_times`: the change it makes on a twentieth of
-    the drive at least);
-    for the others |k|, the change of the second pass's sinkage (hardening), of the footprint
-    radius, or of the walls' tan(beta). A term that changes the physics by a percent is not
-    the cause of a mismatch, however steady its gain (DiagnosisConfig.effect_materiality)."""
+    the drive at least); for the others |k|, the change of the second pass's sinkage
+    (hardening), of the footprint radius, or of the walls' tan(beta). A term that changes the
+    physics by a percent is not the cause of a mismatch, however steady its gain
+    (DiagnosisConfig.effect_materiality)."""
     if ext.kind != "depth" or ext.id == "multi_pass_hardening":
         return abs(float(k))
     t = ground_times(drive)
