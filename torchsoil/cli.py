@@ -23,6 +23,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 DEMO = Path("data") / "demo"  # the bundled demo recording, in a source checkout
@@ -404,18 +405,25 @@ def cmd_bench(args) -> int:
     names = [m.name for m in pkgutil.iter_modules(benchmarks.__path__)]
     names = [n for n in names if not args.only or n in args.only]
     results: dict[str, float] = {}
+    modules: dict[str, list[str]] = {}
     for name in names:
         print(f"== {name}", flush=True)
         figures = importlib.import_module(f"benchmarks.{name}").run(quick=args.quick)
         for key, value in figures.items():
             print(f"  {key:48s} {value:12.4g}")
         results.update(figures)
+        modules[name] = list(figures)
     results["torch_threads"] = torch.get_num_threads()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(json.dumps(results, indent=1, sort_keys=True))
-    print(f"wrote {out / 'bench.json'} ({platform.processor() or platform.machine()}, "
-          f"python {sys.version.split()[0]}, torch {torch.__version__})")
+    machine = (f"{os.cpu_count()} cores ({platform.processor() or platform.machine()}), python "
+               f"{sys.version.split()[0]}, torch {torch.__version__}")
+    meta = {"modules": modules, "machine": machine, "date": time.strftime("%Y-%m-%d"),
+            "command": "torchsoil bench" + (" --quick" if args.quick else "")
+                       + (" --only " + " ".join(args.only) if args.only else "")}
+    (out / "bench_meta.json").write_text(json.dumps(meta, indent=1))  # figure groups, for the manual
+    print(f"wrote {out / 'bench.json'} ({machine})")
     return 0
 
 
