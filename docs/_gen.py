@@ -38,7 +38,7 @@ def settings_page(settings: Settings) -> str:
              "`torchsoil settings [SECTION]` prints the same tree as YAML. Change values with "
              "`--config my.yaml` (any subset of the sections) and `--set section.key=value`, applied in "
              "that order; an unknown key or a value of the wrong type is refused with the key named.", ""]
-    for section, info in type(settings).model_fields.items():
+    for section in type(settings).model_fields:
         doc = (type(getattr(settings, section)).__doc__ or "").strip().split("\n\n")[0]
         lines += [f"## `{section}`", "", " ".join(doc.split()), "",
                   "| key | default | meaning |", "| --- | --- | --- |"]

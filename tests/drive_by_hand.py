@@ -1,6 +1,6 @@
 """Drives built by hand, with the physics each one should show worked out from kinematics.
 
-Poses follow FORMATS.md section 3 (rows t, x, y, z, roll, pitch, yaw) in ROS REP 103:
+Poses follow docs/formats.md section 3 (rows t, x, y, z, roll, pitch, yaw) in ROS REP 103:
 x forward, y left, z up, and roll, pitch, yaw as rotations about the FIXED axes X, Y, Z in
 that order, i.e. R = Rz(yaw) Ry(pitch) Rx(roll) = scipy `Rotation.from_euler("xyz", ...)`.
 The attitude is never written down as an angle: it is built as a rotation matrix from the
@@ -50,7 +50,7 @@ def rpy(R: np.ndarray) -> np.ndarray:
 class Drive(NamedTuple):
     """A hand-built drive.
 
-    poses: (N, 7) FORMATS.md rows. R: (N, 3, 3) body axes in the world. speed: (N,) speed along
+    poses: (N, 7) docs/formats.md rows. R: (N, 3, 3) body axes in the world. speed: (N,) speed along
     the path, m/s. accel: (N,) rate of change of that speed, m/s^2. yaw_rate: (N,) rad/s.
     a_world: (N, 3) acceleration of base_link in the world, m/s^2.
     """
@@ -179,7 +179,7 @@ def reversing_turn(name: str, v: float, yaw_rate: float, duration: float = 8.0) 
 
 
 def poses_from(t, x, y, yaw, roll=None, pitch=None):
-    """(N, 7) FORMATS.md poses from their columns (z = 0; roll, pitch 0 unless given)."""
+    """(N, 7) docs/formats.md poses from their columns (z = 0; roll, pitch 0 unless given)."""
     z = np.zeros_like(t)
     return np.column_stack([t, x, y, z, z if roll is None else roll, z if pitch is None else pitch, yaw])
 

@@ -11,7 +11,7 @@ For every pose and every wheel:
    3 x 3 block). Taking it from the untouched surface keeps ruts from compounding pose
    after pose (/work/shared/MEASURED.md, forward model).
 3. Sinkage: h <- min(h, h~ - s d_k) over the footprint, with the centrality taper of
-   FORMATS.md section 2 for the robot's tyre (flat fraction f, q = lateral offset / r):
+   docs/formats.md section 2 for the robot's tyre (flat fraction f, q = lateral offset / r):
    s = 1 for |q| <= f, then s = (1 + cos(pi (|q| - f) / (1 - f))) / 2, 0 at |q| = 1.
    For f = 0 (the paper's platform), s = (1 + cos(pi q)) / 2, a raised-cosine profile.
    "Lateral" is along the body's y axis (the drives made here are straight).
@@ -41,7 +41,7 @@ from scipy import ndimage
 
 
 def taper(q: np.ndarray, flat: float = 0.0) -> np.ndarray:
-    """Centrality factor s of FORMATS.md section 2 at q = lateral offset / half width."""
+    """Centrality factor s of docs/formats.md section 2 at q = lateral offset / half width."""
     a = np.abs(np.asarray(q, np.float64))
     s = 0.5 * (1.0 + np.cos(np.pi * np.clip((a - flat) / (1.0 - flat), 0.0, 1.0)))
     return np.where(a <= flat, 1.0, np.where(a >= 1.0, 0.0, s))
@@ -164,7 +164,7 @@ def straight_drive_pair(d: tuple[float, float] = (0.03, 0.02), chi: float = 0.5,
                         roughness: float = 0.001, noise: float = 0.0015, seed: int = 0,
                         wheels: np.ndarray | None = None, wheel_width: float = 0.14, flat: float = 0.0,
                         dig: str = "robot") -> tuple[dict, dict]:
-    """Terrain pair (FORMATS.md section 3 keys) of a straight drive along +x from x = 0.
+    """Terrain pair (docs/formats.md section 3 keys) of a straight drive along +x from x = 0.
 
     The ground: smooth relief (std `relief` m, correlation ~3 cells) plus white roughness
     (`roughness` m per cell). h_front = ground + measurement noise, h_back = Algorithm 1's

@@ -45,7 +45,7 @@ def make_estimator(pair: TerrainPair) -> Estimator:
 
 
 def fit(tmp_path, d, seed=0):
-    """Make a pair with the reference model, write it as a FORMATS.md section 3 .npz, load it
+    """Make a pair with the reference model, write it as a docs/formats.md section 3 .npz, load it
     and run the estimator over every window.
 
     Returns (rows, surface_error): the params.csv rows, and the mean |H_sim - H_b| [m] between

@@ -2,7 +2,7 @@
 differentiable soil model online.
 
 Importing torchsoil changes nothing process-wide (environment variables, thread counts,
-matplotlib backends); the `torchsoil` command chooses those (README, Speed).
+matplotlib backends); the `torchsoil` command chooses those (manual: docs/getting-started.md, Threads).
 """
 
 import sys

@@ -40,7 +40,8 @@ def _bag_options(p: argparse.ArgumentParser) -> None:
     """The options of every command that takes a recording: pipeline settings (--config, --set),
     topics and extrinsics (read by `_bag_settings`)."""
     _settings_options(p)
-    g = p.add_argument_group("recording", "how a bag is read (FORMATS.md sections 1-2; ignored for a terrain pair)")
+    g = p.add_argument_group("recording", "how a bag is read (the manual: docs/recording.md, docs/formats.md; "
+                                          "ignored for a terrain pair)")
     g.add_argument("--front-topic", metavar="TOPIC", help="front lidar PointCloud2 topic (= --set "
                                                           "pipeline.read.front_topic=TOPIC)")
     g.add_argument("--back-topic", metavar="TOPIC", help="back lidar PointCloud2 topic")
@@ -65,7 +66,7 @@ def _engine_options(p: argparse.ArgumentParser):
     """Where the tasks of many recordings (or study drives) run (torchsoil.fleet); returns the
     option group."""
     g = p.add_argument_group("many recordings", "one task per recording, each writing OUT/<name>/ as a single run "
-                                                "would, and OUT/fleet.csv (README, Many recordings)")
+                                                "would, and OUT/fleet.csv (manual: docs/fleet.md)")
     g.add_argument("--engine", choices=["local", "ray"], default=None,
                    help="local: a process pool on this machine (default); ray: a Ray cluster (--ray-address) or a "
                         "local Ray instance (pip install 'torchsoil[fleet]')")
@@ -90,6 +91,8 @@ def _robot_option(p: argparse.ArgumentParser, required: bool = False, extra: str
 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="torchsoil", description=__doc__,
+                                 epilog="The manual: docs/index.md of the source checkout (build it with "
+                                        "`python3 -m sphinx -b html docs out/docs`).",
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
 

@@ -1,4 +1,4 @@
-"""The regular heightmap grid shared by all stages (FORMATS.md section 3)."""
+"""The regular heightmap grid shared by all stages (docs/formats.md section 3)."""
 
 from __future__ import annotations
 

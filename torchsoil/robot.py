@@ -1,4 +1,4 @@
-"""Robot description: wheel contact points, track assignment and tyre shape (FORMATS.md section 2)."""
+"""Robot description: wheel contact points, track assignment and tyre shape (docs/formats.md section 2)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ class Robot:
         wheel_flat_fraction: tyre cross-section shape f in [0, 1): 0 rounded, near 1 flat.
         names: K wheel names.
         wheel_section_exponent: exponent e > 0 of the taper (sim.sinkage.taper; 1: the taper
-            FORMATS.md describes; the diagnosis fits it with f as a nuisance).
+            docs/formats.md describes; the diagnosis fits it with f as a nuisance).
     """
 
     wheel_width: float
@@ -61,7 +61,7 @@ class Robot:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> Robot:
-        """Read a robot YAML (FORMATS.md section 2)."""
+        """Read a robot YAML (docs/formats.md section 2)."""
         path = Path(path)
         try:
             doc = yaml.safe_load(path.read_text())
@@ -82,7 +82,8 @@ class Robot:
                 wheel_section_exponent=float(doc.get("wheel_section_exponent", 1.0) or 1.0),
             )
         except (KeyError, TypeError) as e:
-            raise ValueError(f"{source}: missing or malformed key {e} (see FORMATS.md section 2)") from None
+            raise ValueError(f"{source}: missing or malformed key {e} "
+                             "(see the manual, docs/formats.md section 2)") from None
 
     @classmethod
     def from_npz(cls, data) -> Robot:
@@ -126,7 +127,7 @@ def robot_path(name_or_path: str | Path) -> Path:
 
 
 def load_robot(name_or_path: str | Path) -> Robot:
-    """Robot from a shipped name or a YAML path (FORMATS.md section 2)."""
+    """Robot from a shipped name or a YAML path (docs/formats.md section 2)."""
     return Robot.from_yaml(robot_path(name_or_path))
 
 

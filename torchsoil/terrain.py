@@ -1,5 +1,5 @@
 """Terrain pair: before/after heightmaps on one grid, with the trajectory and the robot
-(FORMATS.md section 3).
+(docs/formats.md section 3).
 
 `TerrainPair.load(path)` / `pair.save(path)` read and write the `.npz`; every key is checked
 for presence, shape, dtype and finiteness with an error that names the file and the key.
@@ -60,7 +60,7 @@ class TerrainPair:
         """Check keys, shapes, dtypes and values; raise ValueError naming `source` and the key."""
 
         def fail(key: str, msg: str):
-            raise ValueError(f"{source}: key '{key}' {msg} (see FORMATS.md section 3)")
+            raise ValueError(f"{source}: key '{key}' {msg} (see the manual, docs/formats.md section 3)")
 
         dx = float(np.asarray(self.dx))
         if not (np.isfinite(dx) and dx > 0):
@@ -156,10 +156,10 @@ class TerrainPair:
 
     @classmethod
     def from_mapping(cls, data, source: str = "terrain pair") -> TerrainPair:
-        """Build from any mapping of the FORMATS.md section 3 keys (an open npz, a dict)."""
+        """Build from any mapping of the docs/formats.md section 3 keys (an open npz, a dict)."""
         missing = [k for k in REQUIRED if k not in data]
         if missing:
-            raise ValueError(f"{source}: missing key(s) {missing} (see FORMATS.md section 3); "
+            raise ValueError(f"{source}: missing key(s) {missing} (see the manual, docs/formats.md section 3); "
                              f"present: {sorted(data.keys())}")
         flat = data["wheel_flat_fraction"] if "wheel_flat_fraction" in data else 0.0
         extras = {k: np.asarray(data[k]) for k in data.keys() if k not in KNOWN}

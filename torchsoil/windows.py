@@ -317,7 +317,7 @@ def front_view(pair, index: PathIndex, min_cells: int = 50) -> tuple[str, dict]:
     """What H_f holds on ground the wheels crossed more than once, told from the maps.
 
     A pipeline that keeps the newest view of each cell shows the ruts of the earlier visits in
-    H_f ("last_visit", as FORMATS.md terrain pairs from torchsoil); one that keeps the first
+    H_f ("last_visit", as docs/formats.md terrain pairs from torchsoil); one that keeps the first
     view shows untouched ground there ("first_view"). On the rut centres of revisited ground
     (within a quarter wheel width of an earlier visit's wheel and of the last one's), the
     ratio of H_f's rut depth to H_b's (each height less its Gaussian mean over a wheel width)

@@ -46,7 +46,7 @@ MAX_TAN = math.tan(math.radians(89.0))
 class Extension:
     """One catalogue term.
 
-    id: FORMATS.md section 4 id. parameter: name of its coefficient. bounds: allowed range of
+    id: docs/formats.md section 4 id. parameter: name of its coefficient. bounds: allowed range of
     the coefficient, of one sign where the physics has one (slip and load shifted onto a
     wheel deepen its rut, hardening makes later ruts shallower: a fit of the other sign would
     name physics the catalogue does not describe; `signs`). trials: coefficients tried when

@@ -1,6 +1,6 @@
 """Signals taken from the recorded poses alone, per pose and per window.
 
-Everything here reads the trajectory (FORMATS.md (N, 7) rows t, x, y, z, roll, pitch, yaw)
+Everything here reads the trajectory (docs/formats.md (N, 7) rows t, x, y, z, roll, pitch, yaw)
 and the robot's wheel layout, never the soil. The signals are what a missing physical term
 could follow:
 
@@ -35,7 +35,7 @@ SIGNALS = POSE_SIGNALS + ("passes",)
 
 
 def check_poses(poses) -> np.ndarray:
-    """Validate (N, 7) FORMATS.md poses; returns a float64 copy. Raises ValueError naming the fault."""
+    """Validate (N, 7) docs/formats.md poses; returns a float64 copy. Raises ValueError naming the fault."""
     p = np.asarray(poses, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 7:
         raise ValueError(f"poses must be (N, 7) rows t, x, y, z, roll, pitch, yaw; got shape {p.shape}")

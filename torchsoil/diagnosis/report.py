@@ -1,4 +1,4 @@
-"""Diagnosis outputs: DIR/diagnosis.json (exactly FORMATS.md section 4), a plain-language
+"""Diagnosis outputs: DIR/diagnosis.json (exactly docs/formats.md section 4), a plain-language
 report.md, figures and TensorBoard scalars."""
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def _nearest(diag) -> str:
     both folds chose the same sign, also how much more of the same driving would reach the
     level at the gain measured: a paired z grows as the square root of the windows, so
     (z needed / z)^2 times the drive's length. A misfit of other physics that follows the
-    covariate grows with the drive as well (README: a null out-and-back driven twice)."""
+    covariate grows with the drive as well (docs/notes.md, Diagnosis)."""
     if diag.best is not None or not diag.fits:
         return ""
     need = diag.evidence["z_accept"]
@@ -161,16 +161,16 @@ def _explain(diag) -> str:
 
 
 def validate_summary(d: dict) -> dict:
-    """Check a diagnosis dict against FORMATS.md section 4; raises ValueError naming the key."""
+    """Check a diagnosis dict against docs/formats.md section 4; raises ValueError naming the key."""
     if set(d) != set(KEYS):
-        raise ValueError(f"diagnosis.json keys {sorted(d)} differ from FORMATS.md section 4 {sorted(KEYS)}")
+        raise ValueError(f"diagnosis.json keys {sorted(d)} differ from docs/formats.md section 4 {sorted(KEYS)}")
     if d["verdict"] not in VERDICTS:
         raise ValueError(f"verdict {d['verdict']!r} not in {VERDICTS}")
     if (d["verdict"] == "missing_physics") != (d["missing_physics"] is not None):
         raise ValueError("missing_physics must name an id exactly when the verdict is missing_physics")
     w = d["where"]
     if set(w) != {"cross_track", "along_track", "covariate"} or w["cross_track"] not in CROSS:
-        raise ValueError(f"where {w} does not follow FORMATS.md section 4")
+        raise ValueError(f"where {w} does not follow docs/formats.md section 4")
     for key in ("cost_before", "cost_after"):
         if set(d[key]) != {"residual", "prediction"}:
             raise ValueError(f"{key} must hold residual and prediction")

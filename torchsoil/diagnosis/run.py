@@ -1,5 +1,5 @@
 """The diagnosis of one drive: locate the mismatch, rank and fit catalogue extensions,
-accept one only on held-out evidence, and give the verdict (FORMATS.md section 4)."""
+accept one only on held-out evidence, and give the verdict (docs/formats.md section 4)."""
 
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 
 @dataclass
 class Diagnosis:
-    """Everything the report needs: `summary` is the diagnosis.json dict (FORMATS.md 4)."""
+    """Everything the report needs: `summary` is the diagnosis.json dict (docs/formats.md 4)."""
 
     summary: dict
     base: Pass

@@ -1,4 +1,4 @@
-"""Read a recording (FORMATS.md section 1) with `rosbags`: ROS 2 (sqlite3, mcap) or ROS 1.
+"""Read a recording (docs/formats.md section 1) with `rosbags`: ROS 2 (sqlite3, mcap) or ROS 1.
 
 `read_recording(path, ...)` returns the front and back sweeps decoded to numpy, the IMU
 samples (if the bag has a `sensor_msgs/msg/Imu` topic) and the transforms of `/tf_static`

@@ -1,5 +1,5 @@
 """Per-point capture times of the common lidar drivers: which field, which unit, relative to
-what (FORMATS.md section 1).
+what (docs/formats.md section 1).
 
     ouster-ros           t          uint32 ns after the header stamp (stamp: sweep start)
     velodyne_pointcloud  time       float32 s relative to the stamp, -0.1 .. 0 (stamp: last packet)

@@ -347,7 +347,7 @@ class OnlinePipeline:
     def terrain(self, t0: float = -np.inf, t1: float = np.inf) -> TerrainPair:
         """The terrain pair of the stretch driven between t0 and t1 (s; default: all so far): the
         corridor around that part of T_ref, H_f and H_b from the tiles, poses and per-sweep flags
-        of the stretch as extras (FORMATS.md section 3)."""
+        of the stretch as extras (docs/formats.md section 3)."""
         stamps, poses = self.trajectory()
         sel = (stamps >= t0) & (stamps <= t1)
         if sel.sum() < 2:

@@ -78,7 +78,7 @@ def extrinsics_for(rec: Recording, cfg: ReadConfig, streams: dict[str, str]) -> 
 
 def extrinsics_from_robot_yaml(path: str | Path) -> dict[str, list[float]]:
     """Optional `lidars: {frame or topic: [x, y, z, roll, pitch, yaw]}` (m, rad, in base_link)
-    of a robot YAML (FORMATS.md section 2), for `ReadConfig.extrinsics`. A key naming a topic
+    of a robot YAML (docs/formats.md section 2), for `ReadConfig.extrinsics`. A key naming a topic
     (`/lidar_back/points`) sets that topic's pose whatever its frame; the IMU's pose may be
     given the same way."""
     doc = yaml.safe_load(Path(path).read_text()) or {}
@@ -133,7 +133,7 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     streaming pipeline (torchsoil.pipeline.online) run over the recording to its end.
 
     Args:
-        bag_path: ROS 2 bag directory or ROS 1 file (FORMATS.md section 1).
+        bag_path: ROS 2 bag directory or ROS 1 file (docs/formats.md section 1).
         robot: wheel layout (written into the terrain pair; also bounds the ground each
             lidar may measure: ahead of the front wheels, behind the rear wheels).
         config: the pipeline section of the settings (torchsoil.settings.PipelineConfig).
@@ -204,7 +204,7 @@ def _bars(enabled: bool):
 
 
 def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path]:
-    """Write `terrain.npz` (FORMATS.md section 3 + extras), `trajectory.csv` (t, x, y, z,
+    """Write `terrain.npz` (docs/formats.md section 3 + extras), `trajectory.csv` (t, x, y, z,
     roll, pitch, yaw of T_ref) and PNGs of H_f, H_b and H_delta (diverging colour map:
     blue excavation, red deposition). Each file is written to a temporary name first."""
     import matplotlib

@@ -53,11 +53,11 @@ class WheelGeometry(NamedTuple):
     shape:   (X, Y).
     n_bins:  deposition bins per wheel.
     radius:  nominal footprint radius (half the wheel width), m.
-    flat_fraction: tyre taper f (FORMATS.md section 2).
+    flat_fraction: tyre taper f (docs/formats.md section 2).
     dx:      cell edge, m.
     band_width: deposition band width, m.
     nominal: Footprint at the nominal radius, precomputed.
-    section_exponent: exponent e of the taper (sim.sinkage.taper; 1: FORMATS.md's).
+    section_exponent: exponent e of the taper (sim.sinkage.taper; 1: docs/formats.md's).
     order:   (E,) int64 turn of the entry's wheel at its pose: 0 for the axle that meets the
              ground first in the direction of travel, 1 for the next one, ...
              (`dig_order`; SimConfig.dig_order "wheel").
@@ -115,7 +115,7 @@ def footprint(geom: WheelGeometry, radius_scale: torch.Tensor | None = None,
 
 
 def planar_poses(poses) -> np.ndarray:
-    """Poses as (N, 4) t, x, y, yaw from FORMATS.md (N, 7) [t, x, y, z, roll, pitch, yaw]
+    """Poses as (N, 4) t, x, y, yaw from docs/formats.md (N, 7) [t, x, y, z, roll, pitch, yaw]
     or (N, 3) [x, y, yaw] (t then counts poses)."""
     p = np.asarray(poses, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] not in (3, 4, 7) or len(p) == 0:
@@ -192,7 +192,7 @@ def wheel_geometry(
 
     Args:
         grid: the heightmap grid.
-        poses: base_link poses, (N, 7) FORMATS.md rows, (N, 4) t, x, y, yaw or (N, 3) x, y, yaw.
+        poses: base_link poses, (N, 7) docs/formats.md rows, (N, 4) t, x, y, yaw or (N, 3) x, y, yaw.
         robot: wheel layout.
         pose_spacing: resample so wheels move at most this many cells per pose.
         band_width: deposition band width beside the rut, in cells.

@@ -16,7 +16,7 @@ def taper(q: torch.Tensor, flat_fraction: float = 0.0, exponent: float = 1.0) ->
     """Centrality factor s(q) in [0, 1] for q = lateral offset / footprint radius (any shape).
 
     s = 1 for |q| <= f, then (1 + cos(pi (|q| - f) / (1 - f))) / 2 down to 0 at |q| = 1,
-    0 beyond (FORMATS.md section 2); raised to `exponent` e (1: that taper; below 1 fuller
+    0 beyond (docs/formats.md section 2); raised to `exponent` e (1: that taper; below 1 fuller
     shoulders: about a rounded, elliptic section at f = 0, e = 0.2, a crowned, parabolic one
     at f = 0.1, e = 0.5).
     """

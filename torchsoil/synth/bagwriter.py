@@ -1,5 +1,5 @@
 """rosbag2 output through `rosbags`: PointCloud2 lidar sweeps, sensor_msgs/Imu and
-/tf_static (FORMATS.md section 1), in sqlite3 or mcap storage (mcap optionally with zstd chunk compression)."""
+/tf_static (docs/formats.md section 1), in sqlite3 or mcap storage (mcap optionally with zstd chunk compression)."""
 
 from __future__ import annotations
 

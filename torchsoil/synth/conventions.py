@@ -1,5 +1,5 @@
 """The recorder's sweeps rewritten in the layouts and stamp conventions of common lidar drivers
-(FORMATS.md section 1; the layouts as in tests/io/driver_clouds.py, from the drivers' sources).
+(docs/formats.md section 1; the layouts as in tests/io/driver_clouds.py, from the drivers' sources).
 
     ouster            t uint32 ns after the stamp; stamp = sweep start (the recorder's own layout)
     velodyne          time float32 s relative to the stamp; stamp = last firing

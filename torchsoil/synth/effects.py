@@ -1,4 +1,4 @@
-"""Physics the base model leaves out: the catalogue effects of FORMATS.md section 4 plus
+"""Physics the base model leaves out: the catalogue effects of docs/formats.md section 4 plus
 out-of-catalogue ones, each a plausible law with its own parameters.
 
 Every effect scales a base quantity by a factor 1 + k * phi(x) of a covariate x that is 0
@@ -31,7 +31,7 @@ CATALOGUE = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage",
 OUT_OF_CATALOGUE = ("tread",)
 EFFECTS = CATALOGUE + OUT_OF_CATALOGUE
 FORMS = ("linear", "power", "saturating", "threshold")
-# what a diagnosis should find for each effect (FORMATS.md section 4 `where`): the signal the
+# what a diagnosis should find for each effect (docs/formats.md section 4 `where`): the signal the
 # mismatch follows and where across the track it shows
 SIGNATURES: dict[str, dict] = {
     "multi_pass_hardening": {"covariate": "pass_count", "cross_track": "rut_floor"},

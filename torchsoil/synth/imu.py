@@ -49,7 +49,7 @@ def imu_samples(traj_poses: np.ndarray, spec: ImuSpec, rng: np.random.Generator,
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """IMU readings from trajectory time 0 to `end` s.
 
-    traj_poses: (N, 7) true base_link rows t, x, y, z, roll, pitch, yaw (FORMATS.md section 3).
+    traj_poses: (N, 7) true base_link rows t, x, y, z, roll, pitch, yaw (docs/formats.md section 3).
     Returns t (M,) [s], acc (M, 3) specific force [m/s^2] and gyro (M, 3) rate [rad/s], both
     in the IMU frame, with bias and noise.
     """

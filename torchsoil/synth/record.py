@@ -2,9 +2,9 @@
 
 Files written for `make_recording(..., out=PATH)`:
 
-    PATH/                 the rosbag2 directory (FORMATS.md section 1), nothing else inside:
+    PATH/                 the rosbag2 directory (docs/formats.md section 1), nothing else inside:
                           both lidars, /tf_static and, unless imu=False, IMU_TOPIC
-    PATH.robot.yaml       the robot description (FORMATS.md section 2)
+    PATH.robot.yaml       the robot description (docs/formats.md section 2)
     PATH.pair.npz         terrain pair straight from the truth, 3 mm per-cell noise (section 3)
     PATH.truth.npz        the truth: noise-free surfaces, per-visit states and times, soil
                           fields, true poses, time of last wheel passage (tools under test

@@ -1,5 +1,5 @@
 """Scenarios: a YAML (configs/scenarios/NAME.yaml) -> field, trajectory, world truth, and
-from them a terrain pair (FORMATS.md section 3) or a full recording (section 1).
+from them a terrain pair (docs/formats.md section 3) or a full recording (section 1).
 
 A scenario is the `synth` section of the settings tree (`torchsoil.settings.SynthConfig`:
 its keys, defaults and units); a scenario YAML is a document of that section:
@@ -203,7 +203,7 @@ def draw_tyre(cfg: TyreConfig, seed: int) -> dict:
 
 
 def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None) -> dict:
-    """Measured before/after heightmaps from the truth (FORMATS.md section 3).
+    """Measured before/after heightmaps from the truth (docs/formats.md section 3).
 
     h_front: the surface before the last visit of the wheels to each cell (before the robot
     for single passes), or with probability measurement.first_view the surface before the
@@ -238,7 +238,7 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
 
 def make_terrain_pair(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
                       noise: float | None = None) -> dict:
-    """Terrain pair dict (FORMATS.md section 3 keys) for a scenario, without lidars.
+    """Terrain pair dict (docs/formats.md section 3 keys) for a scenario, without lidars.
 
     The noise-free truth is identical to that of a recording of the same scenario, seed
     and dx."""

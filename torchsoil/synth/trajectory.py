@@ -18,7 +18,7 @@ from torchsoil.synth.terrain import Relief
 class Trajectory:
     """True motion of base_link sampled uniformly in time.
 
-    poses: (N, 7) t [s], x, y, z [m], roll, pitch, yaw [rad] (FORMATS.md section 3 rows).
+    poses: (N, 7) t [s], x, y, z [m], roll, pitch, yaw [rad] (docs/formats.md section 3 rows).
     speed: (N,) forward speed, m/s.   accel: (N,) forward acceleration, m/s^2.
     yaw_rate: (N,) rad/s.             arc: (N,) travelled distance, m.
     """
