@@ -100,7 +100,7 @@ def relax(h: torch.Tensor, tan_beta: torch.Tensor, dx: float, domain: torch.Tens
             walls and deposits settle at different angles; see `face_tan`).
         dx: cell edge, m.
         domain: (X, Y) bool cells that may exchange soil (None: the whole map).
-        tau: stop when max |grad h| - tan(beta) < tau.
+        tau: stop when max abs(grad h) - tan(beta) < tau.
         max_iter: iteration cap; elements that hit it are flagged `capped`.
         fixed_iter: run exactly this many iterations (the paper's "capped relaxation").
         eps_scale: epsilon = eps_scale / dx^2.

@@ -22,12 +22,13 @@ MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avo
 class Modifiers(NamedTuple):
     """Hooks through which model extensions change the base physics (all optional).
 
-    depth_scale:   (B, K, N) factor on the sinkage of wheel k at resampled pose n, or (B, E)
-                   one per geometry entry (WheelGeometry.cell: a cell near one wheel's path), for
-                   soil that changes cell by cell (ground driven before).
-    radius_scale:  (B,) factor on the footprint radius (contact patch wider or narrower).
-    tan_beta_wall: (B,) tangent of the angle at which dug cells (rut walls and floor)
-                   settle; deposits keep tan(beta).
+    Attributes:
+        depth_scale: (B, K, N) factor on the sinkage of wheel k at resampled pose n, or (B, E)
+            one per geometry entry (WheelGeometry.cell: a cell near one wheel's path), for
+            soil that changes cell by cell (ground driven before).
+        radius_scale: (B,) factor on the footprint radius (contact patch wider or narrower).
+        tan_beta_wall: (B,) tangent of the angle at which dug cells (rut walls and floor)
+            settle; deposits keep tan(beta).
     """
 
     depth_scale: torch.Tensor | None = None

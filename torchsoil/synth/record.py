@@ -1,6 +1,6 @@
 """A full synthetic recording: scenario -> truth -> dual-lidar sweeps -> rosbag2.
 
-Files written for `make_recording(..., out=PATH)`:
+Files written for `make_recording(..., out=PATH)`::
 
     PATH/                 the rosbag2 directory (docs/formats.md section 1), nothing else inside:
                           both lidars, /tf_static and, unless imu=False, IMU_TOPIC
