@@ -79,8 +79,9 @@ def test_command_lines_are_accepted(where, code, run, tmp_path):
         except SystemExit as e:
             pytest.fail(f"{where}: `torchsoil {' '.join(argv)}` is refused by the command line ({e})")
     if run:
+        cwd = workdir(tmp_path)
         for argv in argvs:
-            res = subprocess.run([sys.executable, "-m", "torchsoil.cli", *argv], cwd=workdir(tmp_path),
+            res = subprocess.run([sys.executable, "-m", "torchsoil.cli", *argv], cwd=cwd,
                                  capture_output=True, text=True, timeout=300,
                                  env={**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"})
             assert res.returncode == 0, f"{where}: torchsoil {' '.join(argv)}\n{res.stderr[-2000:]}"
