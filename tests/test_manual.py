@@ -67,7 +67,7 @@ SHELL = blocks({"bash", "console", "sh"})
 def test_python_example_runs(where, code, tmp_path, monkeypatch):
     monkeypatch.chdir(workdir(tmp_path))
     monkeypatch.setenv("MPLBACKEND", "Agg")
-    exec(compile(code, where, "exec"), {"__name__": "__example__"})
+    exec(compile(code, where, "exec"), {"__name__": "__main__"})  # as `python3 example.py` runs it
 
 
 @pytest.mark.parametrize("where, code, run", SHELL, ids=[w for w, _, _ in SHELL])
