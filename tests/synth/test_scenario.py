@@ -268,3 +268,21 @@ def test_every_effect_has_a_signature():
     assert set(fx.SIGNATURES) == set(fx.EFFECTS)
     for sig in fx.SIGNATURES.values():
         assert sig["cross_track"] in {"rut_floor", "rut_wall", "berm", "outside", "mixed"}
+
+
+def test_no_wall_stands_across_a_narrow_field():
+    """On a field 4 m either side of a 20 m drive the shed's side wall (4 m long, at the
+    middle of the field plus 5 m) would reach the path; it is turned away from it, and every
+    wall keeps its distance from the path (points along each wall's length, by hand)."""
+    from torchsoil.synth.terrain import farm_landmarks
+
+    path = np.column_stack([np.linspace(0.0, 20.0, 201), np.zeros(201)])
+    flat = Relief(0.0, 0.0, np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0))
+    lm = farm_landmarks(LandmarkConfig(poles=0, trunks=0, shed=True, fence=False), flat,
+                        (-4.0, -4.0, 24.0, 4.0), np.random.default_rng(0), path)
+    assert len(lm.boxes) == 2
+    for cx, cy, _, half_length, _, _, yaw, _ in lm.boxes:
+        t = np.linspace(-half_length, half_length, 81)
+        x, y = cx + t * math.cos(yaw), cy + t * math.sin(yaw)
+        beside = (x >= 0) & (x <= 20)
+        assert np.abs(y[beside]).min() > 1.5, (cx, cy, yaw)

@@ -228,7 +228,10 @@ def farm_landmarks(spec: LandmarkConfig, relief: Relief, bounds: tuple[float, fl
         cx, cy = 0.5 * (xmin + xmax), ymax - 1.5
         z0 = float(relief.height(cx, cy)) - 0.3
         box.append([cx, cy, z0 + 1.65, 5.0, 0.1, 1.65, 0.02, 1])
-        box.append([cx + 5.0, cy - 2.0, z0 + 1.65, 2.0, 0.1, 1.65, math.pi / 2 + 0.02, 1])
+        # its side wall, 4 m, toward the field; away from it where it would reach the path
+        # (on a narrow field the side wall stood across the drive)
+        side = -1.0 if all(free(cx + 5.0, cy - t) for t in np.linspace(0.0, 4.0, 17)) else 1.0
+        box.append([cx + 5.0, cy + 2.0 * side, z0 + 1.65, 2.0, 0.1, 1.65, math.pi / 2 + 0.02, 1])
     if spec.fence:
         # a fence along the -y side: posts every 2.5 m and two rails
         y = ymin + 1.5
