@@ -279,9 +279,9 @@ def _finish_whole(live, bag: Path, out: Path, settings: Settings, pieces: list, 
     pair = result.terrain
     pair.save(out / "terrain_pair.npz")
     provenance.mark_cache(out / "terrain_pair.npz", cache)
-    h_sim = _stitch(pair, pieces)
-    _save_simulated(out / "simulated.npz", pair, h_sim)
     est = Estimator(pair, settings.estimator, settings.sim)
+    h_sim = (est.h_start + _stitch(pair, pieces)).astype(np.float32)   # each window's change on the final H_f
+    _save_simulated(out / "simulated.npz", pair, h_sim)
     figures.difference_maps(pair, est.h_start, h_sim, rows, out / "fig6_difference_maps.png", h_back=est.h_back)
 
 
@@ -292,18 +292,24 @@ def _param_names(robot: Robot) -> list[str]:
 
 
 def _sim_piece(w) -> tuple:
-    """A LiveWindow's simulated H_b on its ground: lattice indices (i0, j0) of its crop, h_sim
-    (X, Y) and each cell's distance to the window centre along the drive (inf off its ground)."""
+    """A LiveWindow's simulated height change on its ground: lattice indices (i0, j0) of its
+    crop, h_sim minus the surface its simulation started from (X, Y) [m], and each cell's
+    distance to the window centre along the drive (inf off its ground). The change, not h_sim:
+    a window fitted before the world frame's levelling was corrected (an IMU bias told at the
+    end) or on a stretch with its own map offset lies in another frame than the final maps
+    (on the demo drive a ramp of 0.5 mm per metre in the stitched H_b)."""
     o, pair = w.output, w.pair
     i0, _, j0, _ = o.data.crop
     gi, gj = (int(round(v / pair.dx)) for v in pair.origin)
     dist = np.where(o.data.ground.cpu().numpy(), w.dist, np.inf).astype(np.float32)
-    return gi + i0, gj + j0, o.h_sim.detach().cpu().numpy().astype(np.float32), dist
+    change = (o.h_sim - o.data.h_front[0]).detach().cpu().numpy().astype(np.float32)
+    return gi + i0, gj + j0, change, dist
 
 
 def _stitch(pair: TerrainPair, pieces: list) -> np.ndarray:
-    """Simulated H_b over the whole pair's grid: each cell from the window (of `pieces`) whose
-    centre is nearest along the drive, as `estimator.Stitcher`."""
+    """Simulated height change over the whole pair's grid (NaN where no window simulated):
+    each cell from the window (of `pieces`) whose centre is nearest along the drive, as
+    `estimator.Stitcher`."""
     h = np.full(pair.h_front.shape, np.nan, np.float32)
     best = np.full(pair.h_front.shape, np.inf, np.float32)
     gi, gj = (int(round(v / pair.dx)) for v in pair.origin)
