@@ -24,20 +24,22 @@ def parameter_curves(rows: list[dict], reference: list[dict], names, path: Path)
     ax = fig.subplots(4, 1, sharex=True)
     for n in names:
         if n.startswith("d"):
-            ax[0].plot(s, 1e3 * _col(rows, n), ".-", label=n)
-    ax[0].set_ylabel("sinkage [mm]")
-    ax[0].legend(loc="best")
+            ax[0].plot(s, 1e3 * _col(rows, n), ".-", label=f"{n} (track {int(n[1:]) - 1})" if n[1:].isdigit() else n)
+    ax[0].set_title("fitted per window: sinkage d, deposit share $\\chi$, angle of repose $\\beta$; "
+                    "costs against the noise floor", fontsize=10)
+    ax[0].set_ylabel("sinkage d\n[mm]")
+    ax[0].legend(loc="best", fontsize=8)
     ax[1].plot(s, _col(rows, "chi"), ".-", color="C2")
-    ax[1].set_ylabel(r"$\chi$ [-]")
+    ax[1].set_ylabel("deposit share $\\chi$ [-]")
     ax[2].plot(s, _col(rows, "beta"), ".-", color="C3")
-    ax[2].set_ylabel(r"$\beta$ [deg]")
+    ax[2].set_ylabel("angle of repose\n$\\beta$ [deg]")
     ax[3].plot(s, 1e3 * _col(rows, "residual"), ".-", label="residual")
     ax[3].plot(s, 1e3 * _col(rows, "prediction"), ".-", label="prediction")
     if reference:
         ax[3].plot(s, 1e3 * _col(reference, "floor"), "--", color="gray", label="noise floor")
         ax[3].plot(s, 1e3 * _col(reference, "signal"), ":", color="k", label="deformation signal")
-    ax[3].set_ylabel("cost [mm]")
-    ax[3].set_xlabel("arc length s [m]")
+    ax[3].set_ylabel("cost [mm]\n(mean |simulated - measured|)")
+    ax[3].set_xlabel("distance along the drive s [m] (window centres)")
     ax[3].legend(loc="best", fontsize=8)
     for a in ax:
         a.grid(alpha=0.3)
@@ -72,7 +74,8 @@ def _heading(poses: np.ndarray, t: float) -> float:
 def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dict], path: Path,
                     n_insets: int = 4, h_back: np.ndarray | None = None) -> Path:
     """Fig. 6: measured (H_b - H_f) and simulated (h_sim - h_start, the surface the simulation
-    started from) height change over the drive, with cross-sections at windows A-D. h_back:
+    started from) height change over the drive, drawn over the x range of the measured or
+    simulated ground, with cross-sections at windows A-D. h_back:
     (X, Y) the after map the estimator used (net of the map offset; default pair.h_back)."""
     measured = (pair.h_back if h_back is None else h_back) - pair.h_front
     simulated = np.where(np.isfinite(h_sim), h_sim - h_start, np.nan)
@@ -85,6 +88,8 @@ def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dic
     X, Y = measured.shape
     extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)
     lim = float(np.nanpercentile(np.abs(measured), 99)) if np.isfinite(measured).any() else 0.05
+    seen = np.flatnonzero(np.isfinite(measured).any(axis=1) | np.isfinite(simulated).any(axis=1))
+    xlim = (x0 + (seen[0] - 1) * pair.dx, x0 + (seen[-1] + 1) * pair.dx) if len(seen) else extent[:2]
     fig = Figure(figsize=(12, 8))
     gs = fig.add_gridspec(3, max(len(picks), 1), height_ratios=[1, 1, 1.1])
     for row_i, (title, img) in enumerate([("measured $H_\\Delta$", measured), ("simulated $H_\\Delta$", simulated)]):
@@ -94,8 +99,10 @@ def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dic
         for letter, r in zip("ABCDEFGH", picks, strict=False):
             ax.annotate(letter, (r["x"], r["y"]), color="k", fontsize=10, weight="bold", ha="center")
         ax.set_title(title)
+        ax.set_xlim(*xlim)            # the ground the maps hold, not the grid's margins
+        ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
-        fig.colorbar(im, ax=ax, label="m", fraction=0.02)
+        fig.colorbar(im, ax=ax, label="height change [m]", fraction=0.02)
     half = float(np.abs(pair.wheels[:, 1]).max() + 2.5 * pair.wheel_width)
     for k, (letter, r) in enumerate(zip("ABCDEFGH", picks, strict=False)):
         ax = fig.add_subplot(gs[2, k])
