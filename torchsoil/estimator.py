@@ -314,15 +314,15 @@ class Estimator:
         return out
 
     def _passes_before(self, wd: WindowData | None, visit: int) -> float:
-        """Wheel passes the window's rut cells had had before visit `visit` (median; 0 without
-        visit layers, NaN when no rut cell is counted)."""
-        if not self.per_visit:
+        """Wheel passes the window's ruts (its ground within a quarter wheel width of a wheel
+        path, with that visit) had had before visit `visit`: their median (0 without visit
+        layers or ruts)."""
+        if not self.per_visit or wd is None:
             return 0
-        ruts = self._ruts(wd)
-        if ruts is None:
-            return math.nan
         i0, i1, j0, j1 = wd.crop
-        return float(np.median(self.passes_before[visit, i0:i1, j0:j1][ruts]))
+        ruts = (wd.ground.cpu().numpy() & (self.index.wheel_dist[i0:i1, j0:j1] <= self.pair.wheel_width / 4)
+                & np.isfinite(self.pair.visit_time[visit, i0:i1, j0:j1]))
+        return float(np.median(self.passes_before[visit, i0:i1, j0:j1][ruts])) if ruts.any() else 0
 
     def _ruts(self, wd: WindowData | None) -> np.ndarray | None:
         """(X, Y) bool rut centres of the window's crop (counted cells within a quarter wheel
