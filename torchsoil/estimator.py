@@ -120,7 +120,8 @@ class Estimator:
         self.nuisance = nuisance if nuisance is not None else fit_map_nuisance(
             np.asarray(pair.h_front), np.asarray(pair.h_back), pair.grid, self.index, robot.wheel_width,
             est.floor_inner, est.corridor, est.nuisance)
-        view = view or est.front_view
+        self.per_visit = per_visit and getattr(pair, "visit_front", None) is not None
+        view = "last_visit" if self.per_visit else view or est.front_view   # per visit: each from its own H_f
         self.view, self.view_info = (front_view(pair, self.index) if view == "auto" else (view, {}))
         self.h_back = np.asarray(pair.h_back, np.float64)
         if self.nuisance is not None:
@@ -150,9 +151,7 @@ class Estimator:
         self.theta0 = torch.tensor([init[k] for k in kinds], **kw)
         self._cache: dict[int, WindowData | None] = {}
         self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
-        self.per_visit = per_visit and getattr(pair, "visit_front", None) is not None
         if self.per_visit:
-            self.view = "last_visit"        # each visit starts from its own before map
             self._visit_setup()
 
     def _visit_setup(self) -> None:
@@ -234,6 +233,7 @@ class Estimator:
         thetas = {v: t.to(self.theta0) for v, t in thetas.items()}
         skip = skip or set()
         for k in range(start, len(self.windows) if stop is None else min(stop, len(self.windows))):
+            t0 = time.perf_counter()       # a window's seconds include preparing its data
             spec = self.windows[k]
             if self.per_visit:
                 visits = self.visit_data(k)
@@ -248,15 +248,16 @@ class Estimator:
             for v, wd in (visits or {0: None}).items():
                 if (round(spec.centre + self.arc0, 6), v) in skip:
                     continue
-                o = self._fit_one(spec, wd, ahead.get(v), thetas.get(v, theta0), v)
+                o = self._fit_one(spec, wd, ahead.get(v), thetas.get(v, theta0), v, t0)
                 if o.fit is not None:
                     thetas[v] = o.fit.theta
                 yield o._replace(final=v == max(visits or {0: None}))
+                t0 = time.perf_counter()
 
     def _fit_one(self, spec: WindowSpec, wd: WindowData | None, ahead: WindowData | None, theta: torch.Tensor,
-                 visit: int) -> WindowOutput:
-        """Fit one visit of a window (its only one without visit layers), warm-started at theta."""
-        t0 = time.perf_counter()
+                 visit: int, t0: float) -> WindowOutput:
+        """Fit one visit of a window (its only one without visit layers), warm-started at theta;
+        t0: perf_counter time at which its work began."""
         reference = {"signal": math.nan, "floor": math.nan}
         if wd is None or "few_valid" in wd.flags:
             flags = ("empty",) if wd is None else wd.flags

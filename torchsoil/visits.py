@@ -149,6 +149,7 @@ def multipass_markdown(table: list[dict]) -> str:
         return "No ground was driven more than once."
     lines = ["| visit | wheel passes before | windows | measured rut depth [mm] | fitted sinkage d [mm] |",
              "| --- | --- | --- | --- | --- |"]
-    lines += [f"| {e['visit']} | {e['passes_before']} | {e['windows']} | {1e3 * e['rut']:.1f} ± {1e3 * e['rut_sd']:.1f} "
-              f"| {1e3 * e['d']:.1f} ± {1e3 * e['d_sd']:.1f} |" for e in table]
+    lines += [f"| {e['visit']} | {e['passes_before']} | {e['windows']} "
+              f"| {1e3 * e['rut']:.1f} ± {1e3 * e['rut_sd']:.1f} | {1e3 * e['d']:.1f} ± {1e3 * e['d_sd']:.1f} |"
+              for e in table]
     return "\n".join(lines)
