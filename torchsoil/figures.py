@@ -184,7 +184,7 @@ def multipass(table: list[dict], path: Path) -> Path:
     ax = fig.subplots()
     if table:
         pb = np.array([e["passes_before"] for e in table], float)
-        series = (("rut", "measured rut depth", "o-", -0.05), ("d", "fitted sinkage d", "s--", 0.05))
+        series = (("rut", "measured rut depth", "o", -0.05), ("d", "fitted sinkage d", "s", 0.05))   # unjoined
         for key, label, fmt, shift in series:
             ax.errorbar(pb + shift, [1e3 * e[key] for e in table], yerr=[1e3 * e[key + "_sd"] for e in table],
                         fmt=fmt, capsize=4, label=label)
