@@ -227,3 +227,19 @@ def test_estimate_writes_the_multipass_outputs_and_resumes_by_visit(tmp_path):
     assert [(r["s"], r["visit"]) for r in resumed] == [(r["s"], r["visit"]) for r in full]
     for a, b in zip(full, resumed, strict=True):
         assert float(a["d1"]) == pytest.approx(float(b["d1"]), abs=1e-3, nan_ok=True)
+
+
+def test_cells_with_another_visit_count_stay_out_of_a_windows_costs(visits_pair):
+    s = settings()
+    est = Estimator(visits_pair, s.estimator, s.sim, per_visit=True)
+    # the window on the way back (s = 2 LENGTH - x) that straddles x = ONCE, where the visit count changes
+    k = min(range(len(est.windows)), key=lambda k: abs(2 * LENGTH - est.windows[k].centre - ONCE))
+    visits = est.visit_data(k)
+    counts = {}
+    for v, wd in visits.items():
+        i0, i1, j0, j1 = wd.crop
+        n = est.visits_per_cell[i0:i1, j0:j1]
+        counted = wd.weight.cpu().numpy() > 0
+        counts[v] = np.unique(n[counted]).tolist()
+    assert len(visits) in (1, 2) and all(len(c) == 1 for c in counts.values())          # one history per window
+    assert all(c == [len(visits)] for c in counts.values())
