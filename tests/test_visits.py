@@ -91,8 +91,12 @@ def test_multipass_table_groups_windows_driven_again_by_pass_count():
             row(1.4, 0, 0, 0.026, 0.030, 0.024), row(1.4, 1, 2, 0.014, 0.016, 0.012),
             row(1.8, 1, 2, 0.5, 0.5, 0.5, residual=math.nan),                    # not fitted: left out
             row(3.0, 0, 0, 0.9, 0.9, 0.9)]                                      # driven once: left out
-    table = multipass_table(rows, ["d1", "d2", "chi", "beta"])
+    for r, pred in zip(rows, (3.0, 2.0, 5.0, 4.0, 1.0, 1.0), strict=True):
+        r["prediction"] = pred
+    reference = [{"floor": f} for f in (2.0, 4.0, 2.0, 4.0, 1.0, 1.0)]
+    table = multipass_table(rows, ["d1", "d2", "chi", "beta"], reference)
     assert [(e["visit"], e["passes_before"], e["windows"]) for e in table] == [(0, 0, 2), (1, 2, 2)]
+    assert table[0]["prediction_floor"] == pytest.approx(2.0) and table[1]["prediction_floor"] == pytest.approx(0.75)
     assert table[0]["d"] == pytest.approx(0.030) and table[0]["d_sd"] == pytest.approx(0.002)
     assert table[1]["d"] == pytest.approx(0.013) and table[1]["d_sd"] == pytest.approx(0.002)
     assert table[0]["rut"] == pytest.approx(0.026) and table[1]["rut_sd"] == pytest.approx(0.002)
@@ -214,7 +218,7 @@ def test_estimate_writes_the_multipass_outputs_and_resumes_by_visit(tmp_path):
     for name in ("multipass.png", "passes.png"):
         assert (out / name).stat().st_size > 0
     summary = (out / "summary.md").read_text()
-    assert "| 1 | 2 |" in summary and "Ground driven more than once" in summary
+    assert "| 1 | 2 |" in summary and "Ground driven more than once" in summary and "noise floor |" in summary
     # interrupted between the two visits of a window: resumed, no row is lost or written twice
     cut = next(n for n, r in enumerate(full) if r["visit"] == "1")
     lines = (out / "params.csv").read_text().splitlines()

@@ -198,7 +198,7 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
     meta = {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad,
             "removed": est.nuisance.describe() if est.nuisance is not None else "no map offset"}
     if est.per_visit:
-        meta["multipass"] = _multipass_outputs(est, params.rows, out)
+        meta["multipass"] = _multipass_outputs(est, params.rows, reference.rows, out)
     figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
 
 
@@ -215,7 +215,7 @@ def _resume_point(est: Estimator, rows: list[dict]) -> tuple[int, set, dict]:
     return start, done, theta
 
 
-def _multipass_outputs(est: Estimator, rows: list[dict], out: Path) -> str:
+def _multipass_outputs(est: Estimator, rows: list[dict], reference: list[dict], out: Path) -> str:
     """passes.npz, passes.png and multipass.png of a per-visit run; the multi-pass table
     (Markdown) for summary.md."""
     from torchsoil import visits
@@ -223,7 +223,7 @@ def _multipass_outputs(est: Estimator, rows: list[dict], out: Path) -> str:
     layers = visits.pass_layers(est.pair, est.passes, est.visit_back)
     np.savez_compressed(out / "passes.npz", **layers)
     figures.pass_maps(est.pair, layers, out / "passes.png")
-    table = visits.multipass_table(rows, est.names)
+    table = visits.multipass_table(rows, est.names, reference)
     figures.multipass(table, out / "multipass.png")
     return visits.multipass_markdown(table)
 

@@ -116,30 +116,35 @@ def pass_layers(pair, passes: np.ndarray, visit_back: list[np.ndarray] | np.ndar
             "rut_depth": total.astype(np.float32)}
 
 
-def multipass_table(rows: list[dict], names) -> list[dict]:
+def multipass_table(rows: list[dict], names, reference: list[dict] | None = None) -> list[dict]:
     """Measured rut depth and fitted sinkage against the pass number, over the windows whose
     ground was driven more than once (params.csv rows with `visit` and `passes_before`).
 
     One entry per (visit, passes_before) among the fitted rows of those windows: visit,
     passes_before (wheel passes before the visit, rounded), windows (rows counted), rut and
     rut_sd (mean and standard deviation over windows of the measured rut depth, m), d and d_sd
-    (of each window's sinkage, the mean over its tracks, m)."""
+    (of each window's sinkage, the mean over its tracks, m), and with `reference` (the
+    reference.csv rows, one per row) prediction_floor: the mean prediction cost over the mean
+    noise floor, on the rows where both are measured (NaN where none is)."""
     tracks = [n for n in names if n[:1] == "d" and n[1:].isdigit()]
     again = {r["s"] for r in rows if int(r.get("visit", 0)) > 0}
-    groups: dict[tuple[int, int], list[dict]] = {}
-    for r in rows:
+    refs = reference if reference is not None else [{}] * len(rows)
+    groups: dict[tuple[int, int], list[tuple[dict, dict]]] = {}
+    for r, f in zip(rows, refs, strict=True):
         pb = float(r.get("passes_before", 0))
         if r["s"] in again and np.isfinite(float(r["residual"])) and np.isfinite(pb):
-            groups.setdefault((int(r["visit"]), int(round(pb))), []).append(r)
+            groups.setdefault((int(r["visit"]), int(round(pb))), []).append((r, f))
     table = []
     for (visit, pb), group in sorted(groups.items()):
-        rut = np.array([float(r["rut_depth"]) for r in group])
-        d = np.array([np.mean([float(r[n]) for n in tracks]) for r in group])
-        rut = rut[np.isfinite(rut)]
+        rut = np.array([float(r["rut_depth"]) for r, _ in group])
+        d = np.array([np.mean([float(r[n]) for n in tracks]) for r, _ in group])
+        cost = np.array([(float(r["prediction"]), float(f.get("floor", "nan"))) for r, f in group])
+        rut, cost = rut[np.isfinite(rut)], cost[np.isfinite(cost).all(1)]
         table.append({"visit": visit, "passes_before": pb, "windows": len(group),
                       "rut": float(rut.mean()) if len(rut) else float("nan"),
                       "rut_sd": float(rut.std()) if len(rut) else float("nan"),
-                      "d": float(d.mean()), "d_sd": float(d.std())})
+                      "d": float(d.mean()), "d_sd": float(d.std()),
+                      "prediction_floor": float(cost[:, 0].mean() / cost[:, 1].mean()) if len(cost) else float("nan")})
     return table
 
 
@@ -147,9 +152,9 @@ def multipass_markdown(table: list[dict]) -> str:
     """The multi-pass table (`multipass_table`) as Markdown, depths in mm."""
     if not table:
         return "No ground was driven more than once."
-    lines = ["| visit | wheel passes before | windows | measured rut depth [mm] | fitted sinkage d [mm] |",
-             "| --- | --- | --- | --- | --- |"]
+    lines = ["| visit | wheel passes before | windows | measured rut depth [mm] | fitted sinkage d [mm] "
+             "| prediction / noise floor |", "| --- | --- | --- | --- | --- | --- |"]
     lines += [f"| {e['visit']} | {e['passes_before']} | {e['windows']} "
-              f"| {1e3 * e['rut']:.1f} ± {1e3 * e['rut_sd']:.1f} | {1e3 * e['d']:.1f} ± {1e3 * e['d_sd']:.1f} |"
-              for e in table]
+              f"| {1e3 * e['rut']:.1f} ± {1e3 * e['rut_sd']:.1f} | {1e3 * e['d']:.1f} ± {1e3 * e['d_sd']:.1f} "
+              f"| {e.get('prediction_floor', float('nan')):.2f} |" for e in table]
     return "\n".join(lines)
