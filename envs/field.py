@@ -139,13 +139,16 @@ def make_field(config: FieldConfig | dict | None = None, n_tracks: int = 2) -> S
 
 def read_params_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, tuple[str, ...]]:
     """An estimator run's params.csv -> path points (M, 2) x, y [m], parameters (M, T + 2)
-    d_1..d_T [m], chi, beta [rad], and the layer names. Rows with non-finite values are dropped."""
+    d_1..d_T [m], chi, beta [rad], and the layer names. Rows with non-finite values are dropped,
+    and so are the rows of later visits of ground driven more than once (`visit` > 0): the
+    field is the soil before the robot."""
     path = Path(path)
     try:
         with path.open(newline="") as f:
             rows = list(csv.DictReader(f))
     except FileNotFoundError:
         raise FileNotFoundError(f"params.csv not found: {path}") from None
+    rows = [r for r in rows if r.get("visit") in (None, "", "0", "0.0")]
     if not rows:
         raise ValueError(f"{path}: no estimates")
     cols = rows[0].keys()

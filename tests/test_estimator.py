@@ -79,12 +79,13 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
     pair.save(src)
     cfg = load_settings()
     out = estimate(src, tmp_path / "run", cfg, tensorboard=True, progress=False)
-    names = ["s", "t", "x", "y", "d1", "d2", "chi", "beta", "map_offset", "residual", "prediction", "iterations",
-             "seconds", "latency", "flags"]
+    names = ["s", "visit", "passes_before", "t", "x", "y", "d1", "d2", "chi", "beta", "map_offset", "rut_depth",
+             "residual", "prediction", "iterations", "seconds", "latency", "flags"]
     with (out / "params.csv").open() as f:
         reader = csv.DictReader(f)
         assert reader.fieldnames == names
         full = list(reader)
+    assert {(r["visit"], r["passes_before"]) for r in full} == {("0", "0")}     # a pair without visit layers
     for name in ("summary.md", "fig4_parameters.png", "fig6_difference_maps.png", "simulated.npz"):
         assert (out / name).stat().st_size > 0
     assert any((out / "tensorboard").iterdir())

@@ -69,3 +69,42 @@ def test_corrupt_and_missing_files(tmp_path):
         TerrainPair.load(bad)
     with pytest.raises(FileNotFoundError, match="nope.npz"):
         TerrainPair.load(tmp_path / "nope.npz")
+
+
+def visits(n=2, shape=(5, 4)):
+    rng = np.random.default_rng(1)
+    layers = {k: rng.normal(size=(n, *shape)).astype(np.float32) for k in ("visit_front", "visit_back")}
+    layers["visit_time"] = np.stack([np.full(shape, 10.0 * v, np.float32) for v in range(n)])
+    layers["visit_front"][1, 0, 0] = np.nan                   # a cell with one visit
+    return layers
+
+
+def test_visit_layers_round_trip(tmp_path):
+    layers = visits()
+    back = TerrainPair.load(TerrainPair.from_mapping(pair(**layers)).save(tmp_path / "pair.npz"))
+    assert back.n_visits == 2 and not back.extras
+    for k, v in layers.items():
+        np.testing.assert_array_equal(getattr(back, k), v)
+        assert getattr(back, k).dtype == np.float32
+
+
+def test_a_pair_without_visit_layers_has_one_visit(tmp_path):
+    back = TerrainPair.load(TerrainPair.from_mapping(pair()).save(tmp_path / "pair.npz"))
+    assert back.n_visits == 1 and back.visit_front is None and back.visit_time is None
+    with np.load(tmp_path / "pair.npz") as f:
+        assert "visit_front" not in f.files
+
+
+@pytest.mark.parametrize("change, words", [
+    (dict(visit_back=np.zeros((3, 5, 4), np.float32)), r"visit_back' shape \(3, 5, 4\) differs"),
+    (dict(visit_time=np.zeros((2, 4, 4), np.float32)), r"visit_time' must be \(V, X, Y\) with \(X, Y\) = h_front's"),
+    (dict(visit_front=np.zeros((5, 4), np.float32)), r"visit_front' must be \(V, X, Y\)"),
+    (dict(visit_front=np.zeros((2, 5, 4), np.int32)), "floating-point"),
+    (dict(visit_back=np.full((2, 5, 4), np.inf, np.float32)), "infinite"),
+    (dict(visit_time=None), "visit_time' is missing"),
+])
+def test_bad_visit_layers_name_the_key(change, words):
+    layers = {**visits(), **change}
+    layers = {k: v for k, v in layers.items() if v is not None}
+    with pytest.raises(ValueError, match=words):
+        TerrainPair.from_mapping(pair(**layers), source="x.npz")

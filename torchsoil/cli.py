@@ -99,7 +99,8 @@ def parser() -> argparse.ArgumentParser:
     p = sub.add_parser("estimate", help="estimate soil parameters along a drive (sliding windows)",
                        description="Estimate (d_1..d_T, chi, beta) window by window. Writes OUT/params.csv, "
                                    "reference.csv, simulated.npz, summary.md, run.json, figures and TensorBoard "
-                                   "events.")
+                                   "events; on a terrain pair with visit layers, one row per visit of a window's "
+                                   "ground and passes.npz, passes.png, multipass.png (docs/visits.md).")
     p.add_argument("input", nargs="*", help="rosbag (ROS 2 directory or ROS 1 .bag) or terrain-pair .npz "
                                             "(default: the bundled demo recording of a source checkout); several "
                                             "paths, globs or CSV manifests: one task each (--engine)")

@@ -22,6 +22,7 @@ from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import ParamSpec, simulate
 from torchsoil.sim.sinkage import reference_height
+from torchsoil.visits import passes_before, rut_depth, visit_counts, visit_poses, wheel_passes
 from torchsoil.windows import (
     WindowData,
     WindowSpec,
@@ -32,6 +33,7 @@ from torchsoil.windows import (
     prepare_window,
     sim_reach,
     smooth_heightmap,
+    window_cells,
 )
 
 
@@ -49,13 +51,15 @@ def kind(name: str) -> str:
 class WindowOutput(NamedTuple):
     """row: the params.csv row (metres, beta in degrees); reference: deformation signal and
     noise floor of the window, m; data: the window; h_sim: (X, Y) simulated H_b on the crop at
-    the fitted parameters (None when the window was skipped); fit: optimizer result."""
+    the fitted parameters (None when the window was skipped); fit: optimizer result; final:
+    the window's last visit (its only one unless fitted per visit)."""
 
     row: dict
     reference: dict
     data: WindowData | None
     h_sim: torch.Tensor | None
     fit: FitResult | None
+    final: bool = True
 
 
 class Estimator:
@@ -81,6 +85,10 @@ class Estimator:
             told (default: est.front_view, "auto" told from the maps by `windows.front_view`).
         store: a `windows.WindowStore` that keeps prepared windows for later runs over the same
             pair and map nuisance (a diagnosis's passes share one); None: prepared per run.
+        per_visit: on a pair with visit layers (FORMATS.md v1.1), fit each visit of a window's
+            ground on its own before and after maps (`visit_front[v]` -> `visit_back[v]`) with
+            the wheels of that visit, one row per visit (`visit`, `passes_before`); without
+            visit layers, or False: one fit per window over everything that happened to it.
 
     H_b is used net of the map offset and tilt (`self.nuisance`, fitted on untouched ground;
     `self.h_back`); each row reports the offset removed on the window's ground (`map_offset`, m).
@@ -93,7 +101,8 @@ class Estimator:
 
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
                  dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None,
-                 arc0: float = 0.0, view: str | None = None, store: WindowStore | None = None):
+                 arc0: float = 0.0, view: str | None = None, store: WindowStore | None = None,
+                 per_visit: bool = False):
         self.pair = pair
         self.modifiers = modifiers
         self.est = est = est or EstimatorConfig()
@@ -111,7 +120,8 @@ class Estimator:
         self.nuisance = nuisance if nuisance is not None else fit_map_nuisance(
             np.asarray(pair.h_front), np.asarray(pair.h_back), pair.grid, self.index, robot.wheel_width,
             est.floor_inner, est.corridor, est.nuisance)
-        view = view or est.front_view
+        self.per_visit = per_visit and getattr(pair, "visit_front", None) is not None
+        view = "last_visit" if self.per_visit else view or est.front_view   # per visit: each from its own H_f
         self.view, self.view_info = (front_view(pair, self.index) if view == "auto" else (view, {}))
         self.h_back = np.asarray(pair.h_back, np.float64)
         if self.nuisance is not None:
@@ -141,11 +151,29 @@ class Estimator:
         self.theta0 = torch.tensor([init[k] for k in kinds], **kw)
         self._cache: dict[int, WindowData | None] = {}
         self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
+        if self.per_visit:
+            self._visit_setup()
+
+    def _visit_setup(self) -> None:
+        """Per-visit maps over the whole grid: the surfaces each visit starts from (smoothed)
+        and ends on (net of the map offset), visits and wheel passes before each visit per cell."""
+        pair, sigma = self.pair, float(self.est.front_smoothing)
+        off = 0.0 if self.nuisance is None else self.nuisance.field
+        self.visit_start = [smooth_heightmap(np.asarray(h, np.float64), sigma) for h in pair.visit_front]
+        self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
+        self.visits_per_cell = visit_counts(pair.visit_time)
+        self.passes = wheel_passes(pair.poses, pair.wheels, pair.wheel_width, pair.grid, pair.visit_time)
+        self.passes_before = passes_before(self.passes)
+        self._visit_cache: dict[int, dict[int, WindowData | None]] = {}
 
     def _free_name(self, name: str) -> str:
         return "d" if self.est.merged_sinkage and kind(name) == "d" else name
 
     # ------------------------------------------------------------------ helpers
+    def window_of(self, s: float) -> int:
+        """Index of the window centred at arc length s [m] (a params.csv row's s)."""
+        return int(np.argmin([abs(w.centre + self.arc0 - float(s)) for w in self.windows]))
+
     def full_theta(self, free: torch.Tensor) -> torch.Tensor:
         """(B, P_free) optimizer variables -> (B, P) simulator parameters."""
         return free[:, self.expand]
@@ -191,40 +219,120 @@ class Estimator:
             return r.h[0], float(weighted_l1(r.h, wd.h_back, wd.weight)[0])
 
     # --------------------------------------------------------------------- run
-    def run(self, start: int = 0, theta: torch.Tensor | None = None, stop: int | None = None
-            ) -> Iterator[WindowOutput]:
+    def run(self, start: int = 0, theta: torch.Tensor | dict | None = None, stop: int | None = None,
+            skip: set | None = None) -> Iterator[WindowOutput]:
         """Fit windows start, start+1, ... (up to stop, excluded) in order, yielding each as soon
-        as it is done.
+        as it is done; per visit, each visit of a window in turn (visit 0 first).
 
-        theta: warm start (P_free,) (default: config estimator.init).
+        theta: warm start (P_free,) (default: config estimator.init), or one per visit
+        {visit: (P_free,)} (each visit's fits warm-start from the same visit's previous window).
+        skip: (s, visit) keys (s rounded to 1e-6 m) of rows not to fit again (a resumed run).
         """
-        theta = self.theta0.clone() if theta is None else theta.to(self.theta0)
+        thetas = theta if isinstance(theta, dict) else {}
+        theta0 = self.theta0.clone() if theta is None or isinstance(theta, dict) else theta.to(self.theta0)
+        thetas = {v: t.to(self.theta0) for v, t in thetas.items()}
+        skip = skip or set()
         for k in range(start, len(self.windows) if stop is None else min(stop, len(self.windows))):
-            t0 = time.perf_counter()
+            t0 = time.perf_counter()       # a window's seconds include preparing its data
             spec = self.windows[k]
-            wd = self.data(k)
-            for old in [i for i in self._cache if i < k]:
-                del self._cache[old]
-            reference = {"signal": math.nan, "floor": math.nan}
-            if wd is None or "few_valid" in wd.flags:
-                flags = ("empty",) if wd is None else wd.flags
-                yield WindowOutput(self._row(spec, wd, None, math.nan, math.nan, 0, time.perf_counter() - t0,
-                                             flags), reference, wd, None, None)
-                continue
-            res = self.fit_window(wd, theta)
-            theta = res.theta
-            h_sim, residual = self.predict(theta, wd)
-            prediction = math.nan
-            ahead = self._ahead_data(k)
-            if ahead is not None and "few_valid" not in ahead.flags:
-                prediction = self.predict(theta, ahead)[1]
-            with torch.no_grad():
-                reference["signal"] = float(weighted_l1(wd.h_measured, wd.h_back, wd.weight))
-                reference["floor"] = float(weighted_l1(wd.h_measured, wd.h_back, wd.floor.to(self.dtype)))
-            flags = list(wd.flags) + ([] if res.converged else ["not_converged"])
-            row = self._row(spec, wd, theta, residual, prediction, res.iterations, time.perf_counter() - t0,
-                            tuple(flags))
-            yield WindowOutput(row, reference, wd, h_sim, res)
+            if self.per_visit:
+                visits = self.visit_data(k)
+                for old in [i for i in self._visit_cache if i < k]:
+                    del self._visit_cache[old]
+                ahead = self.visit_data(k + self.ahead) if self.ahead and k + self.ahead < len(self.windows) else {}
+            else:
+                visits = {0: self.data(k)}
+                for old in [i for i in self._cache if i < k]:
+                    del self._cache[old]
+                ahead = {0: self._ahead_data(k)}
+            for v, wd in (visits or {0: None}).items():
+                if (round(spec.centre + self.arc0, 6), v) in skip:
+                    continue
+                o = self._fit_one(spec, wd, ahead.get(v), thetas.get(v, theta0), v, t0)
+                if o.fit is not None:
+                    thetas[v] = o.fit.theta
+                yield o._replace(final=v == max(visits or {0: None}))
+                t0 = time.perf_counter()
+
+    def _fit_one(self, spec: WindowSpec, wd: WindowData | None, ahead: WindowData | None, theta: torch.Tensor,
+                 visit: int, t0: float) -> WindowOutput:
+        """Fit one visit of a window (its only one without visit layers), warm-started at theta;
+        t0: perf_counter time at which its work began."""
+        reference = {"signal": math.nan, "floor": math.nan}
+        if wd is None or "few_valid" in wd.flags:
+            flags = ("empty",) if wd is None else wd.flags
+            return WindowOutput(self._row(spec, wd, None, math.nan, math.nan, 0, time.perf_counter() - t0,
+                                          flags, visit), reference, wd, None, None)
+        res = self.fit_window(wd, theta)
+        theta = res.theta
+        h_sim, residual = self.predict(theta, wd)
+        prediction = math.nan
+        if ahead is not None and "few_valid" not in ahead.flags:
+            prediction = self.predict(theta, ahead)[1]
+        with torch.no_grad():
+            reference["signal"] = float(weighted_l1(wd.h_measured, wd.h_back, wd.weight))
+            reference["floor"] = float(weighted_l1(wd.h_measured, wd.h_back, wd.floor.to(self.dtype)))
+        flags = list(wd.flags) + ([] if res.converged else ["not_converged"])
+        row = self._row(spec, wd, theta, residual, prediction, res.iterations, time.perf_counter() - t0,
+                        tuple(flags), visit)
+        return WindowOutput(row, reference, wd, h_sim, res)
+
+    # ------------------------------------------------------------------ visits
+    def visit_data(self, k: int) -> dict[int, WindowData | None]:
+        """The visits of window k's ground, visit -> its WindowData (per_visit only).
+
+        A window's visits are those of its cells driven most often (cells with another number
+        of visits stay out of its costs, so that visit v means one stretch of the drive for every
+        cell counted). The visit nearest the window's own time uses the window's poses, as
+        without visits; each other visit uses the poses of its stretch of the drive, told by the
+        cells' `visit_time`. Empty when the window holds no ground."""
+        if k in self._visit_cache:
+            return self._visit_cache[k]
+        spec, pair = self.windows[k], self.pair
+        _, cells = window_cells(self.index, spec, self.est, self.sim, pair.robot)
+        out: dict[int, WindowData | None] = {}
+        if len(cells):
+            n = self.visits_per_cell[cells[:, 0], cells[:, 1]]
+            m = int(np.argmax(np.bincount(n, minlength=2)[1:])) + 1 if (n > 0).any() else 1
+            mine = cells[n == m] if (n == m).any() else cells
+            keep = self.visits_per_cell == m
+            times = pair.visit_time[:, mine[:, 0], mine[:, 1]]                         # (V, G)
+            t_own = float(np.interp(spec.centre, self.index.arc, pair.poses[:, 0]))
+            t_med = [float(np.nanmedian(times[v])) if np.isfinite(times[v]).any() else math.inf for v in range(m)]
+            own = int(np.argmin([abs(t - t_own) for t in t_med]))
+            reach = np.abs(pair.robot.wheels[:, 0]).max() + pair.wheel_width / 2 + 0.1
+            for v in range(m):
+                if not math.isfinite(t_med[v]):
+                    continue
+                poses = None if v == own else visit_poses(pair.poses, self.index.arc,
+                                                          times[v][np.isfinite(times[v])], reach)
+                wd = prepare_window(pair, self.index, spec, self.est, self.sim, self.device, self.dtype,
+                                    extra_flags=self._registration_flags(spec), h_start=self.visit_start[v],
+                                    h_back=self.visit_back[v], h_measured=pair.visit_front[v], poses=poses,
+                                    keep=keep)
+                out[v] = wd if wd is None or v == own else wd._replace(t=t_med[v])
+        self._visit_cache[k] = out
+        return out
+
+    def _passes_before(self, wd: WindowData | None, visit: int) -> float:
+        """Wheel passes the window's ruts (its ground within a quarter wheel width of a wheel
+        path, with that visit) had had before visit `visit`: their median (0 without visit
+        layers or ruts)."""
+        if not self.per_visit or wd is None:
+            return 0
+        i0, i1, j0, j1 = wd.crop
+        ruts = (wd.ground.cpu().numpy() & (self.index.wheel_dist[i0:i1, j0:j1] <= self.pair.wheel_width / 4)
+                & np.isfinite(self.pair.visit_time[visit, i0:i1, j0:j1]))
+        return float(np.median(self.passes_before[visit, i0:i1, j0:j1][ruts])) if ruts.any() else 0
+
+    def _ruts(self, wd: WindowData | None) -> np.ndarray | None:
+        """(X, Y) bool rut centres of the window's crop (counted cells within a quarter wheel
+        width of a wheel path), None when there are none."""
+        if wd is None:
+            return None
+        i0, i1, j0, j1 = wd.crop
+        ruts = (wd.weight.cpu().numpy() > 0) & (self.index.wheel_dist[i0:i1, j0:j1] <= self.pair.wheel_width / 4)
+        return ruts if ruts.any() else None
 
     def _ahead_data(self, k: int) -> WindowData | None:
         if self.ahead is not None:
@@ -255,13 +363,16 @@ class Estimator:
         stamps, flags = extras["scan_stamps"], extras["scan_flags"]
         return ("registration",) if np.any((flags != 0) & (stamps >= t0) & (stamps <= t1)) else ()
 
-    def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags) -> dict:
-        row = {"s": spec.centre + self.arc0,
+    def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags, visit: int = 0) -> dict:
+        row = {"s": spec.centre + self.arc0, "visit": visit, "passes_before": self._passes_before(wd, visit),
                "t": wd.t if wd else math.nan, "x": wd.x if wd else math.nan, "y": wd.y if wd else math.nan}
         full = self.full_theta(free[None])[0].tolist() if free is not None else [math.nan] * len(self.names)
         for name, unit, value in zip(self.names, self.spec.units, full, strict=True):
             row[name] = math.degrees(value) if unit == "rad" else value
         row["map_offset"] = self._offset_on(wd)
+        ruts = self._ruts(wd)
+        row["rut_depth"] = math.nan if ruts is None else rut_depth(wd.h_measured.cpu().numpy(),
+                                                                    wd.h_back.cpu().numpy(), ruts)
         row.update(residual=residual, prediction=prediction, iterations=iterations, seconds=seconds,
                    flags="|".join(flags))
         return row

@@ -162,8 +162,10 @@ def write_summary(path: Path, rows: list[dict], reference: list[dict], meta: dic
     pred = np.nanmean(_col(rows, "prediction")) if rows else math.nan
     flagged = [r for r in rows if r["flags"]]
     secs = _col(fitted, "seconds") if fitted else np.array([math.nan])
+    n_windows = len({r["s"] for r in rows})
+    per_visit = f", {len(rows)} visit rows" if len(rows) != n_windows else ""
     text = [f"# Soil-parameter estimation: {meta.get('input', '')}", "",
-            f"{len(rows)} windows ({len(fitted)} fitted, {len(flagged)} flagged) of "
+            f"{n_windows} windows{per_visit} ({len(fitted)} fitted, {len(flagged)} flagged) of "
             f"{meta.get('window', '?')} m every {meta.get('stride', '?')} m; gradients: {meta.get('grad', '?')}; "
             f"median {1e3 * np.nanmedian(secs):.0f} ms per window.", "",
             f"Removed from H_b before estimation: {meta['removed']}." if "removed" in meta else "", "",
@@ -171,7 +173,71 @@ def write_summary(path: Path, rows: list[dict], reference: list[dict], meta: dic
             "Costs: weighted mean L1 height difference, x 1e-3 m (paper Table I).", "",
             summary_table(rows, reference), "",
             f"Mean prediction cost / mean noise floor: {pred / floor:.3f}" if floor > 0 else "", ""]
+    if "multipass" in meta:
+        text += ["## Ground driven more than once", "",
+                 "Each visit of a window's ground fitted on its own before and after maps (docs/visits.md); "
+                 "mean ± standard deviation over windows (multipass.png; passes per cell and cumulative rut depth "
+                 "in passes.npz, passes.png).", "", meta["multipass"], ""]
     if flagged:
-        text += ["Flagged windows:", ""] + [f"- s = {r['s']:.2f} m: {r['flags']}" for r in flagged[:50]]
+        text += ["Flagged windows:", ""] + [f"- s = {r['s']:.2f} m{_visit(r)}: {r['flags']}" for r in flagged[:50]]
     Path(path).write_text("\n".join(text) + "\n")
     return Path(path)
+
+
+def multipass(table: list[dict], path: Path) -> Path:
+    """Measured rut depth and fitted sinkage (mm, mean and standard deviation over windows)
+    against the wheel passes the ground had had before each visit (`visits.multipass_table`)."""
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    if table:
+        pb = np.array([e["passes_before"] for e in table], float)
+        series = (("rut", "measured rut depth", "o", -0.05), ("d", "fitted sinkage d", "s", 0.05))   # unjoined
+        for key, label, fmt, shift in series:
+            ax.errorbar(pb + shift, [1e3 * e[key] for e in table], yerr=[1e3 * e[key + "_sd"] for e in table],
+                        fmt=fmt, capsize=4, label=label)
+        for e in table:
+            ax.annotate(f"visit {e['visit']}\n{e['windows']} windows", (e["passes_before"], 1e3 * e["d"]),
+                        textcoords="offset points", xytext=(8, 4), fontsize=8)
+        ax.set_xticks(sorted(set(pb)))
+        ax.legend(loc="best")
+    else:
+        ax.text(0.5, 0.5, "no ground driven more than once", ha="center", va="center", transform=ax.transAxes)
+    ax.set_xlabel("wheel passes before the visit")
+    ax.set_ylabel("depth [mm]")
+    ax.set_title("Ground driven more than once")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def pass_maps(pair, layers: dict, path: Path) -> Path:
+    """Wheel passes per cell and the cumulative rut depth (mm) over the drive (passes.npz layers)."""
+    x0, y0 = pair.origin
+    X, Y = layers["passes"].shape
+    extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)
+    fig = Figure(figsize=(12, 5))
+    ax = fig.subplots(1, 2)
+    passes = np.where(layers["visits"] > 0, layers["passes"], np.nan)
+    top = max(int(np.nanmax(passes)) if np.isfinite(passes).any() else 1, 1)
+    im = ax[0].imshow(passes.T, origin="lower", extent=extent, cmap="viridis", vmin=0, vmax=top,
+                      interpolation="nearest")
+    fig.colorbar(im, ax=ax[0], label="wheel passes", fraction=0.03, ticks=range(top + 1))
+    rut = 1e3 * layers["rut_depth"]
+    lim = float(np.nanpercentile(np.abs(rut), 99)) if np.isfinite(rut).any() else 50.0
+    im = ax[1].imshow(-rut.T, origin="lower", extent=extent, cmap=CMAP, vmin=-lim, vmax=lim)
+    fig.colorbar(im, ax=ax[1], label="height change over all visits [mm]", fraction=0.03)
+    for a, title in zip(ax, ("wheel passes per cell", "cumulative rut depth (sum of the visits' $H_\\Delta$)"),
+                        strict=True):
+        a.plot(pair.poses[:, 1], pair.poses[:, 2], color="k", lw=0.5, alpha=0.5)
+        a.set_title(title)
+        a.set_xlabel("x [m]")
+        a.set_ylabel("y [m]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
+def _visit(row: dict) -> str:
+    v = int(row.get("visit", 0) or 0)
+    return f" (visit {v})" if v else ""

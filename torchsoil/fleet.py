@@ -254,10 +254,12 @@ def _nanmean(values) -> float:
 
 
 def window_stats(rows: list[dict], floor: float = math.nan) -> dict:
-    """fleet.csv's window columns from params.csv rows: windows, fitted (finite residual),
-    flagged (any flag), the mean of each of d1..dT [m], chi [-] and beta [deg] over the
-    windows, and mean prediction cost / `floor` (the mean noise floor, m)."""
-    out: dict = {"windows": len(rows), "fitted": sum(math.isfinite(_num(r.get("residual"))) for r in rows),
+    """fleet.csv's window columns from params.csv rows: windows (distinct s), fitted (rows
+    with a finite residual), flagged (rows with any flag), the mean of each of d1..dT [m], chi
+    [-] and beta [deg] over the rows (one per window, or per visit of a window's ground), and
+    mean prediction cost / `floor` (the mean noise floor, m)."""
+    windows = len({r.get("s", i) for i, r in enumerate(rows)})
+    out: dict = {"windows": windows, "fitted": sum(math.isfinite(_num(r.get("residual"))) for r in rows),
                  "flagged": sum(bool(r.get("flags")) for r in rows)}
     k = 1
     while rows and f"d{k}" in rows[0]:

@@ -1,8 +1,10 @@
 """The estimation job behind `torchsoil estimate`: input in, run directory out.
 
-DIR/params.csv and DIR/reference.csv grow one row per window; DIR/simulated.npz (the
-simulated H_b stitched over windows) is rewritten every few windows; figures and summary.md
-come at the end. `resume=True` continues an interrupted run from its last row.
+DIR/params.csv and DIR/reference.csv grow one row per window, or, on a terrain pair with
+visit layers, one per visit of a window's ground (keyed by s and visit); DIR/simulated.npz
+(the simulated H_b stitched over windows) is rewritten every few windows; figures and
+summary.md come at the end, with passes.npz, passes.png and multipass.png for ground driven
+more than once (docs/visits.md). `resume=True` continues an interrupted run from its last row.
 """
 
 from __future__ import annotations
@@ -25,14 +27,17 @@ from torchsoil.terrain import TerrainPair
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
 OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_parameters.png",
            "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "tiles",
-           "trajectory.csv")
+           "trajectory.csv", "passes.npz", "passes.png", "multipass.png")
+REFERENCE = ["s", "visit", "signal", "floor"]  # reference.csv columns
 
 
 def param_columns(names: list[str]) -> list[str]:
-    """params.csv columns for parameters `names`; latency: from the arrival of the sweep that
-    completed the window's ground to its row, s (NaN when not streamed)."""
-    return ["s", "t", "x", "y", *names, "map_offset", "residual", "prediction", "iterations", "seconds", "latency",
-            "flags"]
+    """params.csv columns for parameters `names`; visit: which visit of the window's ground the
+    row fits (0 first; 0 without visit layers); passes_before: wheel passes that ground had
+    had before it; rut_depth: measured rut depth of that visit, m; latency: from the arrival
+    of the sweep that completed the window's ground to its row, s (NaN when not streamed)."""
+    return ["s", "visit", "passes_before", "t", "x", "y", *names, "map_offset", "rut_depth", "residual",
+            "prediction", "iterations", "seconds", "latency", "flags"]
 
 
 def pipeline_settings(settings: Settings, robot_yaml: str | Path | None,
@@ -144,10 +149,10 @@ def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | N
 
 def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, tensorboard: bool,
               progress: bool, name: str) -> None:
-    est = Estimator(pair, settings.estimator, settings.sim)
+    est = Estimator(pair, settings.estimator, settings.sim, per_visit=True)
     names = list(est.names)
     params = CsvLog(out / "params.csv", param_columns(names), resume)
-    reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
+    reference = CsvLog(out / "reference.csv", REFERENCE, resume)
     n_done = min(len(params.rows), len(reference.rows))
     params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
     sim_path = out / "simulated.npz"
@@ -156,19 +161,18 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
         with np.load(sim_path) as f:
             restored = f["h_sim"]
     stitch = Stitcher(pair.h_front.shape, est.index.s, restored)
-    theta = None
-    for row in reversed(params.rows):
-        theta = est.free_from_row(row)
-        if theta is not None:
-            break
+    start, done, theta = _resume_point(est, params.rows)
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
     every = settings.estimator.image_every
-    bar = tqdm(total=len(est.windows), initial=n_done, unit="window", disable=None if progress else True,
+    bar = tqdm(total=len(est.windows), initial=start, unit="window", disable=None if progress else True,
                desc="estimating")
     try:
-        for k, o in enumerate(est.run(start=n_done, theta=theta), start=n_done):
+        for o in est.run(start=start, theta=theta, skip=done):
             params.append({**o.row, "latency": math.nan})
-            reference.append({"s": o.row["s"], **o.reference})
+            reference.append({"s": o.row["s"], "visit": o.row["visit"], **o.reference})
+            if not o.final:     # an earlier visit of the window's ground: its rows only
+                continue
+            k = est.window_of(o.row["s"])
             tb.window(k, o.row, o.reference, est.names)
             if o.h_sim is not None:
                 stitch.add(o.data, o.h_sim)
@@ -185,13 +189,43 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
         bar.close()
         tb.close()
         _save_simulated(sim_path, pair, stitch.h_sim)
-    figures.parameter_curves(params.rows, reference.rows, est.names, out / "fig4_parameters.png")
-    figures.difference_maps(pair, est.h_start, stitch.h_sim, params.rows, out / "fig6_difference_maps.png",
+    last = [i for i, r in enumerate(params.rows) if i + 1 == len(params.rows) or params.rows[i + 1]["s"] != r["s"]]
+    rows, refs = [params.rows[i] for i in last], [reference.rows[i] for i in last]   # each window's last visit
+    figures.parameter_curves(rows, refs, est.names, out / "fig4_parameters.png")
+    figures.difference_maps(pair, est.h_start, stitch.h_sim, rows, out / "fig6_difference_maps.png",
                             h_back=est.h_back)
     e = settings.estimator
-    figures.write_summary(out / "summary.md", params.rows, reference.rows,
-                          {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad,
-                           "removed": est.nuisance.describe() if est.nuisance is not None else "no map offset"})
+    meta = {"input": name, "window": e.window, "stride": e.stride, "grad": e.grad,
+            "removed": est.nuisance.describe() if est.nuisance is not None else "no map offset"}
+    if est.per_visit:
+        meta["multipass"] = _multipass_outputs(est, params.rows, reference.rows, out)
+    figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
+
+
+def _resume_point(est: Estimator, rows: list[dict]) -> tuple[int, set, dict]:
+    """Where a resumed run continues: the window of the last row (its other visits may be
+    missing), the (s, visit) keys already written, and each visit's warm start (its last fit)."""
+    done = {(round(float(r["s"]), 6), int(r.get("visit", 0))) for r in rows}
+    theta: dict = {}
+    for r in rows:
+        free = est.free_from_row(r)
+        if free is not None:
+            theta[int(r.get("visit", 0))] = free
+    start = est.window_of(rows[-1]["s"]) if rows else 0
+    return start, done, theta
+
+
+def _multipass_outputs(est: Estimator, rows: list[dict], reference: list[dict], out: Path) -> str:
+    """passes.npz, passes.png and multipass.png of a per-visit run; the multi-pass table
+    (Markdown) for summary.md."""
+    from torchsoil import visits
+
+    layers = visits.pass_layers(est.pair, est.passes, est.visit_back)
+    np.savez_compressed(out / "passes.npz", **layers)
+    figures.pass_maps(est.pair, layers, out / "passes.png")
+    table = visits.multipass_table(rows, est.names, reference)
+    figures.multipass(table, out / "multipass.png")
+    return visits.multipass_markdown(table)
 
 
 def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resume: bool, tensorboard: bool,
@@ -212,7 +246,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     live = LiveEstimator(robot, settings, spill_dir=str(tiles) if e.online.spill else None)
     names = _param_names(robot)
     params = CsvLog(out / "params.csv", param_columns(names), resume)
-    reference = CsvLog(out / "reference.csv", ["s", "signal", "floor"], resume)
+    reference = CsvLog(out / "reference.csv", REFERENCE, resume)
     n_done = min(len(params.rows), len(reference.rows))
     params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
     live.resume(params.rows)
@@ -226,7 +260,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
             o, k = w.output, w.index
             latency.append(w.done - w.ready)
             params.append({**o.row, "latency": w.done - w.ready})
-            reference.append({"s": o.row["s"], **o.reference})
+            reference.append({"s": o.row["s"], "visit": o.row["visit"], **o.reference})
             tb.window(k, o.row, o.reference, names)
             if pieces is not None and live.pipeline.grid_cells() > e.online.max_cells:
                 pieces = None

@@ -4,7 +4,8 @@
 `TerrainPair.load(path)` / `pair.save(path)` read and write the `.npz`; every key is checked
 for presence, shape, dtype and finiteness with an error that names the file and the key.
 Extra keys (valid masks, counts, variances, per-scan registration quality) travel in
-`extras` and are written back unchanged.
+`extras` and are written back unchanged. The optional per-visit layers (`visit_front`,
+`visit_back`, `visit_time`, (V, X, Y)) come all three or not at all.
 """
 
 from __future__ import annotations
@@ -21,7 +22,8 @@ from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 
 REQUIRED = ("dx", "origin", "h_front", "h_back", "poses", "wheels", "wheel_width")
-KNOWN = (*REQUIRED, "wheel_flat_fraction", "wheel_section_exponent")
+VISITS = ("visit_front", "visit_back", "visit_time")  # optional, all or none (FORMATS.md v1.1)
+KNOWN = (*REQUIRED, "wheel_flat_fraction", "wheel_section_exponent", *VISITS)
 
 
 @dataclass
@@ -39,6 +41,11 @@ class TerrainPair:
         wheel_flat_fraction: tyre taper f in [0, 1).
         wheel_section_exponent: exponent e > 0 of the taper (Robot; 1 unless fitted).
         extras: other arrays stored alongside (name -> array).
+        visit_front: (V, X, Y) float32 surface just before each cell's visit v, m; NaN where the
+            cell has fewer than v + 1 visits or no measurement. None: one visit per cell.
+        visit_back: (V, X, Y) float32 surface just after each cell's visit v, m; NaN likewise.
+        visit_time: (V, X, Y) float32 time (poses clock) base_link passed closest to the cell
+            during visit v, s; NaN where no such visit.
     """
 
     dx: float
@@ -51,6 +58,9 @@ class TerrainPair:
     wheel_flat_fraction: float = 0.0
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     wheel_section_exponent: float = 1.0
+    visit_front: np.ndarray | None = None
+    visit_back: np.ndarray | None = None
+    visit_time: np.ndarray | None = None
 
     def __post_init__(self):
         self.validate()
@@ -101,12 +111,39 @@ class TerrainPair:
         self.wheel_width = robot.wheel_width
         self.wheel_flat_fraction = robot.wheel_flat_fraction
         self.wheel_section_exponent = robot.wheel_section_exponent
+        self._validate_visits(fail)
         for key, value in self.extras.items():
             if key in KNOWN:
                 fail(key, "is a standard key and cannot also be an extra")
             self.extras[key] = np.asarray(value)
 
+    def _validate_visits(self, fail) -> None:
+        given = [k for k in VISITS if getattr(self, k, None) is not None]
+        if not given:
+            return
+        if len(given) < len(VISITS):
+            missing = [k for k in VISITS if k not in given]
+            fail(missing[0], f"is missing while {given} are given: the visit layers come all together")
+        shape = None
+        for key in VISITS:
+            v = np.asarray(getattr(self, key))
+            if v.ndim != 3 or v.shape[0] < 1 or v.shape[1:] != self.h_front.shape:
+                fail(key, f"must be (V, X, Y) with (X, Y) = h_front's {self.h_front.shape}, got shape {v.shape}")
+            if shape is not None and v.shape != shape:
+                fail(key, f"shape {v.shape} differs from visit_front's {shape}")
+            shape = v.shape
+            if not np.issubdtype(v.dtype, np.floating):
+                fail(key, f"must hold floating-point values, got dtype {v.dtype}")
+            if np.any(np.isinf(v)):
+                fail(key, "holds infinite values (use NaN where a cell has no such visit)")
+            setattr(self, key, v.astype(np.float32, copy=False))
+
     # ----------------------------------------------------------------- derived
+    @property
+    def n_visits(self) -> int:
+        """V, the most visits of any cell (1 for a pair without visit layers)."""
+        return 1 if self.visit_front is None else int(self.visit_front.shape[0])
+
     @property
     def grid(self) -> Grid:
         return Grid(self.dx, (float(self.origin[0]), float(self.origin[1])), self.h_front.shape)
@@ -135,6 +172,8 @@ class TerrainPair:
         }
         if self.wheel_section_exponent != 1.0:
             out["wheel_section_exponent"] = np.float64(self.wheel_section_exponent)
+        if self.visit_front is not None:
+            out.update({k: getattr(self, k).astype(np.float32) for k in VISITS})
         out.update(self.extras)
         return out
 
@@ -170,6 +209,8 @@ class TerrainPair:
         pair.wheel_width, pair.wheel_flat_fraction = data["wheel_width"], flat
         pair.wheel_section_exponent = data["wheel_section_exponent"] if "wheel_section_exponent" in data else 1.0
         pair.extras = extras
+        for key in VISITS:
+            setattr(pair, key, data[key] if key in data else None)
         pair.validate(source)
         return pair
 

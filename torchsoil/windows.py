@@ -396,22 +396,35 @@ def earlier_poses(pair, before: int, ground_xy: np.ndarray, reach: float) -> lis
             for a, b in zip(starts, ends, strict=True)]
 
 
+def window_cells(index: PathIndex, spec: WindowSpec, est: EstimatorConfig, sim: SimConfig, robot: Robot
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """A window's ground, (G, 2) cells (i, j), and those of it near a wheel path (within the
+    cost's weight width or the simulator's reach), (C, 2)."""
+    on_ground = index.ground(spec.s0, spec.s1, est.corridor)
+    near = index.wheel_dist[on_ground[:, 0], on_ground[:, 1]] <= max(est.weight_width * robot.wheel_width,
+                                                                     sim_reach(robot, sim))
+    return on_ground, on_ground[near]
+
+
 def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfig, sim: SimConfig,
                    device=None, dtype=torch.float64, extra_flags: tuple[str, ...] = (),
                    h_start: np.ndarray | None = None, h_back: np.ndarray | None = None,
-                   view: str = "last_visit") -> WindowData | None:
+                   view: str = "last_visit", h_measured: np.ndarray | None = None,
+                   poses: np.ndarray | None = None, keep: np.ndarray | None = None) -> WindowData | None:
     """Crop, fill and index one window. Returns None when the window holds no ground at all.
 
     h_start: (X, Y) surface the simulation starts from (default: pair.h_front). h_back: (X, Y)
     measured surface after the wheels (default: pair.h_back; the estimator passes it net of
     the map offset). view: what H_f holds on revisited ground (`front_view`); with
     "first_view" the earlier visits over the window's ground are part of the window
-    (`WindowData.earlier`)."""
+    (`WindowData.earlier`). h_measured: (X, Y) measured surface before the wheels, as
+    recorded (default: pair.h_front). poses: (n, 7) the poses whose wheels the window
+    simulates (default: those that pass over the window's ground at its own arc length; an
+    earlier visit of the ground passes them). keep: (X, Y) bool cells the costs may count
+    (default: all)."""
     robot = pair.robot
     w = robot.wheel_width
-    on_ground = index.ground(spec.s0, spec.s1, est.corridor)                     # (G, 2) cells
-    near = index.wheel_dist[on_ground[:, 0], on_ground[:, 1]] <= max(est.weight_width * w, sim_reach(robot, sim))
-    cells = on_ground[near]
+    on_ground, cells = window_cells(index, spec, est, sim, robot)               # (G, 2) cells
     if len(cells) == 0:
         return None
     margin = int(np.ceil(0.1 / pair.dx))
@@ -428,10 +441,13 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     reach = np.abs(robot.wheels[:, 0]).max() + w / 2 + 0.1
     xs, ys = pair.grid.centers()
     ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
-    a0, a1 = visit_span(pair, index, ground_xy, spec.s0, spec.s1, sim_reach(robot, sim))
-    sel = (index.arc >= min(spec.s0 - reach, a0)) & (index.arc <= max(spec.s1 + reach, a1))
-    first, last = np.flatnonzero(sel)[[0, -1]]
-    poses = pair.poses[max(first - 1, 0):last + 2]
+    if poses is None:
+        a0, a1 = visit_span(pair, index, ground_xy, spec.s0, spec.s1, sim_reach(robot, sim))
+        sel = (index.arc >= min(spec.s0 - reach, a0)) & (index.arc <= max(spec.s1 + reach, a1))
+        first, last = np.flatnonzero(sel)[[0, -1]]
+        poses = pair.poses[max(first - 1, 0):last + 2]
+    else:
+        first = int(np.searchsorted(pair.poses[:, 0], poses[0, 0]))
     gkw = dict(pose_spacing=sim.pose_spacing, band_width=sim.band_width, relax_margin=sim.relax_margin,
                device=device, dtype=dtype)
     geom = wheel_geometry(grid, poses, robot, **gkw)
@@ -441,7 +457,7 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
         earlier = tuple(wheel_geometry(grid, p, robot, **gkw) for p in runs if len(p) >= 2)
 
     hf = np.asarray((pair.h_front if h_start is None else h_start)[sl], dtype=np.float64)
-    raw = np.asarray(pair.h_front[sl], dtype=np.float64)
+    raw = np.asarray((pair.h_front if h_measured is None else h_measured)[sl], dtype=np.float64)
     hb = np.asarray((pair.h_back if h_back is None else h_back)[sl], dtype=np.float64)
     measured_f = np.isfinite(hf)
     flags = list(extra_flags)
@@ -451,8 +467,9 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
         idx = ndimage.distance_transform_edt(~measured_f, return_distances=False, return_indices=True)
         hf = hf[tuple(idx)]
     zone = ground & (index.wheel_dist[sl] <= est.weight_width * w)
-    weight = zone & np.isfinite(raw) & np.isfinite(hb)
-    floor = (ground & np.isfinite(raw) & np.isfinite(hb) & (index.wheel_dist[sl] >= est.floor_inner * w)
+    measured = np.isfinite(raw) & np.isfinite(hb) & (True if keep is None else keep[sl])
+    weight = zone & measured
+    floor = (ground & measured & (index.wheel_dist[sl] >= est.floor_inner * w)
              & (index.wheel_dist[sl] <= est.floor_outer * w))
     foot = zone & (index.wheel_dist[sl] <= w / 2)       # the ruts themselves, which d is fitted to
     if (weight.sum() < est.min_valid_fraction * max(zone.sum(), 1)

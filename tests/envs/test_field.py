@@ -95,6 +95,18 @@ def test_params_csv_replays_estimates_along_the_path(tmp_path):
     assert far[0].item() == pytest.approx(0.02, abs=1e-6)
 
 
+def test_params_csv_keeps_the_first_visit_of_ground_driven_again(tmp_path):
+    header = ["s", "visit", "passes_before", "t", "x", "y", "d1", "d2", "chi", "beta", "flags"]
+    rows = [[1.0, 0, 0, 1.0, 1.0, 2.0, 0.03, 0.03, 0.5, 30.0, ""],
+            [1.0, 1, 2, 9.0, 1.0, 2.0, 0.01, 0.01, 0.9, 34.0, ""],     # the same ground, driven again
+            [1.4, 0, 0, 1.4, 1.4, 2.0, 0.02, 0.02, 0.5, 30.0, ""]]
+    p = tmp_path / "params.csv"
+    _write_csv(p, rows, header=header)
+    xy, vals, _ = read_params_csv(p)
+    np.testing.assert_allclose(xy, [[1.0, 2.0], [1.4, 2.0]])
+    np.testing.assert_allclose(vals[:, 0], [0.03, 0.02])
+
+
 def test_params_csv_missing_column_is_named(tmp_path):
     p = tmp_path / "params.csv"
     _write_csv(p, [[0, 0, 1.0, 2.0, 0.01, 0.5]], header=["s", "t", "x", "y", "d1", "chi"])

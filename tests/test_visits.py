@@ -1,0 +1,249 @@
+"""Ground driven more than once (FORMATS.md visits v1.1): wheel passes counted by hand, the
+poses of a visit, the multi-pass table, and the estimator fitting each visit of a window on
+its own maps, checked on an out-and-back made by the independent reference model
+(tests/reference_model.py) with a different sinkage on each visit."""
+
+import csv
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from tests.reference_model import simulate as reference_simulate
+from torchsoil.estimator import Estimator
+from torchsoil.grid import Grid
+from torchsoil.runner import estimate
+from torchsoil.settings import load_settings
+from torchsoil.terrain import TerrainPair
+from torchsoil.visits import multipass_table, passes_before, rut_depth, visit_poses, wheel_passes
+
+# --------------------------------------------------------------------------- hand-counted passes
+WHEELS = np.array([[0.3, 0.0, 0], [-0.3, 0.0, 0]])      # one track, a front and a rear wheel 0.6 m apart
+WIDTH = 0.1
+
+
+def line_grid():
+    return Grid(0.02, (-1.0, -0.2), (201, 21))           # x from -1 to 3 m, y from -0.2 to 0.2 m
+
+
+def out_and_back(length=2.0, dt=0.01):
+    """Out along +x from x = 0 to `length` at 1 m/s, then back in reverse: (N, 7) poses."""
+    t = np.arange(0.0, 2 * length + 1e-9, dt)
+    x = np.where(t <= length, t, 2 * length - t)
+    poses = np.zeros((len(t), 7))
+    poses[:, 0], poses[:, 1] = t, x
+    return poses
+
+
+def cell(grid, x, y=0.0):
+    return int(round((x - grid.origin[0]) / grid.dx)), int(round((y - grid.origin[1]) / grid.dx))
+
+
+def test_each_wheel_passes_a_cell_once_per_visit():
+    grid = line_grid()
+    xs, _ = grid.centers()
+    poses = out_and_back(length=2.0)[:201]                              # out only: t = x
+    vt = np.broadcast_to(np.clip(xs, 0, 2)[:, None], grid.shape)[None].astype(np.float32)
+    p = wheel_passes(poses, WHEELS, WIDTH, grid, vt)[0]
+    assert p[cell(grid, 1.0)] == 2                         # under both wheels
+    assert p[cell(grid, -0.2)] == 1                        # behind the start: the rear wheel only
+    assert p[cell(grid, 2.2)] == 1                         # beyond the end: the front wheel only
+    assert p[cell(grid, 1.0, 0.1)] == 0                    # beside the track (> half a wheel width)
+    assert p[cell(grid, 2.6)] == 0                         # beyond every wheel
+
+
+def test_passes_go_to_the_visit_nearest_in_time():
+    grid = line_grid()
+    xs, _ = grid.centers()
+    poses = out_and_back(length=2.0)
+    x = np.broadcast_to(xs[:, None], grid.shape)
+    vt = np.stack([x, 4.0 - x]).astype(np.float32)         # base_link over x at t = x, and again at 4 - x
+    vt[1][x > 1.0] = np.nan                                # beyond 1 m: one visit (out and back merge)
+    p = wheel_passes(poses, WHEELS, WIDTH, grid, vt)
+    assert p[:, cell(grid, 0.5)[0], cell(grid, 0.5)[1]].tolist() == [2, 2]
+    assert p[:, cell(grid, 1.5)[0], cell(grid, 1.5)[1]].tolist() == [4, 0]
+    np.testing.assert_array_equal(passes_before(p)[:, cell(grid, 0.5)[0], cell(grid, 0.5)[1]], [0, 2])
+    np.testing.assert_array_equal(passes_before(np.array([1, 2, 3]).reshape(3, 1, 1)).ravel(), [0, 1, 3])
+
+
+def test_visit_poses_span_the_visit_and_its_reach():
+    poses = out_and_back(length=2.0, dt=0.1)
+    arc = np.arange(len(poses)) * 0.1                      # 1 m/s, never standing still
+    got = visit_poses(poses, arc, np.array([2.6, 3.0, 2.8]), reach=0.5)
+    assert got[0, 0] == pytest.approx(2.0) and got[-1, 0] == pytest.approx(3.6)   # [2.1, 3.5] and one more each side
+
+
+def test_rut_depth_is_the_mean_drop_on_measured_rut_cells():
+    before = np.zeros((2, 3))
+    after = np.array([[-0.01, -0.03, np.nan], [0.02, 0.0, -0.05]])
+    ruts = np.array([[True, True, True], [False, False, False]])
+    assert rut_depth(before, after, ruts) == pytest.approx(0.02)
+    assert math.isnan(rut_depth(before, after, np.zeros((2, 3), bool)))
+
+
+def test_multipass_table_groups_windows_driven_again_by_pass_count():
+    def row(s, visit, pb, d1, d2, rut, residual=0.003):
+        return {"s": s, "visit": visit, "passes_before": pb, "d1": d1, "d2": d2, "rut_depth": rut,
+                "residual": residual}
+
+    rows = [row(1.0, 0, 0, 0.030, 0.034, 0.028), row(1.0, 1, 2, 0.010, 0.012, 0.008),
+            row(1.4, 0, 0, 0.026, 0.030, 0.024), row(1.4, 1, 2, 0.014, 0.016, 0.012),
+            row(1.8, 1, 2, 0.5, 0.5, 0.5, residual=math.nan),                    # not fitted: left out
+            row(3.0, 0, 0, 0.9, 0.9, 0.9)]                                      # driven once: left out
+    for r, pred in zip(rows, (3.0, 2.0, 5.0, 4.0, 1.0, 1.0), strict=True):
+        r["prediction"] = pred
+    reference = [{"floor": f} for f in (2.0, 4.0, 2.0, 4.0, 1.0, 1.0)]
+    table = multipass_table(rows, ["d1", "d2", "chi", "beta"], reference)
+    assert [(e["visit"], e["passes_before"], e["windows"]) for e in table] == [(0, 0, 2), (1, 2, 2)]
+    assert table[0]["prediction_floor"] == pytest.approx(2.0) and table[1]["prediction_floor"] == pytest.approx(0.75)
+    assert table[0]["d"] == pytest.approx(0.030) and table[0]["d_sd"] == pytest.approx(0.002)
+    assert table[1]["d"] == pytest.approx(0.013) and table[1]["d_sd"] == pytest.approx(0.002)
+    assert table[0]["rut"] == pytest.approx(0.026) and table[1]["rut_sd"] == pytest.approx(0.002)
+
+
+# ----------------------------------------------------------------- an out-and-back by hand
+PLATFORM = np.array([[0.69, 0.5, 0], [0.69, -0.5, 1], [-0.69, 0.5, 0], [-0.69, -0.5, 1]])
+D0, D1 = 0.03, 0.015          # sinkage of the first visit, and of the second in the first's ruts
+LENGTH, ONCE = 4.0, 2.5       # the drive goes out 4 m and back; beyond x = 2.5 m one visit per cell
+
+
+def two_visit_pair(seed=0, noise=0.0015, dx=0.02):
+    """Out along +x for LENGTH m at 1 m/s and back in reverse on the same ruts, made by the
+    reference model visit by visit: the first with d = D0 from the untouched ground, the
+    second with d = D1 from the ground the first left. Visit layers as FORMATS.md v1.1: cells
+    with x < ONCE have two visits (out at t = x, back at t = 2 LENGTH - x); the others one
+    (from the untouched ground to the end). Returns (pair dict, truth dict)."""
+    rng = np.random.default_rng(seed)
+    origin = np.array([-1.2, -1.6])
+    X, Y = int(round((LENGTH + 2.4) / dx)) + 1, int(round(3.2 / dx)) + 1
+    smooth = ndimage.gaussian_filter(rng.normal(size=(X, Y)), 3.0)
+    h0 = 0.004 * smooth / smooth.std() + 0.001 * rng.normal(size=(X, Y))
+    poses = out_and_back(LENGTH, dt=0.05)
+    out, back = poses[poses[:, 0] <= LENGTH], poses[poses[:, 0] >= LENGTH]
+    beta = math.radians(30.0)
+    h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta)
+    h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (D1, D1), 0.5, beta)
+
+    def measured(h):
+        return (h + rng.normal(0, noise, h.shape)).astype(np.float32)
+
+    x = np.broadcast_to((origin[0] + dx * np.arange(X))[:, None], (X, Y))
+    twice = x < ONCE
+    nan = np.full((X, Y), np.nan, np.float32)
+    f0, b0, f1, b1, once_back = measured(h0), measured(h1), measured(h1), measured(h2), measured(h2)
+    visit_front = np.stack([f0, np.where(twice, f1, nan)])
+    visit_back = np.stack([np.where(twice, b0, once_back), np.where(twice, b1, nan)])
+    visit_time = np.stack([np.clip(x, 0, LENGTH), np.where(twice, 2 * LENGTH - np.clip(x, 0, LENGTH), np.nan)])
+    pair = {"dx": np.float64(dx), "origin": origin, "h_front": f0, "h_back": np.where(twice, b1, once_back),
+            "poses": poses, "wheels": PLATFORM.astype(np.float64), "wheel_width": np.float64(0.14),
+            "visit_front": visit_front, "visit_back": visit_back, "visit_time": visit_time.astype(np.float32)}
+    return pair, {"h0": h0, "h1": h1, "h2": h2}
+
+
+@pytest.fixture(scope="module")
+def visits_pair():
+    return TerrainPair.from_mapping(two_visit_pair()[0])
+
+
+def settings():
+    return load_settings(overrides=["estimator.init.d=0.02"])
+
+
+def return_windows(est, x0=0.75, x1=2.45):
+    """Indices of the windows on the way back whose ground lies at x0 < x < x1 (two visits)."""
+    return [k for k, w in enumerate(est.windows) if 2 * LENGTH - x1 < w.s0 and w.s1 < 2 * LENGTH - x0]
+
+
+def test_each_visit_is_fitted_on_its_own_maps(visits_pair):
+    s = settings()
+    est = Estimator(visits_pair, s.estimator, s.sim, per_visit=True)
+    ks = return_windows(est)
+    assert len(ks) >= 2
+    rows = [o.row for o in est.run(start=ks[0], stop=ks[-1] + 1)]
+    assert [r["visit"] for r in rows] == [0, 1] * len(ks)
+    for v, d, pb in ((0, D0, 0), (1, D1, 2)):           # a rut had two wheel passes (front, rear) before the way back
+        mine = [r for r in rows if r["visit"] == v]
+        assert all(r["passes_before"] == pb and not r["flags"] for r in mine)
+        for r in mine:
+            assert r["d1"] == pytest.approx(d, abs=0.003) and r["d2"] == pytest.approx(d, abs=0.003), (v, r)
+    first, second = ([r["t"] for r in rows if r["visit"] == v] for v in (0, 1))
+    assert max(first) < LENGTH < min(second)              # each visit at its own time
+
+
+def test_one_fit_over_both_visits_takes_them_for_one_soil(visits_pair):
+    """Without per-visit fitting the same windows mix the visits: d lies between D1 and D0 or
+    beyond, not at either (what the per-visit fit is for)."""
+    s = settings()
+    est = Estimator(visits_pair, s.estimator, s.sim)
+    ks = return_windows(est)
+    rows = [o.row for o in est.run(start=ks[0], stop=ks[-1] + 1)]
+    assert len(rows) == len(ks) and {r["visit"] for r in rows} == {0}
+    assert all(abs(r["d1"] - D1) > 0.004 for r in rows)
+
+
+def test_a_single_visit_layer_gives_the_rows_of_a_pair_without_layers():
+    data, _ = two_visit_pair(seed=1)
+    plain = {k: v for k, v in data.items() if not k.startswith("visit_")}
+    one = {**plain, "visit_front": plain["h_front"][None], "visit_back": plain["h_back"][None],
+           "visit_time": np.zeros((1, *plain["h_front"].shape), np.float32)}
+    s = settings()
+    rows = []
+    for pair, per_visit in ((plain, False), (plain, True), (one, True)):
+        est = Estimator(TerrainPair.from_mapping(pair), s.estimator, s.sim, per_visit=per_visit)
+        rows.append([o.row for o in est.run(stop=6)])
+    for other in rows[1:]:
+        assert len(other) == len(rows[0]) == 6
+        for a, b in zip(rows[0], other, strict=True):
+            assert a.keys() == b.keys()
+            for k in a.keys() - {"seconds"}:
+                same = a[k] == b[k] or (isinstance(a[k], float) and math.isnan(a[k]) and math.isnan(b[k]))
+                assert same, (k, a[k], b[k])
+
+
+def test_estimate_writes_the_multipass_outputs_and_resumes_by_visit(tmp_path):
+    data, _ = two_visit_pair(seed=2)
+    src = tmp_path / "pair.npz"
+    np.savez(src, **data)
+    s = load_settings(overrides=["estimator.init.d=0.02", "estimator.max_iter=30"])
+    out = estimate(src, tmp_path / "run", s, tensorboard=False, progress=False)
+    with (out / "params.csv").open() as f:
+        full = list(csv.DictReader(f))
+    again = [r for r in full if r["visit"] == "1"]
+    assert again and all(r["s"] in {q["s"] for q in full if q["visit"] == "0"} for r in again)
+    with np.load(out / "passes.npz") as f:
+        i, j = cell(TerrainPair.from_mapping(data).grid, 1.0, 0.5)
+        assert f["visits"][i, j] == 2 and f["passes"][i, j] == 4 and f["passes_visit"][:, i, j].tolist() == [2, 2]
+        assert f["rut_depth"][i, j] == pytest.approx(np.nansum(f["rut_depth_visit"][:, i, j]))
+    for name in ("multipass.png", "passes.png"):
+        assert (out / name).stat().st_size > 0
+    summary = (out / "summary.md").read_text()
+    assert "| 1 | 2 |" in summary and "Ground driven more than once" in summary and "noise floor |" in summary
+    # interrupted between the two visits of a window: resumed, no row is lost or written twice
+    cut = next(n for n, r in enumerate(full) if r["visit"] == "1")
+    lines = (out / "params.csv").read_text().splitlines()
+    (out / "params.csv").write_text("\n".join(lines[:cut + 1]) + "\n")
+    ref = (out / "reference.csv").read_text().splitlines()
+    (out / "reference.csv").write_text("\n".join(ref[:cut + 1]) + "\n")
+    estimate(src, out, s, resume=True, tensorboard=False, progress=False)
+    with (out / "params.csv").open() as f:
+        resumed = list(csv.DictReader(f))
+    assert [(r["s"], r["visit"]) for r in resumed] == [(r["s"], r["visit"]) for r in full]
+    for a, b in zip(full, resumed, strict=True):
+        assert float(a["d1"]) == pytest.approx(float(b["d1"]), abs=1e-3, nan_ok=True)
+
+
+def test_cells_with_another_visit_count_stay_out_of_a_windows_costs(visits_pair):
+    s = settings()
+    est = Estimator(visits_pair, s.estimator, s.sim, per_visit=True)
+    # the window on the way back (s = 2 LENGTH - x) that straddles x = ONCE, where the visit count changes
+    k = min(range(len(est.windows)), key=lambda k: abs(2 * LENGTH - est.windows[k].centre - ONCE))
+    visits = est.visit_data(k)
+    counts = {}
+    for v, wd in visits.items():
+        i0, i1, j0, j1 = wd.crop
+        n = est.visits_per_cell[i0:i1, j0:j1]
+        counted = wd.weight.cpu().numpy() > 0
+        counts[v] = np.unique(n[counted]).tolist()
+    assert len(visits) in (1, 2) and all(len(c) == 1 for c in counts.values())          # one history per window
+    assert all(c == [len(visits)] for c in counts.values())
