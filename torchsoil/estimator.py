@@ -85,7 +85,7 @@ class Estimator:
             told (default: est.front_view, "auto" told from the maps by `windows.front_view`).
         store: a `windows.WindowStore` that keeps prepared windows for later runs over the same
             pair and map nuisance (a diagnosis's passes share one); None: prepared per run.
-        per_visit: on a pair with visit layers (FORMATS.md v1.1), fit each visit of a window's
+        per_visit: on a pair with visit layers (docs/formats.md v1.1), fit each visit of a window's
             ground on its own before and after maps (`visit_front[v]` -> `visit_back[v]`) with
             the wheels of that visit, one row per visit (`visit`, `passes_before`); without
             visit layers, or False: one fit per window over everything that happened to it.

@@ -22,7 +22,7 @@ from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 
 REQUIRED = ("dx", "origin", "h_front", "h_back", "poses", "wheels", "wheel_width")
-VISITS = ("visit_front", "visit_back", "visit_time")  # optional, all or none (FORMATS.md v1.1)
+VISITS = ("visit_front", "visit_back", "visit_time")  # optional, all or none (docs/formats.md v1.1)
 KNOWN = (*REQUIRED, "wheel_flat_fraction", "wheel_section_exponent", *VISITS)
 
 

@@ -1,5 +1,5 @@
 """Ground driven more than once: wheel passes per cell and visit, the poses of one visit, and
-measured rut depth (FORMATS.md section 3, visits v1.1).
+measured rut depth (docs/formats.md section 3, visits v1.1).
 
 A terrain pair with visit layers holds, per cell, the surface before and after each visit v
 (`visit_front`, `visit_back`, (V, X, Y), m) and the time base_link passed closest
