@@ -8,6 +8,7 @@ import pytest
 
 from torchsoil.diagnosis.locate import (
     ZONES,
+    Profiles,
     combined_z,
     correlation,
     gain_correlation,
@@ -285,3 +286,45 @@ def test_segments_that_drift_together_do_not_draw_a_rut_shape():
 
     rate = np.mean([len(drive(s).shape(z=3.09)) > 0 for s in range(200)])
     assert rate < 0.15
+
+
+def test_a_lug_line_is_found_down_to_two_and_a_half_cells():
+    """Small tyres' lugs are 0.05-0.15 m apart: a 0.05 m line (2.5 cells at dx 0.02) is found
+    at its wavelength, and white noise alone stays quiet over the wider range searched."""
+    rng = np.random.default_rng(5)
+    dx = 0.02
+    s = np.arange(0, 20, dx)
+    line = spectral_line(0.002 * np.cos(2 * np.pi * s / 0.05) + 0.003 * rng.standard_normal(len(s)), dx)
+    assert line["p"] < 1e-4 and abs(line["wavelength"] - 0.05) < 0.001
+    false = sum(spectral_line(0.003 * rng.standard_normal(len(s)), dx)["p"] < 0.01 for _ in range(60))
+    assert false <= 4
+
+
+def test_each_rut_is_placed_along_its_own_track_on_a_turn():
+    """A left turn of radius 5 m: a tread printed every 0.09 m along each wheel's own track
+    lies every 0.09 x 5 / 4.5 = 0.1 m of base_link's arc in the inner (left) rut and every
+    0.09 x 5 / 5.5 = 0.0818 m in the outer one (distances along concentric circles, by hand).
+    Placed by base_link's arc the two ruts disagree; by their own tracks both give 0.09 m."""
+    from torchsoil.diagnosis.covariates import side_arc
+    from torchsoil.diagnosis.run import strongest_line
+
+    R, lam, dx = 5.0, 0.09, 0.02
+    turn = np.linspace(0.0, 3.0, 3001)                      # rad: 15 m of base_link arc
+    poses = np.zeros((len(turn), 7))
+    poses[:, 0] = R * turn
+    poses[:, 1], poses[:, 2], poses[:, 6] = R * np.sin(turn), R * (1 - np.cos(turn)), turn
+    base = R * turn
+    np.testing.assert_allclose(side_arc(poses, 0.5)[-1], 4.5 * 3.0, rtol=1e-5)
+    np.testing.assert_allclose(side_arc(poses, -0.5)[-1], 5.5 * 3.0, rtol=1e-5)
+    prof = Profiles.empty(0.07, dx, 0.3)
+    s = np.arange(0.0, 15.0, dx / 2)                        # floor cells along the drive (base arc)
+    own = {0: s * 4.5 / R, 1: s * 5.5 / R}
+    for side in (0, 1):
+        prof.floor_s.append(s)
+        prof.floor_r.append(0.002 * np.cos(2 * np.pi * own[side] / lam))
+        prof.floor_side.append(np.full(len(s), side))
+    as_seen = [spectral_line(r, dx)["wavelength"] for r in prof.floor_series(by_side=True)[1]]
+    assert as_seen == pytest.approx([lam * R / 4.5, lam * R / 5.5], abs=0.002)
+    arcs = ((base, side_arc(poses, 0.5)), (base, side_arc(poses, -0.5)))
+    line = strongest_line(prof.floor_series(by_side=True, arcs=arcs)[1], dx)
+    assert line["ruts"] == "both" and line["wavelength"] == pytest.approx(lam, abs=0.001)

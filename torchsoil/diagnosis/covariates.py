@@ -34,6 +34,17 @@ POSE_SIGNALS = ("arc_length", "speed", "accel", "pitch", "roll", "yaw_rate", "la
 SIGNALS = POSE_SIGNALS + ("passes",)
 
 
+def side_arc(poses: np.ndarray, lateral: float) -> np.ndarray:
+    """(N,) distance travelled by the point `lateral` m left of base_link (a wheel's track)
+    at each (N, 7) pose, m. On a turn of radius R the inner track covers (R - lateral) / R of
+    base_link's arc: a tyre prints its lugs at fixed distances along its own track, so a
+    tread's wavelength is steady in this arc length and not in base_link's."""
+    p = check_poses(poses)
+    x = p[:, 1] - lateral * np.sin(p[:, 6])
+    y = p[:, 2] + lateral * np.cos(p[:, 6])
+    return np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+
+
 def check_poses(poses) -> np.ndarray:
     """Validate (N, 7) docs/formats.md poses; returns a float64 copy. Raises ValueError naming the fault."""
     p = np.asarray(poses, dtype=np.float64)

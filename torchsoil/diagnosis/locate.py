@@ -184,11 +184,12 @@ def term_test(base_held, ext_held, base_res=None, ext_res=None, same: float = SA
     return gain, se, held_z, own_z, combined_z(held_z, own_z, rho)
 
 
-def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(0.08, 2.0)) -> dict:
+def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(None, 2.0)) -> dict:
     """Strongest line in the periodogram of a series spaced dx [m] apart (NaN gaps filled by
     linear interpolation, linear trend removed), against the local background (mean of the
     neighbouring +-half_width frequencies), among wavelengths in the given range [m]
-    (tread-like patterns; shorter ones are cell noise). series: (S,) or (M, S) several series
+    (tread-like patterns: lug pitches of small tyres are 0.05-0.15 m; None: down to the
+    grid's limit, 2.2 cells). series: (S,) or (M, S) several series
     on one arc-length grid (e.g. the left and right ruts): their periodograms are summed, so a
     line present in each adds up whatever its phase in each; rows with fewer than 32 values
     are left out.
@@ -213,8 +214,9 @@ def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengt
         return {"ratio": 0.0, "wavelength": math.nan, "amplitude": 0.0, "p": 1.0}
     N = rows.shape[1]
     f = np.fft.rfftfreq(N, dx)
+    shortest = 2.2 * dx if wavelengths[0] is None else wavelengths[0]
     lo = max(3, int(N * dx / wavelengths[1]))
-    hi = min(len(P), int(N * dx / wavelengths[0]) + 1)
+    hi = min(len(P), int(N * dx / shortest) + 1)
     best = (0.0, math.nan, 1.0, 0.0)
     for i in range(lo, hi):
         nb = np.r_[P[max(lo, i - half_width):max(lo, i - 2)], P[i + 3:i + half_width + 1]]
@@ -396,16 +398,23 @@ class Profiles:
         m = float(d[ok].mean())
         return {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "series": d}
 
-    def floor_series(self, by_side: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def floor_series(self, by_side: bool = False, arcs: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Rut-floor residual per arc-length cell: (S,) arc length [m] and mean residual [m],
         (S,) over both sides, or (2, S) left and right wheels' ruts with by_side (a tread's
-        marks need not line up from one side to the other)."""
+        marks need not line up from one side to the other). arcs: optional per side (left,
+        right) a pair ((N,) base_link arc, (N,) that side's track arc) [m], increasing: each
+        side's cells are then placed by the distance its own wheels travelled (`side_arc`),
+        where a tread's wavelength holds on a turn."""
         if not self.floor_s:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
         side = np.concatenate(self.floor_side) if by_side else np.zeros(len(s), int)
         if len(s) == 0:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
+        if by_side and arcs is not None:
+            s = s.copy()
+            for k, (base, own) in enumerate(arcs):
+                s[side == k] = np.interp(s[side == k], base, own)
         i = np.floor((s - s.min()) / self.dx).astype(int)
         n = i.max() + 1
         rows = []

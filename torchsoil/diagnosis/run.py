@@ -11,7 +11,7 @@ from scipy import stats
 
 from torchsoil.diagnosis import catalogue
 from torchsoil.diagnosis.checkpoint import PassCache
-from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, window_signals
+from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, side_arc, window_signals
 from torchsoil.diagnosis.fit import (
     CandidateFit,
     Pass,
@@ -24,6 +24,7 @@ from torchsoil.diagnosis.fit import (
 )
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
+from torchsoil.windows import path_arc
 
 
 @dataclass
@@ -253,7 +254,12 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     prof = base.profiles
     zones = prof.zone_stats()
     asym = prof.asymmetry()
-    fs, fr = prof.floor_series(by_side=True)
+    base_arc = path_arc(pair.poses)
+    sides = [robot.wheels[robot.wheels[:, 1] >= 0, 1], robot.wheels[robot.wheels[:, 1] < 0, 1]]
+    arcs = tuple((base_arc, side_arc(pair.poses, float(y.mean()))) if len(y) else (base_arc, base_arc)
+                 for y in sides)
+    fs = prof.floor_series()[0]                                # base_link arc length, m
+    fr = prof.floor_series(by_side=True, arcs=arcs)[1]        # each rut along its own wheels' track
     line = strongest_line(fr, pair.dx)
     n_tracks = robot.n_tracks
 
