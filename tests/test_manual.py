@@ -21,8 +21,10 @@ FENCE = re.compile(r"^(?P<mark><!-- test: run -->\n)?```(?P<lang>[a-z]*)\n(?P<bo
 
 
 def pages() -> list[Path]:
-    """The manual's hand-written pages (the reference pages are generated) and the README."""
-    return sorted(p for p in DOCS.rglob("*.md") if "_build" not in p.parts) + [ROOT / "README.md"]
+    """The manual's hand-written pages (not the reference pages, generated at build time) and
+    the README."""
+    hand = [p for p in DOCS.rglob("*.md") if not {"_build", "reference"} & set(p.relative_to(DOCS).parts)]
+    return sorted(hand) + [ROOT / "README.md"]
 
 
 def blocks(lang: set[str]) -> list[tuple[str, str, bool]]:

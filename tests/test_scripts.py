@@ -22,7 +22,8 @@ def test_estimate_cli_on_a_terrain_pair(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "noise floor" in r.stdout
     header = (out / "params.csv").read_text().splitlines()[0]
-    assert header == "s,t,x,y,d1,d2,chi,beta,map_offset,residual,prediction,iterations,seconds,latency,flags"
+    assert header == ("s,visit,passes_before,t,x,y,d1,d2,chi,beta,map_offset,rut_depth,residual,prediction,"
+                      "iterations,seconds,latency,flags")   # the columns docs/formats.md section 5 names
 
 
 def test_estimate_cli_bad_input(tmp_path):
