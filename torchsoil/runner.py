@@ -289,6 +289,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
         _finish_whole(live, bag, out, settings, sims, params.rows, wall, cache)
     else:
         live.pipeline.flush()
+        sims.flush()
         stamps, poses = live.pipeline.trajectory()
         from torchsoil.pipeline.run import poses_to_rows
 
@@ -296,7 +297,8 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
                    header="t,x,y,z,roll,pitch,yaw", comments="")
         meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
                            f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
-                           "(torchsoil.pipeline.raster.Tiles), not assembled into one terrain pair")
+                           "(torchsoil.pipeline.raster.Tiles) and the simulated change stitched over windows "
+                           "in tiles/sim (runner.SimTiles), not assembled into one terrain pair")
     figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
 
 
@@ -388,11 +390,18 @@ class SimTiles:
                 t[1][take] = d[take]
                 t[0][take] = change[x0 - i0:x1 - i0, y0 - j0:y1 - j0][take]
         self.n += 1
-        if self.spill_dir is not None:
-            for k in [k for k, n in self.used.items() if n < self.n - self.keep]:
-                np.save(self._path(k), self.tiles.pop(k))
-                self.spilled.add(k)
-                del self.used[k]
+        self.flush(self.n - self.keep)
+
+    def flush(self, before: float = np.inf) -> None:
+        """The tiles no window touched since window `before` (default: all) to spill_dir (when there
+        is one): `sim_A_B.npy`, (2, size, size) float32 change [m] and distance [m] of lattice cells
+        [A size:(A+1) size, B size:(B+1) size]."""
+        if self.spill_dir is None:
+            return
+        for k in [k for k, n in self.used.items() if n < before]:
+            np.save(self._path(k), self.tiles.pop(k))
+            self.spilled.add(k)
+            del self.used[k]
 
     def region(self, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
         """The stitched change (i1 - i0, j1 - j0) [m] of lattice cells [i0:i1, j0:j1] (NaN where
