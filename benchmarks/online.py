@@ -7,7 +7,8 @@ recording (5 s when quick), from the first message to the last window, / recordi
 the arrival of the sweep that completes a window's ground to that window's row.
 `online_peak_rss_mb_1min` / `_10min`: peak resident memory of `torchsoil estimate` (its own
 process) on 1- and 10-minute synthetic straight drives recorded with 16 beams x 512 columns
-(the 10-minute one is skipped when quick).
+(the 10-minute one is skipped when quick); `online_estimate_s_1min` / `_10min`: that process's
+wall time, s (docs/memory.md).
 """
 
 from __future__ import annotations
@@ -66,9 +67,11 @@ def run(quick: bool = False) -> dict[str, float]:
             if quick and minutes > 1:
                 continue
             drive = _long_drive(Path(tmp) / f"drive{minutes}", minutes)
+            t0 = time.perf_counter()
             out[f"online_peak_rss_mb_{key}"] = peak_rss_mb(
                 ["estimate", str(drive), "--robot", str(drive.parent / f"{drive.name}.robot.yaml"),
                  "--out", str(Path(tmp) / f"est{minutes}"), "--no-tensorboard"])
+            out[f"online_estimate_s_{key}"] = time.perf_counter() - t0
     return out
 
 

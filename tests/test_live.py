@@ -2,6 +2,14 @@
 with the estimator run on the whole drive's terrain pair, far tiles leave memory, and the
 message-level API a robot's own code calls gives the same rows as playing the bag."""
 
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 from rosbags.highlevel import AnyReader
@@ -147,3 +155,49 @@ def test_a_failed_fit_reaches_the_caller(streamed, worker):
         for _ in play(bag, live):
             pass
     live.close()
+
+
+# ---- faults: a killed run resumes to the straight run's rows; a full disk stops with a clear error
+
+SETS = ["--set", "pipeline.raster.max_range=8", "--set", "estimator.online.max_pending=1"]   # as `streamed`
+
+
+def _cli(bag: Path, out: Path, *extra: str) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    return subprocess.Popen([sys.executable, "-m", "torchsoil", "estimate", str(bag), "--robot",
+                             f"{bag}.robot.yaml", "--out", str(out), "--no-tensorboard", *SETS, *extra],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+
+
+def _rows(path: Path) -> list[dict]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_a_killed_streamed_estimate_resumes_to_the_straight_run(streamed, tmp_path):
+    """SIGKILL once a third of the windows are written, then `--resume`: the same windows, the
+    rows written before the kill kept as they were, the rest equal to a straight run's."""
+    bag = streamed[0]
+    straight = _cli(bag, tmp_path / "straight")
+    assert straight.wait(timeout=600) == 0, straight.stderr.read().decode()[-2000:]
+    full = _rows(tmp_path / "straight" / "params.csv")
+    assert len(full) >= 12
+    out = tmp_path / "killed"
+    run = _cli(bag, out)
+    params = out / "params.csv"
+    while run.poll() is None and not (params.exists() and len(params.read_text().splitlines()) > len(full) // 3):
+        time.sleep(0.05)
+    assert run.poll() is None, "the run ended before it could be killed"
+    run.send_signal(signal.SIGKILL)
+    run.wait()
+    before = _rows(params)
+    assert 0 < len(before) < len(full)
+    again = _cli(bag, out, "--resume")
+    assert again.wait(timeout=600) == 0, again.stderr.read().decode()[-2000:]
+    rows = _rows(params)
+    assert [r["s"] for r in rows] == [r["s"] for r in full]           # each window once, none lost
+    assert rows[:len(before)] == before                               # kept as written
+    for a, b in zip(rows, full, strict=True):
+        for k in ("d1", "d2", "chi", "beta", "residual"):
+            x, y = float(a[k]), float(b[k])
+            assert (np.isnan(x) and np.isnan(y)) or abs(x - y) <= 1e-3 * max(abs(y), 1e-3), (a["s"], k, x, y)

@@ -20,6 +20,7 @@ small, and the relaxation kernel parallelises over the batch itself).
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import os
 import sys
@@ -209,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     # the other pool (3-10x slower on 2 busy cores)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     from torchsoil.fleet import EngineError
+    from torchsoil.logging import DiskFull
     from torchsoil.provenance import OutputMismatch
     from torchsoil.settings import SettingsError
 
@@ -217,6 +219,12 @@ def main(argv: list[str] | None = None) -> int:
     except (SettingsError, OutputMismatch, EngineError, FileNotFoundError, FileExistsError, ValueError,
             KeyError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:   # a full disk (ENOSPC), wherever it is met: one clear line
+        if e.errno != errno.ENOSPC:
+            raise
+        print(f"error: {e.strerror}" if isinstance(e, DiskFull) else
+              f"error: {e}: free some space and run again with --resume", file=sys.stderr)
         return 2
 
 

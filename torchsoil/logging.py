@@ -5,6 +5,8 @@ scalars and images."""
 from __future__ import annotations
 
 import csv
+import errno
+import io
 import math
 import os
 from pathlib import Path
@@ -29,11 +31,29 @@ class CsvLog:
                 csv.DictWriter(f, columns).writeheader()
 
     def append(self, row: dict) -> None:
-        with self.path.open("a", newline="") as f:
-            csv.DictWriter(f, self.columns).writerow({k: _fmt(row[k]) for k in self.columns})
-            f.flush()
-            os.fsync(f.fileno())
+        """Write `row` (flushed to disk). A full disk raises DiskFull and leaves the file as it was
+        before the row (no partial line): what was written stays readable and `--resume` continues."""
+        line = io.StringIO(newline="")
+        csv.DictWriter(line, self.columns).writerow({k: _fmt(row[k]) for k in self.columns})
+        with self.path.open("ab", buffering=0) as f:
+            end = f.seek(0, os.SEEK_END)
+            try:
+                f.write(line.getvalue().encode())
+                os.fsync(f.fileno())
+            except OSError as e:
+                if e.errno != errno.ENOSPC:
+                    raise
+                f.truncate(end)
+                raise DiskFull(self.path) from e
         self.rows.append(row)
+
+
+class DiskFull(OSError):
+    """No space left to write a run's output; what was written before stays readable."""
+
+    def __init__(self, path: Path):
+        super().__init__(errno.ENOSPC, f"no space left on the device writing {path}: the {path.name} rows "
+                                       "written so far are kept; free some space and run again with --resume")
 
 
 def _fmt(v):

@@ -251,7 +251,8 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
     live.resume(params.rows)
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
-    pieces: list | None = []      # simulated H_b per window, while the whole drive fits in one pair
+    sims = SimTiles(tiles / "sim" if e.online.spill else None)   # each window's simulated change, stitched
+    whole = True                  # the drive still fits in one terrain pair (estimator.online.max_cells)
     latency: list[float] = []
     t_start = time.perf_counter()
     bar = tqdm(unit="window", disable=None if progress and not realtime else True, desc="estimating")
@@ -262,10 +263,9 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
             params.append({**o.row, "latency": w.done - w.ready})
             reference.append({"s": o.row["s"], "visit": o.row["visit"], **o.reference})
             tb.window(k, o.row, o.reference, names)
-            if pieces is not None and live.pipeline.grid_cells() > e.online.max_cells:
-                pieces = None
-            if o.h_sim is not None and pieces is not None:
-                pieces.append(_sim_piece(w))
+            whole = whole and live.pipeline.grid_cells() <= e.online.max_cells
+            if o.h_sim is not None:
+                sims.add(*_sim_piece(w))
             if realtime:
                 r = o.row
                 print(f"window {k:4d}  s {r['s']:7.2f} m  d1 {1e3 * r['d1']:6.1f} mm  chi {r['chi']:.2f}  "
@@ -285,10 +285,11 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
                       f"real time); window latency median {1e3 * np.median(lat):.0f} ms, "
                       f"max {1e3 * np.max(lat):.0f} ms")
     figures.parameter_curves(params.rows, reference.rows, names, out / "fig4_parameters.png")
-    if pieces is not None:
-        _finish_whole(live, bag, out, settings, pieces, params.rows, wall, cache)
+    if whole:
+        _finish_whole(live, bag, out, settings, sims, params.rows, wall, cache)
     else:
         live.pipeline.flush()
+        sims.flush()
         stamps, poses = live.pipeline.trajectory()
         from torchsoil.pipeline.run import poses_to_rows
 
@@ -296,11 +297,12 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
                    header="t,x,y,z,roll,pitch,yaw", comments="")
         meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
                            f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
-                           "(torchsoil.pipeline.raster.Tiles), not assembled into one terrain pair")
+                           "(torchsoil.pipeline.raster.Tiles) and the simulated change stitched over windows "
+                           "in tiles/sim (runner.SimTiles), not assembled into one terrain pair")
     figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
 
 
-def _finish_whole(live, bag: Path, out: Path, settings: Settings, pieces: list, rows: list[dict], wall: float,
+def _finish_whole(live, bag: Path, out: Path, settings: Settings, sims: SimTiles, rows: list[dict], wall: float,
                   cache: dict) -> None:
     """The whole drive as one terrain pair: pipeline outputs, terrain_pair.npz (the cache of a
     later run), simulated.npz and the difference maps."""
@@ -314,7 +316,7 @@ def _finish_whole(live, bag: Path, out: Path, settings: Settings, pieces: list, 
     pair.save(out / "terrain_pair.npz")
     provenance.mark_cache(out / "terrain_pair.npz", cache)
     est = Estimator(pair, settings.estimator, settings.sim)
-    h_sim = (est.h_start + _stitch(pair, pieces)).astype(np.float32)   # each window's change on the final H_f
+    h_sim = (est.h_start + _stitch(pair, sims)).astype(np.float32)   # each window's change on the final H_f
     _save_simulated(out / "simulated.npz", pair, h_sim)
     figures.difference_maps(pair, est.h_start, h_sim, rows, out / "fig6_difference_maps.png", h_back=est.h_back)
 
@@ -340,24 +342,86 @@ def _sim_piece(w) -> tuple:
     return gi + i0, gj + j0, change, dist
 
 
-def _stitch(pair: TerrainPair, pieces: list) -> np.ndarray:
-    """Simulated height change over the whole pair's grid (NaN where no window simulated):
-    each cell from the window (of `pieces`) whose centre is nearest along the drive, as
-    `estimator.Stitcher`."""
-    h = np.full(pair.h_front.shape, np.nan, np.float32)
-    best = np.full(pair.h_front.shape, np.inf, np.float32)
+class SimTiles:
+    """The simulated height change stitched over windows as they come, in square tiles of `size`
+    lattice cells (cell (I, J) at (I dx, J dx), as the corridor grids): per cell the change [m]
+    (NaN where no window simulated) of the window whose centre is nearest along the drive, and
+    that distance [m] (inf: none), as `estimator.Stitcher`. Tiles no window touched in the last
+    `keep` windows go to `spill_dir` (None: all kept in memory), so memory is set by the ground
+    near the robot, not by the drive's length (a tile of 128 x 128 cells: 128 kB)."""
+
+    def __init__(self, spill_dir: str | Path | None = None, size: int = 128, keep: int = 20):
+        self.size, self.keep, self.spill_dir = size, keep, spill_dir
+        self.tiles: dict[tuple[int, int], np.ndarray] = {}   # (2, size, size) float32: change, distance
+        self.used: dict[tuple[int, int], int] = {}          # the window that last touched each tile
+        self.spilled: set[tuple[int, int]] = set()
+        self.n = 0
+        if spill_dir is not None:
+            Path(spill_dir).mkdir(parents=True, exist_ok=True)
+
+    def _path(self, k: tuple[int, int]) -> Path:
+        return Path(self.spill_dir) / f"sim_{k[0]}_{k[1]}.npy"
+
+    def _tile(self, k: tuple[int, int], create: bool) -> np.ndarray | None:
+        if k in self.tiles:
+            return self.tiles[k]
+        if k in self.spilled:
+            return np.load(self._path(k))
+        if not create:
+            return None
+        tile = np.empty((2, self.size, self.size), np.float32)
+        tile[0], tile[1] = np.nan, np.inf
+        return tile
+
+    def add(self, i0: int, j0: int, change: np.ndarray, dist: np.ndarray) -> None:
+        """A window's piece (`_sim_piece`): its change (X, Y) [m] and each cell's distance to its
+        centre [m] (inf off its ground) at lattice cells [i0:i0+X, j0:j0+Y]."""
+        s, (ni, nj) = self.size, change.shape
+        for a in range(i0 // s, (i0 + ni - 1) // s + 1):
+            for b in range(j0 // s, (j0 + nj - 1) // s + 1):
+                k = (a, b)
+                tile = self._tile(k, create=True)
+                self.tiles[k], self.used[k] = tile, self.n
+                self.spilled.discard(k)
+                x0, x1, y0, y1 = max(i0, a * s), min(i0 + ni, (a + 1) * s), max(j0, b * s), min(j0 + nj, (b + 1) * s)
+                d = dist[x0 - i0:x1 - i0, y0 - j0:y1 - j0]
+                t = tile[:, x0 - a * s:x1 - a * s, y0 - b * s:y1 - b * s]
+                take = d < t[1]
+                t[1][take] = d[take]
+                t[0][take] = change[x0 - i0:x1 - i0, y0 - j0:y1 - j0][take]
+        self.n += 1
+        self.flush(self.n - self.keep)
+
+    def flush(self, before: float = np.inf) -> None:
+        """The tiles no window touched since window `before` (default: all) to spill_dir (when there
+        is one): `sim_A_B.npy`, (2, size, size) float32 change [m] and distance [m] of lattice cells
+        [A size:(A+1) size, B size:(B+1) size]."""
+        if self.spill_dir is None:
+            return
+        for k in [k for k, n in self.used.items() if n < before]:
+            np.save(self._path(k), self.tiles.pop(k))
+            self.spilled.add(k)
+            del self.used[k]
+
+    def region(self, i0: int, i1: int, j0: int, j1: int) -> np.ndarray:
+        """The stitched change (i1 - i0, j1 - j0) [m] of lattice cells [i0:i1, j0:j1] (NaN where
+        no window simulated), read from memory or disk."""
+        out = np.full((i1 - i0, j1 - j0), np.nan, np.float32)
+        s = self.size
+        for a in range(i0 // s, (i1 - 1) // s + 1):
+            for b in range(j0 // s, (j1 - 1) // s + 1):
+                tile = self._tile((a, b), create=False)
+                if tile is None:
+                    continue
+                x0, x1, y0, y1 = max(i0, a * s), min(i1, (a + 1) * s), max(j0, b * s), min(j1, (b + 1) * s)
+                out[x0 - i0:x1 - i0, y0 - j0:y1 - j0] = tile[0, x0 - a * s:x1 - a * s, y0 - b * s:y1 - b * s]
+        return out
+
+
+def _stitch(pair: TerrainPair, sims: SimTiles) -> np.ndarray:
+    """Simulated height change over the whole pair's grid (NaN where no window simulated)."""
     gi, gj = (int(round(v / pair.dx)) for v in pair.origin)
-    for i0, j0, h_sim, dist in pieces:
-        a, b = i0 - gi, j0 - gj
-        a0, b0 = max(a, 0), max(b, 0)
-        a1, b1 = min(a + h_sim.shape[0], h.shape[0]), min(b + h_sim.shape[1], h.shape[1])
-        if a1 <= a0 or b1 <= b0:
-            continue
-        d = dist[a0 - a:a1 - a, b0 - b:b1 - b]
-        take = d < best[a0:a1, b0:b1]
-        best[a0:a1, b0:b1][take] = d[take]
-        h[a0:a1, b0:b1][take] = h_sim[a0 - a:a1 - a, b0 - b:b1 - b][take]
-    return h
+    return sims.region(gi, gi + pair.h_front.shape[0], gj, gj + pair.h_front.shape[1])
 
 
 def _save_simulated(path: Path, pair: TerrainPair, h_sim: np.ndarray) -> None:

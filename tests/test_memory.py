@@ -1,0 +1,72 @@
+"""Bounded memory of the streamed estimate: the simulated change stitched tile by tile (far tiles
+on disk) equals the stitching of every window's piece over one array."""
+
+import numpy as np
+
+from torchsoil.runner import SimTiles
+
+
+def _pieces(rng, n=40):
+    out = []
+    for k in range(n):   # windows along +x, overlapping, with cells off their ground (inf)
+        i0, j0 = 37 * k - 50, int(rng.integers(-80, -60))
+        shape = (int(rng.integers(60, 140)), int(rng.integers(100, 170)))
+        dist = rng.uniform(0, 2, shape).astype(np.float32)
+        dist[rng.uniform(size=shape) < 0.2] = np.inf
+        out.append((i0, j0, rng.normal(0, 0.01, shape).astype(np.float32), dist))
+    return out
+
+
+def test_stitched_tiles_spilled_to_disk_equal_one_array(tmp_path):
+    pieces = _pieces(np.random.default_rng(0))
+    i0, i1 = min(p[0] for p in pieces), max(p[0] + p[2].shape[0] for p in pieces)
+    j0, j1 = min(p[1] for p in pieces), max(p[1] + p[2].shape[1] for p in pieces)
+    h, best = np.full((i1 - i0, j1 - j0), np.nan, np.float32), np.full((i1 - i0, j1 - j0), np.inf, np.float32)
+    for a, b, change, dist in pieces:   # nearest window centre wins, the first on a tie
+        view = (slice(a - i0, a - i0 + change.shape[0]), slice(b - j0, b - j0 + change.shape[1]))
+        take = dist < best[view]
+        best[view][take], h[view][take] = dist[take], change[take]
+    held, spilled = SimTiles(), SimTiles(tmp_path, size=32, keep=2)
+    for p in pieces:
+        held.add(*p)
+        spilled.add(*p)
+    assert spilled.spilled and len(spilled.tiles) < len(held.tiles)   # far tiles left memory
+    np.testing.assert_array_equal(held.region(i0, i1, j0, j1), h)
+    np.testing.assert_array_equal(spilled.region(i0, i1, j0, j1), h)
+    np.testing.assert_array_equal(spilled.region(i0 + 5, i1 - 7, j0 + 3, j1 + 9)[:, :-9], h[5:-7, 3:])
+
+
+def test_a_full_disk_stops_with_a_clear_error_and_keeps_the_rows(tmp_path, monkeypatch, capsys):
+    """ENOSPC while a row is written (os.fsync made to fail as a full disk does): the CLI says so
+    in one line, exit status 2, and params.csv holds whole rows only, readable by --resume."""
+    import errno
+    import os
+
+    from torchsoil import cli
+    from torchsoil.logging import CsvLog, DiskFull
+
+    log = CsvLog(tmp_path / "p.csv", ["s", "flags"], resume=False)
+    log.append({"s": 0.5, "flags": ""})
+    real, calls = os.fsync, []
+
+    def full(fd):
+        calls.append(fd)
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", full)
+    try:
+        log.append({"s": 1.0, "flags": "x"})
+    except DiskFull as e:
+        assert "no space left" in str(e) and "--resume" in str(e)
+    else:
+        raise AssertionError("no DiskFull")
+    monkeypatch.setattr(os, "fsync", real)
+    assert calls and CsvLog(tmp_path / "p.csv", ["s", "flags"], resume=True).rows == [{"s": 0.5, "flags": ""}]
+
+    def estimate(args):
+        raise DiskFull(tmp_path / "p.csv")
+
+    monkeypatch.setitem(cli.COMMANDS, "estimate", estimate)
+    assert cli.main(["estimate", "x.npz"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: no space left on the device writing") and len(err.splitlines()) == 1
