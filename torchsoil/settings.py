@@ -227,6 +227,16 @@ class MappingConfig(Section):
     ground_z: float | None = Field(0.97, description="normals with |n_z| above this count as ground "
                                                      "(see icp.register); null: off")
     one_sided: bool = Field(True, description="drop matches on steep faces turned away from the robot")
+    retry_turn: float = Field(1.0, gt=0, description="a registration that turns this far from the "
+                                                     "constant-velocity prediction, or is weak or poor, is "
+                                                     "tried again from other starts, degrees")
+    max_yaw_rate: float = Field(45.0, gt=0, description="largest yaw rate the robot reaches; the other "
+                                                        "starts span the yaw it can turn between two "
+                                                        "sweeps either way, deg/s")
+    retry_step: float = Field(4.0, gt=0, description="yaw step between the other starts, degrees")
+    retry_gain: float = Field(0.8, gt=0, le=1, description="another start replaces the first fit when its "
+                                                           "truncated cost (icp.truncated_cost) is below "
+                                                           "this share of the first's")
 
 
 class ReregisterConfig(Section):

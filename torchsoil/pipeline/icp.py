@@ -299,6 +299,20 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
     return IcpResult(T, n_used / n_src, rmse, H / n_used, n_used, it)
 
 
+def truncated_cost(source: np.ndarray, T: np.ndarray, target: Target, tol: float) -> float:
+    """Mean truncated point-to-plane cost of the (S, 3) source points placed by T (4, 4):
+    min(r, tol)^2 / tol^2 per point, r its distance to the nearest target point's plane (that
+    point within 2 tol; none: the full 1). Ranks candidate poses of one sweep: 0 where every
+    point lies on the map, 1 where none does."""
+    if len(source) == 0:
+        return 1.0
+    p = apply(T, source)
+    d, i = target.tree.query(p, distance_upper_bound=2 * tol)
+    ok = np.flatnonzero(np.isfinite(d))
+    r = np.abs(np.einsum("ij,ij->i", target.normals[i[ok]], p[ok] - target.points[i[ok]]))
+    return float((np.sum(np.minimum(r, tol) ** 2) / tol**2 + (len(source) - len(ok))) / len(source))
+
+
 def _contiguous(a: np.ndarray) -> np.ndarray:
     return a if a.flags.c_contiguous and a.dtype == np.float64 else np.ascontiguousarray(a, dtype=np.float64)
 

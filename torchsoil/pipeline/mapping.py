@@ -34,9 +34,10 @@ STATIONARY = 8      # robot (nearly) standing still
 REREG_FRONT_FAILED = 16   # front sweep dropped by re-registration
 REREG_BACK_FAILED = 32    # back sweep dropped by re-registration
 MISSING_BACK = 64   # no back sweep close in time
+RETRIED = 128       # registered again from other starts (the motion changed, or the first fit was weak)
 
 FLAG_NAMES = {EMPTY: "empty", DEGENERATE: "degenerate", POOR_FIT: "poor_fit",
-              STATIONARY: "stationary", REREG_FRONT_FAILED: "rereg_front_failed",
+              STATIONARY: "stationary", RETRIED: "retried", REREG_FRONT_FAILED: "rereg_front_failed",
               REREG_BACK_FAILED: "rereg_back_failed", MISSING_BACK: "missing_back"}
 
 
@@ -249,6 +250,32 @@ class LocalMap:
         self.target = icp.Target(pts, normals, index)
 
 
+class _Fit(NamedTuple):
+    """One registration of a sweep: ICP result, pose (4, 4; the seed where poor), de-skewed
+    points (N, 3), poor / weak (degenerate) flags, truncated cost at the pose (icp.truncated_cost)."""
+
+    res: icp.IcpResult
+    T: np.ndarray
+    pts: np.ndarray
+    poor: bool
+    weak: bool
+    cost: float
+
+
+def _angle_deg(T: np.ndarray) -> float:
+    """Rotation angle of a (4, 4) transform, degrees."""
+    return float(np.degrees(np.linalg.norm(_k.rotvec_of(np.ascontiguousarray(T[:3, :3])))))
+
+
+def _turned(T: np.ndarray, yaw: float) -> np.ndarray:
+    """(4, 4) pose T turned by `yaw` rad about the world z axis through its own position."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    return out
+
+
 def _motion_over(velocity: np.ndarray, dt: float) -> np.ndarray:
     """Motion per second (4, 4, as a twist-like transform) -> motion over dt seconds."""
     M = np.eye(4)
@@ -350,25 +377,28 @@ class Mapper:
             self.flags[k] |= EMPTY
             self.poses[k] = T_pred
             return k
-        pts = _prepare(sweep, self.velocity, self.period, cfg)
         gate = cfg.startup_dist if len(self.done) == 1 else cfg.max_dist
-        src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points, cfg.source_voxel)
-        res = icp.register(src, self.local.target, T_pred, gate, cfg.max_iter, workers=cfg.workers,
-                           ground_z=cfg.ground_z, one_sided=cfg.one_sided)
+        T_prev = self.poses[self.prev]
+        fit = self._fit(sweep, T_prev, T_pred, dt, gate)
+        turn = _angle_deg(np.linalg.inv(T_pred) @ fit.T)
+        if fit.poor or fit.weak or turn > cfg.retry_turn:
+            fit = self._retry(sweep, T_prev, T_pred, dt, gate, fit)
+            self.flags[k] |= RETRIED
+        res, T, pts = fit.res, fit.T, fit.pts
         self.fitness[k], self.rmse[k] = res.fitness, res.rmse
-        if res.fitness < cfg.min_fitness or not np.isfinite(res.rmse):
+        if fit.poor:
             self.flags[k] |= POOR_FIT
             T = T_pred
-        else:
-            weak = icp.weak_directions(res.hessian, cfg.degenerate_eigen)
-            if weak.shape[1]:
-                self.flags[k] |= DEGENERATE
-            T = icp.project_update(T_pred, res.transform, weak)
+        elif fit.weak:
+            self.flags[k] |= DEGENERATE
         self.poses[k] = T
         self.done.append(k)
         stamps = np.asarray(self.stamps)
         base = _baseline(self.done, stamps, cfg.velocity_window + self.period / 4)
-        if not self.flags[k] & DEGENERATE:   # a degenerate pose is partly the prediction: coast
+        if self.flags[k] & RETRIED and not self.flags[k] & (POOR_FIT | DEGENERATE):
+            # the motion changed (a steering step): the last interval alone predicts the next
+            self.velocity = _velocity(T_prev, T, dt)
+        elif not self.flags[k] & DEGENERATE:   # a degenerate pose is partly the prediction: coast
             self.velocity = _velocity(self.poses[base], T, stamps[k] - stamps[base])
         if len(self.done) > 64:
             del self.done[:-32]
@@ -378,6 +408,45 @@ class Mapper:
             self.local.add(icp.apply(T, pts), T[:3, 3])
         self.prev = k
         return k
+
+    def _fit(self, sweep: Sweep, T_prev: np.ndarray, seed: np.ndarray, dt: float, gate: float,
+             wide: float | None = None) -> _Fit:
+        """The sweep de-skewed with the motion from T_prev to `seed` over dt s, registered from
+        `seed` onto the local map (first with a `wide` gate when given, then with `gate`)."""
+        cfg = self.cfg
+        pts = _prepare(sweep, _velocity(T_prev, seed, dt), self.period, cfg)
+        src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points, cfg.source_voxel)
+        kw = {"workers": cfg.workers, "ground_z": cfg.ground_z, "one_sided": cfg.one_sided}
+        start = seed
+        if wide is not None:
+            start = icp.register(src, self.local.target, seed, wide, cfg.max_iter, **kw).transform
+        res = icp.register(src, self.local.target, start, gate, cfg.max_iter, **kw)
+        poor = res.fitness < cfg.min_fitness or not np.isfinite(res.rmse)
+        weak = icp.weak_directions(res.hessian, cfg.degenerate_eigen)
+        T = seed if poor else icp.project_update(seed, res.transform, weak)
+        return _Fit(res, T, pts, poor, bool(weak.shape[1]),
+                    icp.truncated_cost(src, T, self.local.target, cfg.voxel / 2))
+
+    def _retry(self, sweep: Sweep, T_prev: np.ndarray, T_pred: np.ndarray, dt: float, gate: float,
+               first: _Fit) -> _Fit:
+        """The registration again from other starts: the first result, and the prediction turned
+        about the robot by every yaw the robot can add or lose between the sweeps (up to
+        max_yaw_rate both ways, in retry_step steps), each de-skewed with its own motion, with a
+        wide gate first. The start whose result has the lowest truncated cost wins if it beats
+        the first result's by the factor retry_gain; then it is de-skewed with its own motion and
+        refined."""
+        cfg = self.cfg
+        span = min(2.0 * cfg.max_yaw_rate * dt, 180.0)
+        yaws = np.arange(-span, span + 1e-9, cfg.retry_step) if span >= cfg.retry_step else np.zeros(1)
+        seeds = [first.T] + [_turned(T_pred, np.radians(a)) for a in yaws]
+        wide = max(gate, self.cfg.startup_dist)
+        fits = [first] + [self._fit(sweep, T_prev, s, dt, gate, wide) for s in seeds[1:]]
+        best = min(fits, key=lambda f: (f.poor, f.cost))
+        if not first.poor and not best.cost < cfg.retry_gain * first.cost:
+            best = first                     # another start must fit clearly better
+        if best.poor:
+            return best
+        return self._fit(sweep, T_prev, best.T, dt, gate)
 
     def check_degenerate(self) -> None:
         """ValueError when more than cfg.max_degenerate_share of the sweeps are degenerate."""

@@ -112,6 +112,8 @@ def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]
     """Human-readable runs of flagged sweeps: 'sweeps 40-75 (t = 4.00-7.50 s): degenerate'."""
     out = []
     for bit, name in mapping.FLAG_NAMES.items():
+        if bit == mapping.RETRIED:   # registered after all: not a problem
+            continue
         on = (flags & bit) != 0
         k = 0
         while k < len(on):
