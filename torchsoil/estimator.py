@@ -361,7 +361,10 @@ class Estimator:
         reach = np.abs(self.pair.wheels[:, 0]).max() + self.pair.wheel_width
         t0, t1 = np.interp([spec.s0 - reach, spec.s1 + reach], self.index.arc, self.pair.poses[:, 0])
         stamps, flags = extras["scan_stamps"], extras["scan_flags"]
-        return ("registration",) if np.any((flags != 0) & (stamps >= t0) & (stamps <= t1)) else ()
+        from torchsoil.pipeline.mapping import PROBLEMS
+
+        bad = (np.asarray(flags, np.int64) & PROBLEMS) != 0
+        return ("registration",) if np.any(bad & (stamps >= t0) & (stamps <= t1)) else ()
 
     def _row(self, spec, wd, free, residual, prediction, iterations, seconds, flags, visit: int = 0) -> dict:
         row = {"s": spec.centre + self.arc0, "visit": visit, "passes_before": self._passes_before(wd, visit),

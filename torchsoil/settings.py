@@ -233,8 +233,10 @@ class MappingConfig(Section):
     max_yaw_rate: float = Field(45.0, gt=0, description="largest yaw rate the robot reaches; the other "
                                                         "starts span the yaw it can turn between two "
                                                         "sweeps either way, deg/s")
+    retry_cost: float = Field(1.5, gt=1, description="... or whose truncated cost (icp.truncated_cost) "
+                                                    "exceeds this multiple of the last ten sweeps' median")
     retry_step: float = Field(4.0, gt=0, description="yaw step between the other starts, degrees")
-    retry_gain: float = Field(0.8, gt=0, le=1, description="another start replaces the first fit when its "
+    retry_gain: float = Field(0.6, gt=0, le=1, description="another start replaces the first fit when its "
                                                            "truncated cost (icp.truncated_cost) is below "
                                                            "this share of the first's")
 
@@ -505,6 +507,8 @@ class LidarConfig(Section):
     range_noise: float = Field(0.01, ge=0, description="m")
     dropout: float = Field(0.02, ge=0, le=1, description="fraction of returns dropped")
     organized: bool = Field(False, description="full beams x columns clouds, NaN where nothing returned")
+    tilt_deg: float = Field(30.0, ge=0, le=60, description="each lidar tilted down towards its own side, deg "
+                                                          "(less: it sees farther, more landmarks)")
 
 
 class WorldConfig(SimConfig):

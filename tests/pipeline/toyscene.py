@@ -23,7 +23,9 @@ class ToyScene:
     noise: range noise 1 sigma, m; columns: azimuth samples per sweep; period: sweep, s;
     pitch_amp: body pitch oscillation amplitude, rad; rut_depth: the back lidar sees the
     ground lowered by this much within 0.1 m of y = +/-0.5 (in the world, for x < robot x);
-    stop: (t0, t1) the robot stands still between these times, s."""
+    stop: (t0, t1) the robot stands still between these times, s; flip: time at which the yaw
+    rate changes sign (a steering step, as into a keyhole turn), s; silent: {sensor: (t0, t1)}
+    the sensor publishes nothing between these times, s."""
 
     speed: float = 1.0
     yaw_rate: float = 0.0
@@ -37,6 +39,8 @@ class ToyScene:
     pitch_amp: float = 0.0
     rut_depth: float = 0.0
     stop: tuple[float, float] | None = None
+    flip: float | None = None
+    silent: dict = field(default_factory=dict)
     seed: int = 0
 
     extrinsics: dict = field(default_factory=lambda: {
@@ -59,6 +63,15 @@ class ToyScene:
             x, y = r * np.sin(yaw), r * (1 - np.cos(yaw))
         else:
             x, y = self.speed * t, np.zeros_like(t)
+        if self.flip is not None and self.yaw_rate:   # on the other circle after the step
+            tf = self.flip
+            yf = self.yaw_rate * tf
+            xf, yyf = r * np.sin(yf), r * (1 - np.cos(yf))
+            after = t > tf
+            ya = yf - self.yaw_rate * (t - tf)
+            yaw = np.where(after, ya, yaw)
+            x = np.where(after, xf - r * (np.sin(ya) - np.sin(yf)), x)
+            y = np.where(after, yyf + r * (np.cos(ya) - np.cos(yf)), y)
         pitch = self.pitch_amp * np.sin(2 * np.pi * 0.5 * t)
         T = np.zeros((*t.shape, 4, 4))
         T[..., :3, :3] = Rotation.from_euler("xyz", np.stack(
@@ -139,6 +152,9 @@ class ToyScene:
         for k in range(int(round(duration / self.period))):
             for sensor, off in (("lidar_front", 0.0), ("lidar_back", back_offset)):
                 stamp = start + k * self.period + off
+                t0, t1 = self.silent.get(sensor, (np.inf, -np.inf))
+                if t0 <= stamp - start <= t1:
+                    continue
                 xyz, tns = self.sweep(sensor, stamp - start, rng)
                 out.append((f"/{sensor}/points", encode(xyz, tns, stamp, sensor, height=32)))
         return out

@@ -16,6 +16,7 @@ the prediction; near-zero speed is flagged STATIONARY.
 
 from __future__ import annotations
 
+from collections import deque
 from typing import NamedTuple
 
 import numpy as np
@@ -35,10 +36,15 @@ REREG_FRONT_FAILED = 16   # front sweep dropped by re-registration
 REREG_BACK_FAILED = 32    # back sweep dropped by re-registration
 MISSING_BACK = 64   # no back sweep close in time
 RETRIED = 128       # registered again from other starts (the motion changed, or the first fit was weak)
+MISSING_FRONT = 256  # no front sweep close in time: the back sweep was mapped alone
+GAP = 512           # first sweep after more than 3 periods without one (both lidars silent)
+
+PROBLEMS = ~RETRIED  # the bits that mark a sweep's ground as doubtful (a retried sweep did register)
 
 FLAG_NAMES = {EMPTY: "empty", DEGENERATE: "degenerate", POOR_FIT: "poor_fit",
               STATIONARY: "stationary", RETRIED: "retried", REREG_FRONT_FAILED: "rereg_front_failed",
-              REREG_BACK_FAILED: "rereg_back_failed", MISSING_BACK: "missing_back"}
+              REREG_BACK_FAILED: "rereg_back_failed", MISSING_BACK: "missing_back",
+              MISSING_FRONT: "missing_front", GAP: "gap"}
 
 
 def flag_names(flags: int) -> list[str]:
@@ -267,25 +273,42 @@ def _angle_deg(T: np.ndarray) -> float:
     return float(np.degrees(np.linalg.norm(_k.rotvec_of(np.ascontiguousarray(T[:3, :3])))))
 
 
-def _turned(T: np.ndarray, yaw: float) -> np.ndarray:
-    """(4, 4) pose T turned by `yaw` rad about the world z axis through its own position."""
-    c, s = np.cos(yaw), np.sin(yaw)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    out = T.copy()
-    out[:3, :3] = R @ T[:3, :3]
-    return out
+def _left_jacobian(phi: np.ndarray) -> np.ndarray:
+    """(3, 3) V of the SE(3) exponential for the rotation vector phi (3,): translation = V rho."""
+    th = float(np.linalg.norm(phi))
+    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if th < 1e-9:
+        return np.eye(3) + K / 2
+    return np.eye(3) + (1 - np.cos(th)) / th**2 * K + (th - np.sin(th)) / th**3 * K @ K
 
 
-def _motion_over(velocity: np.ndarray, dt: float) -> np.ndarray:
-    """Motion per second (4, 4, as a twist-like transform) -> motion over dt seconds."""
+def _arc_motion(w: np.ndarray, v: np.ndarray, dt: float) -> np.ndarray:
+    """(4, 4) motion over dt s at constant body rates: rotation w (3,) rad/s and velocity
+    v (3,) m/s in the robot frame (the exponential of the twist: a turning robot moves on an
+    arc, which matters once dt spans a large turn, e.g. after a gap in the sweeps)."""
+    phi = np.asarray(w, np.float64) * dt
     M = np.eye(4)
-    M[:3, :3] = _k.rotation(_k.rotvec_of(np.ascontiguousarray(velocity[:3, :3])) * dt)
-    M[:3, 3] = velocity[:3, 3] * dt
+    M[:3, :3] = _k.rotation(np.ascontiguousarray(phi))
+    M[:3, 3] = _left_jacobian(phi) @ (np.asarray(v, np.float64) * dt)
     return M
 
 
+def _motion_over(velocity: np.ndarray, dt: float) -> np.ndarray:
+    """Motion per second (4, 4: rotation by the rate w, translation the body velocity v) ->
+    motion over dt seconds at those constant rates (on an arc)."""
+    return _arc_motion(_k.rotvec_of(np.ascontiguousarray(velocity[:3, :3])), velocity[:3, 3], dt)
+
+
 def _velocity(T_prev: np.ndarray, T_curr: np.ndarray, dt: float) -> np.ndarray:
-    return _motion_over(np.linalg.inv(T_prev) @ T_curr, 1.0 / dt) if dt > 0 else np.eye(4)
+    """The constant rates (as `_motion_over` takes them) that move T_prev to T_curr in dt s."""
+    if dt <= 0:
+        return np.eye(4)
+    D = np.linalg.inv(T_prev) @ T_curr
+    phi = _k.rotvec_of(np.ascontiguousarray(D[:3, :3]))
+    out = np.eye(4)
+    out[:3, :3] = _k.rotation(np.ascontiguousarray(phi / dt))
+    out[:3, 3] = np.linalg.solve(_left_jacobian(phi), D[:3, 3]) / dt
+    return out
 
 
 def _prepare(sweep: Sweep, velocity: np.ndarray, period: float, cfg: MappingConfig) -> np.ndarray:
@@ -320,6 +343,7 @@ class Mapper:
         self.prev: int | None = None    # last registered sweep
         self.first: int | None = None   # first usable sweep
         self.done: list[int] = []       # registered sweeps (velocity baselines)
+        self.costs: deque[float] = deque(maxlen=10)   # truncated costs of the last registrations
 
     def add(self, sweep: Sweep) -> list[int]:
         if self.stamps and sweep.stamp <= self.stamps[-1]:
@@ -381,7 +405,11 @@ class Mapper:
         T_prev = self.poses[self.prev]
         fit = self._fit(sweep, T_prev, T_pred, dt, gate)
         turn = _angle_deg(np.linalg.inv(T_pred) @ fit.T)
-        if fit.poor or fit.weak or turn > cfg.retry_turn:
+        if dt > 3 * self.period:   # no sweep for a while: the prediction is a guess
+            self.flags[k] |= GAP
+        usual = float(np.median(self.costs)) if len(self.costs) >= 3 else np.inf
+        if (fit.poor or fit.weak or turn > cfg.retry_turn or fit.cost > cfg.retry_cost * usual
+                or self.flags[k] & GAP):
             fit = self._retry(sweep, T_prev, T_pred, dt, gate, fit)
             self.flags[k] |= RETRIED
         res, T, pts = fit.res, fit.T, fit.pts
@@ -393,9 +421,12 @@ class Mapper:
             self.flags[k] |= DEGENERATE
         self.poses[k] = T
         self.done.append(k)
+        if not fit.poor:
+            self.costs.append(fit.cost)
         stamps = np.asarray(self.stamps)
         base = _baseline(self.done, stamps, cfg.velocity_window + self.period / 4)
-        if self.flags[k] & RETRIED and not self.flags[k] & (POOR_FIT | DEGENERATE):
+        stepped = _angle_deg(np.linalg.inv(T_pred) @ T) > cfg.retry_turn
+        if stepped and not self.flags[k] & (POOR_FIT | DEGENERATE):
             # the motion changed (a steering step): the last interval alone predicts the next
             self.velocity = _velocity(T_prev, T, dt)
         elif not self.flags[k] & DEGENERATE:   # a degenerate pose is partly the prediction: coast
@@ -429,22 +460,26 @@ class Mapper:
 
     def _retry(self, sweep: Sweep, T_prev: np.ndarray, T_pred: np.ndarray, dt: float, gate: float,
                first: _Fit) -> _Fit:
-        """The registration again from other starts: the first result, and the prediction turned
-        about the robot by every yaw the robot can add or lose between the sweeps (up to
-        max_yaw_rate both ways, in retry_step steps), each de-skewed with its own motion, with a
-        wide gate first. The start whose result has the lowest truncated cost wins if it beats
+        """The registration again from other starts: the first result, and the motion from the
+        last pose at the present speed with every yaw rate change that adds or loses up to
+        2 max_yaw_rate dt of yaw (in retry_step steps; on arcs), each de-skewed with its own
+        motion, with a wide gate first. The start whose result has the lowest truncated cost wins if it beats
         the first result's by the factor retry_gain; then it is de-skewed with its own motion and
         refined."""
         cfg = self.cfg
         span = min(2.0 * cfg.max_yaw_rate * dt, 180.0)
         yaws = np.arange(-span, span + 1e-9, cfg.retry_step) if span >= cfg.retry_step else np.zeros(1)
-        seeds = [first.T] + [_turned(T_pred, np.radians(a)) for a in yaws]
+        w = _k.rotvec_of(np.ascontiguousarray(self.velocity[:3, :3]))
+        seeds = [first.T] + [T_prev @ _arc_motion(w + [0.0, 0.0, np.radians(a) / dt], self.velocity[:3, 3], dt)
+                             for a in yaws]
         wide = max(gate, self.cfg.startup_dist)
         fits = [first] + [self._fit(sweep, T_prev, s, dt, gate, wide) for s in seeds[1:]]
-        best = min(fits, key=lambda f: (f.poor, f.cost))
-        if not first.poor and not best.cost < cfg.retry_gain * first.cost:
-            best = first                     # another start must fit clearly better
-        if best.poor:
+        # another start must fit clearly better, and be fixed in every direction: where the scene
+        # leaves one free, a start's pose along it is its own guess, not a measurement
+        best = min(fits[1:], key=lambda f: (f.poor or f.weak, f.cost))
+        if best.poor or best.weak or (not first.poor and not best.cost < cfg.retry_gain * first.cost):
+            best = first
+        if best.poor or best.weak:   # nothing better: the prediction stands where the scene is silent
             return best
         return self._fit(sweep, T_prev, best.T, dt, gate)
 

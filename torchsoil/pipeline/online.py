@@ -53,7 +53,9 @@ class OnlinePipeline:
         self.held: list[tuple[str, Cloud]] = []          # clouds waiting for their extrinsics
         self.frames: dict[str, str] = {}
         self.front_wait: list[Sweep] = []                # front sweeps waiting for a back partner
-        self.back_pool: list[Sweep] = []
+        self.back_pool: list[Sweep] = []                 # recent back sweeps, fusion partners
+        self.back_wait: list[Sweep] = []                 # back sweeps not yet known to have a front partner
+        self.last_front = self.mapped_front = -np.inf    # stamps, s
         self.queue: dict[str, list[Sweep]] = {n: [] for n in STREAMS}  # waiting for re-registration
         self.period: float | None = None
         self.first_stamps: list[float] = []
@@ -144,28 +146,44 @@ class OnlinePipeline:
         q.append(sw)
         if name == "front":
             self.front_wait.append(sw)
+            self.last_front = sw.stamp
             if len(self.first_stamps) < 6:
                 self.first_stamps.append(sw.stamp)
         else:
             self.back_pool.append(sw)
+            self.back_wait.append(sw)
         self._fuse(final=False)
 
     # ----------------------------------------------------------------- stages
     def _fuse(self, final: bool) -> None:
         """Each front sweep with the back sweep nearest in time (within half a period), once no
-        nearer one can come, into the mapper."""
+        nearer one can come, into the mapper; a back sweep with no front sweep within 3/4 of a
+        period (the front lidar silent or frozen) goes in alone, so the map and the trajectory
+        go on. Sweeps enter the mapper in time order."""
         if self.period is None:
             if len(self.first_stamps) < 6 and not final:
                 return
             steps = np.diff(self.first_stamps)
             self.period = float(np.median(steps)) if len(steps) else 0.1
-        while self.front_wait:
-            f = self.front_wait[0]
-            waiting = not any(b.stamp >= f.stamp + self.period / 2 for b in self.back_pool[-3:])
+        P = self.period
+        while self.front_wait or self.back_wait:
+            f = self.front_wait[0] if self.front_wait else None
+            b = self.back_wait[0] if self.back_wait else None
+            if b is not None and (f is None or b.stamp < f.stamp):
+                # b's front partners are mapped, f, or later: decided once a front came after it
+                if f is None and not (final or self.last_front >= b.stamp + 0.75 * P or len(self.back_wait) >= 10):
+                    return
+                self.back_wait.pop(0)
+                alone = b.stamp - self.mapped_front > 0.75 * P and (f is None or f.stamp - b.stamp > 0.75 * P)
+                if alone:
+                    self._map(b, mapping.MISSING_FRONT)
+                continue
+            waiting = not any(b.stamp >= f.stamp + P / 2 for b in self.back_pool[-3:])
             if not final and waiting and len(self.front_wait) < 10:   # a silent back lidar holds 1 s at most
                 return
             self.front_wait.pop(0)
-            near = [b for b in self.back_pool if abs(b.stamp - f.stamp) <= self.period / 2]
+            self.mapped_front = f.stamp
+            near = [b for b in self.back_pool if abs(b.stamp - f.stamp) <= P / 2]
             flag = 0
             if near:
                 b = min(near, key=lambda b: abs(b.stamp - f.stamp))
@@ -173,7 +191,7 @@ class OnlinePipeline:
                           np.concatenate([f.t, b.t + (b.stamp - f.stamp)]))
             else:
                 flag = mapping.MISSING_BACK
-            self.back_pool = [b for b in self.back_pool if b.stamp > f.stamp - self.period]
+            self.back_pool = [b for b in self.back_pool if b.stamp > f.stamp - P]
             self._map(f, flag)
 
     def _map(self, sweep: Sweep, flag: int) -> None:

@@ -73,11 +73,12 @@ class LidarSpec:
         return T
 
 
-def paper_lidars(columns: int = 1024, rate_hz: float = 10.0, beams: int = 32) -> list[LidarSpec]:
+def paper_lidars(columns: int = 1024, rate_hz: float = 10.0, beams: int = 32, tilt_deg: float = 30.0
+                 ) -> list[LidarSpec]:
     """Front and back OS1-32 of the paper's platform: 0.95 m ahead of / behind the
-    chassis centre, 1.0 m up, each tilted 30 deg down towards its own side (little overlap);
-    `beams` rings over the same field of view (fewer: smaller bags for long drives)."""
-    tilt = math.radians(30.0)
+    chassis centre, 1.0 m up, each tilted `tilt_deg` down towards its own side (30: little
+    overlap); `beams` rings over the same field of view (fewer: smaller bags for long drives)."""
+    tilt = math.radians(tilt_deg)
     return [LidarSpec("lidar_front", (0.95, 0.0, 1.0), (0.0, tilt, 0.0), columns=columns, rate_hz=rate_hz,
                       beams=beams),
             LidarSpec("lidar_back", (-0.95, 0.0, 1.0), (0.0, tilt, math.pi), columns=columns,

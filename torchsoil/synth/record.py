@@ -42,7 +42,7 @@ def sidecar(out: str | Path, suffix: str) -> Path:
 
 def lidars_for(truth: Truth) -> list[LidarSpec]:
     lid = truth.scenario.lidar
-    return paper_lidars(lid.columns, lid.rate_hz, lid.beams)
+    return paper_lidars(lid.columns, lid.rate_hz, lid.beams, lid.tilt_deg)
 
 
 def scene_for(truth: Truth) -> Scene:
