@@ -227,6 +227,8 @@ class MappingConfig(Section):
     ground_z: float | None = Field(0.97, description="normals with |n_z| above this count as ground "
                                                      "(see icp.register); null: off")
     one_sided: bool = Field(True, description="drop matches on steep faces turned away from the robot")
+    use_gyro: bool = Field(True, description="the IMU's rate gyro (when the recording has one) predicts the "
+                                             "rotation between sweeps")
     retry_turn: float = Field(1.0, gt=0, description="a registration that turns this far from the "
                                                      "constant-velocity prediction, or is weak or poor, is "
                                                      "tried again from other starts, degrees")

@@ -25,7 +25,8 @@ class ToyScene:
     ground lowered by this much within 0.1 m of y = +/-0.5 (in the world, for x < robot x);
     stop: (t0, t1) the robot stands still between these times, s; flip: time at which the yaw
     rate changes sign (a steering step, as into a keyhole turn), s; silent: {sensor: (t0, t1)}
-    the sensor publishes nothing between these times, s."""
+    the sensor publishes nothing between these times, s; imu_rate: an exact IMU (body rates and
+    specific force, frame imu_link turned 90 deg about z) on /imu/data at this rate, Hz (0: none)."""
 
     speed: float = 1.0
     yaw_rate: float = 0.0
@@ -41,11 +42,13 @@ class ToyScene:
     stop: tuple[float, float] | None = None
     flip: float | None = None
     silent: dict = field(default_factory=dict)
+    imu_rate: float = 0.0
     seed: int = 0
 
     extrinsics: dict = field(default_factory=lambda: {
         "lidar_front": xyzrpy_matrix([0.9, 0.0, 0.8, 0.0, 0.35, 0.0]),
         "lidar_back": xyzrpy_matrix([-0.9, 0.0, 0.8, 0.0, 0.35, np.pi]),
+        "imu_link": xyzrpy_matrix([0.1, 0.0, 0.3, 0.0, 0.0, np.pi / 2]),
     })
 
     def ground(self, x, y):
@@ -157,6 +160,24 @@ class ToyScene:
                     continue
                 xyz, tns = self.sweep(sensor, stamp - start, rng)
                 out.append((f"/{sensor}/points", encode(xyz, tns, stamp, sensor, height=32)))
+        if self.imu_rate > 0:
+            out += self.imu_messages(duration, start)
+            out.sort(key=lambda m: m[1].header.stamp.sec + 1e-9 * m[1].header.stamp.nanosec)
+        return out
+
+    def imu_messages(self, duration: float, start: float = 100.0, h: float = 1e-4):
+        """(topic, sensor_msgs/Imu) list: exact body rates and specific force in imu_link."""
+        from torchsoil.synth.bagwriter import imu_message
+
+        R_bi = self.extrinsics["imu_link"][:3, :3]
+        out = []
+        for t in np.arange(0.0, duration, 1.0 / self.imu_rate):
+            P = self.pose(np.array([t - h, t, t + h]))
+            w = Rotation.from_matrix(P[1, :3, :3].T @ P[2, :3, :3]).as_rotvec() / h            # body rates
+            a = (P[2, :3, 3] - 2 * P[1, :3, 3] + P[0, :3, 3]) / h**2
+            f = P[1, :3, :3].T @ (a + [0.0, 0.0, 9.81])
+            out.append(("/imu/data", imu_message("imu_link", int(round((start + t) * 1e9)), R_bi.T @ f, R_bi.T @ w,
+                                                 1e-4, 1e-6)))
         return out
 
     def write(self, path, duration: float, start: float = 100.0):

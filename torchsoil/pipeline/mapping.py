@@ -319,6 +319,44 @@ def _prepare(sweep: Sweep, velocity: np.ndarray, period: float, cfg: MappingConf
     return deskew(pts[pick], sweep.t[pick], _motion_over(velocity, period), period)
 
 
+class Gyro:
+    """The IMU's rate gyro, turned into base_link: rotation of the robot over an interval.
+
+    `add(t, w)` samples in time order (t s, w (3,) rad/s in base_link); `rotation(t0, t1)` the
+    (3, 3) rotation of base_link from t0 to t1 (each sample held until the next), or None where
+    the samples do not cover the interval. Samples older than `keep` s before the newest are
+    dropped (bounded memory)."""
+
+    def __init__(self, keep: float = 10.0):
+        self.keep = keep
+        self.t: deque[float] = deque()
+        self.w: deque[np.ndarray] = deque()
+
+    def add(self, t: float, w: np.ndarray) -> None:
+        if self.t and t <= self.t[-1]:
+            return
+        self.t.append(float(t))
+        self.w.append(np.asarray(w, np.float64))
+        while self.t[-1] - self.t[0] > self.keep:
+            self.t.popleft(), self.w.popleft()
+
+    def rotation(self, t0: float, t1: float) -> np.ndarray | None:
+        if len(self.t) < 2 or t0 < self.t[0] or t1 > self.t[-1] or t1 <= t0:
+            return None
+        t = np.asarray(self.t)
+        i0 = max(int(np.searchsorted(t, t0, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(t, t1, side="left"))
+        edges = np.clip(t[i0:i1 + 1], t0, t1)
+        if len(edges) > 1 and np.max(np.diff(edges)) > 0.1:   # a hole in the samples
+            return None
+        R = np.eye(3)
+        for j in range(i0, i1):
+            dt = edges[j - i0 + 1] - edges[j - i0]
+            if dt > 0:
+                R = R @ _k.rotation(np.ascontiguousarray(self.w[j] * dt))
+        return R
+
+
 class Mapper:
     """Incremental registration of fused sweeps into P_ref and T_ref (scan to local map).
 
@@ -344,6 +382,7 @@ class Mapper:
         self.first: int | None = None   # first usable sweep
         self.done: list[int] = []       # registered sweeps (velocity baselines)
         self.costs: deque[float] = deque(maxlen=10)   # truncated costs of the last registrations
+        self.gyro: Gyro | None = None   # set by the caller when the recording has an IMU
 
     def add(self, sweep: Sweep) -> list[int]:
         if self.stamps and sweep.stamp <= self.stamps[-1]:
@@ -396,7 +435,7 @@ class Mapper:
             self.done.append(k)
             return k
         dt = self.stamps[k] - self.stamps[self.prev]
-        T_pred = self.poses[self.prev] @ _motion_over(self.velocity, dt)
+        T_pred = self.poses[self.prev] @ self._predict(self.stamps[self.prev], dt)
         if empty:
             self.flags[k] |= EMPTY
             self.poses[k] = T_pred
@@ -440,6 +479,14 @@ class Mapper:
         self.prev = k
         return k
 
+    def _predict(self, t0: float, dt: float) -> np.ndarray:
+        """(4, 4) motion over [t0, t0 + dt]: the constant rates, with the rotation measured by
+        the rate gyro where it covers the interval (a steering step is then no surprise)."""
+        R = self.gyro.rotation(t0, t0 + dt) if self.gyro is not None and self.cfg.use_gyro else None
+        if R is None:
+            return _motion_over(self.velocity, dt)
+        return _arc_motion(_k.rotvec_of(np.ascontiguousarray(R)) / dt, self.velocity[:3, 3], dt)
+
     def _fit(self, sweep: Sweep, T_prev: np.ndarray, seed: np.ndarray, dt: float, gate: float,
              wide: float | None = None) -> _Fit:
         """The sweep de-skewed with the motion from T_prev to `seed` over dt s, registered from
@@ -461,7 +508,7 @@ class Mapper:
     def _retry(self, sweep: Sweep, T_prev: np.ndarray, T_pred: np.ndarray, dt: float, gate: float,
                first: _Fit) -> _Fit:
         """The registration again from other starts: the first result, and the motion from the
-        last pose at the present speed with every yaw rate change that adds or loses up to
+        last pose at the present speed and predicted rates with every yaw rate change that adds or loses up to
         2 max_yaw_rate dt of yaw (in retry_step steps; on arcs), each de-skewed with its own
         motion, with a wide gate first. The start whose result has the lowest truncated cost wins if it beats
         the first result's by the factor retry_gain; then it is de-skewed with its own motion and
@@ -469,7 +516,7 @@ class Mapper:
         cfg = self.cfg
         span = min(2.0 * cfg.max_yaw_rate * dt, 180.0)
         yaws = np.arange(-span, span + 1e-9, cfg.retry_step) if span >= cfg.retry_step else np.zeros(1)
-        w = _k.rotvec_of(np.ascontiguousarray(self.velocity[:3, :3]))
+        w = _k.rotvec_of(np.ascontiguousarray((np.linalg.inv(T_prev) @ T_pred)[:3, :3])) / dt   # predicted rates
         seeds = [first.T] + [T_prev @ _arc_motion(w + [0.0, 0.0, np.radians(a) / dt], self.velocity[:3, 3], dt)
                              for a in yaws]
         wide = max(gate, self.cfg.startup_dist)

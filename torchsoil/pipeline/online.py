@@ -62,6 +62,8 @@ class OnlinePipeline:
         self.mapper: Mapper | None = None
         self.fuse_flags: list[int] = []
         self.imu: list[ImuSample] = []
+        self.gyro = mapping.Gyro()                       # rate gyro in base_link, for the mapper
+        self.gyro_R: np.ndarray | None = None            # base_link <- IMU rotation
         self.L: np.ndarray | None = None                 # levelling (4, 4)
         self.D = np.eye(3)                               # its later correction (gravity_and_bias)
         self.refined = False
@@ -96,6 +98,12 @@ class OnlinePipeline:
     def add_imu(self, sample: ImuSample) -> None:
         if not self.refined:
             self.imu.append(sample)
+        if self.gyro_R is None:
+            try:
+                self.gyro_R = self._imu_pose(sample)[:3, :3]
+            except ValueError:         # its transform not known yet
+                return
+        self.gyro.add(sample.t, self.gyro_R @ np.asarray(sample.gyro, np.float64))
 
     def finish(self) -> None:
         """The end of the recording: everything still held is registered and rasterized."""
@@ -198,6 +206,7 @@ class OnlinePipeline:
         t0 = time.perf_counter()
         if self.mapper is None:
             self.mapper = Mapper(self.cfg.mapping, self.period)
+            self.mapper.gyro = self.gyro
         self.fuse_flags.append(flag)
         done = self.mapper.add(sweep)
         self.timings["mapping"] += time.perf_counter() - t0
