@@ -247,3 +247,21 @@ def test_cells_with_another_visit_count_stay_out_of_a_windows_costs(visits_pair)
         counts[v] = np.unique(n[counted]).tolist()
     assert len(visits) in (1, 2) and all(len(c) == 1 for c in counts.values())          # one history per window
     assert all(c == [len(visits)] for c in counts.values())
+
+
+def test_ground_offset_finds_ruts_moved_sideways():
+    """Two views of the same ruts, the second moved 3 cells (6 cm) along y, with independent
+    noise and a 5 mm vertical offset: the shift comes out at 6 cm, the RMS at the noise level
+    (sqrt(2) x 3 mm); unmoved, zero."""
+    from torchsoil.visits import ground_offset
+
+    rng = np.random.default_rng(0)
+    x, y = np.arange(200)[:, None] * 0.02, np.arange(150)[None, :] * 0.02
+    h = 0.01 * np.sin(3 * x) - 0.03 * (np.exp(-((y - 1.0) / 0.05) ** 2) + np.exp(-((y - 2.0) / 0.05) ** 2))
+    before = h + rng.normal(0, 0.003, h.shape)
+    moved = np.full_like(h, np.nan)
+    moved[:, 3:] = h[:, :-3]
+    shift, rms, n = ground_offset(before, moved + rng.normal(0, 0.003, h.shape) + 0.005, 0.02)
+    assert shift == pytest.approx([0.0, 0.06]) and rms == pytest.approx(0.003 * np.sqrt(2), rel=0.1) and n > 20000
+    shift, _, _ = ground_offset(before, h + rng.normal(0, 0.003, h.shape), 0.02)
+    assert shift == pytest.approx([0.0, 0.0])

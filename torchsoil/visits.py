@@ -93,6 +93,40 @@ def rut_depth(h_front: np.ndarray, h_back: np.ndarray, ruts: np.ndarray) -> floa
     return float(d.mean()) if len(d) else float("nan")
 
 
+def ground_offset(before: np.ndarray, after: np.ndarray, dx: float, max_shift: float = 0.2
+                  ) -> tuple[np.ndarray, float, int]:
+    """Where the ground of one map lies in another: the horizontal shift of `after` (X, Y) [m]
+    that best matches `before` (X, Y) [m] on the cells both measure (NaN: not measured).
+
+    Used on the two views of the state between visits (`visit_back[v]`, `visit_front[v + 1]`):
+    on a map that holds, the ruts of the way out and of the way back lie on the same cells
+    and the shift is zero. Searched over whole cells within `max_shift` m each way, comparing
+    the maps net of their mean difference (a vertical offset is not a shift); the ruts and
+    berms carry the signal.
+
+    Returns (shift (2,) in m along x and y: `after` sampled at cell (i + sx, j + sy) matches
+    `before` at (i, j); the RMS height difference at that shift, m; the cells compared there).
+    A shift on the edge of the search means the maps lie at least that far apart. No common
+    cells: (NaN, NaN), NaN, 0.
+    """
+    a, b = np.asarray(before, np.float64), np.asarray(after, np.float64)
+    r = int(round(max_shift / dx))
+    X, Y = a.shape
+    best = (np.full(2, np.nan), np.nan, 0)
+    for sx in range(-r, r + 1):
+        for sy in range(-r, r + 1):
+            aa = a[max(0, -sx):X - max(0, sx), max(0, -sy):Y - max(0, sy)]
+            bb = b[max(0, sx):X + min(0, sx), max(0, sy):Y + min(0, sy)]
+            d = aa - bb
+            d = d[np.isfinite(d)]
+            if len(d) < 100:
+                continue
+            rms = float(np.sqrt(np.mean((d - d.mean()) ** 2)))
+            if not rms >= best[1]:
+                best = (np.array([sx, sy], np.float64) * dx, rms, len(d))
+    return best
+
+
 def pass_layers(pair, passes: np.ndarray, visit_back: list[np.ndarray] | np.ndarray) -> dict[str, np.ndarray]:
     """The layers of passes.npz on the pair's grid.
 
