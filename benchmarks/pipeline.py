@@ -6,7 +6,9 @@ quick).
 real time); `pipeline_cpu_realtime_factor` the same with the process's CPU time, which does
 not depend on what else shares the cores. Accuracy against the truth
 (torchsoil.synth.evaluate) as `pipeline_road_*` and, unless quick, `pipeline_sturn_*` (the
-25 s S-turn on a side slope of the lateral_load_transfer scenario).
+25 s S-turn on a side slope of the lateral_load_transfer scenario), `pipeline_keyhole_*` (out
+and back through a keyhole turn of radius 1.5 m, no IMU) and `pipeline_headland_*` (three
+rows joined by U-turns), with `pipeline_<name>_realtime_factor`.
 """
 
 from __future__ import annotations
@@ -16,11 +18,11 @@ import time
 from pathlib import Path
 
 
-def _recording(out: Path, duration: float | None, scenario: str = "road") -> tuple[Path, object]:
+def _recording(out: Path, duration: float | None, scenario: str = "road", imu: bool = True) -> tuple[Path, object]:
     from torchsoil.robot import Robot
     from torchsoil.synth.record import make_recording
 
-    make_recording(scenario, out, 0, 0.02, "mcap", True, duration, None, progress=False)
+    make_recording(scenario, out, 0, 0.02, "mcap", True, duration, None, progress=False, imu=imu)
     return out, Robot.from_yaml(out.parent / f"{out.name}.robot.yaml")
 
 
@@ -38,8 +40,13 @@ def run(quick: bool = False) -> dict[str, float]:
         out.update({f"pipeline_{k}_s": v for k, v in res.timings.items()})
         out.update(_accuracy("road", bag, res))
         if not quick:
-            bag, robot = _recording(Path(tmp) / "sturn", None, "lateral_load_transfer")
-            out.update(_accuracy("sturn", bag, process_bag(bag, robot)))
+            for name, scenario, imu in (("sturn", "lateral_load_transfer", True), ("keyhole", "keyhole", False),
+                                        ("headland", "headland", True)):
+                bag, robot = _recording(Path(tmp) / name, None, scenario, imu)
+                t0 = time.perf_counter()
+                res = process_bag(bag, robot)
+                out[f"pipeline_{name}_realtime_factor"] = (time.perf_counter() - t0) / res.duration
+                out.update(_accuracy(name, bag, res))
     return out
 
 

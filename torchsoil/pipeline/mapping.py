@@ -488,17 +488,18 @@ class Mapper:
         return _arc_motion(_k.rotvec_of(np.ascontiguousarray(R)) / dt, self.velocity[:3, 3], dt)
 
     def _fit(self, sweep: Sweep, T_prev: np.ndarray, seed: np.ndarray, dt: float, gate: float,
-             wide: float | None = None) -> _Fit:
+             wide: float | None = None, iters: int | None = None) -> _Fit:
         """The sweep de-skewed with the motion from T_prev to `seed` over dt s, registered from
-        `seed` onto the local map (first with a `wide` gate when given, then with `gate`)."""
+        `seed` onto the local map (first with a `wide` gate when given, then with `gate`), in
+        at most `iters` ICP iterations (default mapping.max_iter)."""
         cfg = self.cfg
         pts = _prepare(sweep, _velocity(T_prev, seed, dt), self.period, cfg)
         src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points, cfg.source_voxel)
         kw = {"workers": cfg.workers, "ground_z": cfg.ground_z, "one_sided": cfg.one_sided}
-        start = seed
+        start, iters = seed, iters or cfg.max_iter
         if wide is not None:
-            start = icp.register(src, self.local.target, seed, wide, cfg.max_iter, **kw).transform
-        res = icp.register(src, self.local.target, start, gate, cfg.max_iter, **kw)
+            start = icp.register(src, self.local.target, seed, wide, iters, **kw).transform
+        res = icp.register(src, self.local.target, start, gate, iters, **kw)
         poor = res.fitness < cfg.min_fitness or not np.isfinite(res.rmse)
         weak = icp.weak_directions(res.hessian, cfg.degenerate_eigen)
         T = seed if poor else icp.project_update(seed, res.transform, weak)
@@ -508,19 +509,21 @@ class Mapper:
     def _retry(self, sweep: Sweep, T_prev: np.ndarray, T_pred: np.ndarray, dt: float, gate: float,
                first: _Fit) -> _Fit:
         """The registration again from other starts: the first result, and the motion from the
-        last pose at the present speed and predicted rates with every yaw rate change that adds or loses up to
-        2 max_yaw_rate dt of yaw (in retry_step steps; on arcs), each de-skewed with its own
-        motion, with a wide gate first. The start whose result has the lowest truncated cost wins if it beats
-        the first result's by the factor retry_gain; then it is de-skewed with its own motion and
-        refined."""
+        last pose at the present speed and predicted rates, with every change of yaw rate that
+        adds or loses up to 2 max_yaw_rate dt of yaw (in retry_step steps; on arcs), each
+        de-skewed with its own motion (after a gap, registered with a wide gate first). The
+        start with the lowest truncated cost wins if the scene fixes it in every direction and
+        it beats the first result's cost by the factor retry_gain; then it is de-skewed with its
+        own motion and refined."""
         cfg = self.cfg
         span = min(2.0 * cfg.max_yaw_rate * dt, 180.0)
         yaws = np.arange(-span, span + 1e-9, cfg.retry_step) if span >= cfg.retry_step else np.zeros(1)
         w = _k.rotvec_of(np.ascontiguousarray((np.linalg.inv(T_prev) @ T_pred)[:3, :3])) / dt   # predicted rates
         seeds = [first.T] + [T_prev @ _arc_motion(w + [0.0, 0.0, np.radians(a) / dt], self.velocity[:3, 3], dt)
                              for a in yaws]
-        wide = max(gate, self.cfg.startup_dist)
-        fits = [first] + [self._fit(sweep, T_prev, s, dt, gate, wide) for s in seeds[1:]]
+        wide = max(gate, self.cfg.startup_dist) if self.flags[len(self.stamps) - 1] & GAP else None
+        # a third of the iterations ranks the starts; the winner is refined in full below
+        fits = [first] + [self._fit(sweep, T_prev, s, dt, gate, wide, max(cfg.max_iter // 3, 1)) for s in seeds[1:]]
         # another start must fit clearly better, and be fixed in every direction: where the scene
         # leaves one free, a start's pose along it is its own guess, not a measurement
         best = min(fits[1:], key=lambda f: (f.poor or f.weak, f.cost))
