@@ -26,7 +26,8 @@ class ToyScene:
     stop: (t0, t1) the robot stands still between these times, s; flip: time at which the yaw
     rate changes sign (a steering step, as into a keyhole turn), s; silent: {sensor: (t0, t1)}
     the sensor publishes nothing between these times, s; imu_rate: an exact IMU (body rates and
-    specific force, frame imu_link turned 90 deg about z) on /imu/data at this rate, Hz (0: none)."""
+    specific force, frame imu_link turned 90 deg about z) on /imu/data at this rate, Hz (0: none);
+    crab: angle of the direction of travel to the heading, rad (four-wheel crab steering)."""
 
     speed: float = 1.0
     yaw_rate: float = 0.0
@@ -43,6 +44,7 @@ class ToyScene:
     flip: float | None = None
     silent: dict = field(default_factory=dict)
     imu_rate: float = 0.0
+    crab: float = 0.0
     seed: int = 0
 
     extrinsics: dict = field(default_factory=lambda: {
@@ -75,6 +77,9 @@ class ToyScene:
             yaw = np.where(after, ya, yaw)
             x = np.where(after, xf - r * (np.sin(ya) - np.sin(yf)), x)
             y = np.where(after, yyf + r * (np.cos(ya) - np.cos(yf)), y)
+        if self.crab:   # the path turned by the crab angle about the start; the heading is not
+            c, s = np.cos(self.crab), np.sin(self.crab)
+            x, y = c * x - s * y, s * x + c * y
         pitch = self.pitch_amp * np.sin(2 * np.pi * 0.5 * t)
         T = np.zeros((*t.shape, 4, 4))
         T[..., :3, :3] = Rotation.from_euler("xyz", np.stack(
