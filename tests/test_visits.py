@@ -265,3 +265,28 @@ def test_ground_offset_finds_ruts_moved_sideways():
     assert shift == pytest.approx([0.0, 0.06]) and rms == pytest.approx(0.003 * np.sqrt(2), rel=0.1) and n > 20000
     shift, _, _ = ground_offset(before, h + rng.normal(0, 0.003, h.shape), 0.02)
     assert shift == pytest.approx([0.0, 0.0])
+
+
+def test_visit_offsets_on_a_pair_made_elsewhere():
+    """The foreign out-and-back pair (another simulator, its own visit layers): the ground
+    between the visits lies on the same cells as seen on the way out and on the way back
+    (shift 0). Moving the way back's view by 4 cells across the drive, as a map broken in the
+    turn would, is found as an 8 cm shift, at the residual of the unmoved pair."""
+    from pathlib import Path
+
+    from torchsoil.visits import visit_offsets
+
+    pair = TerrainPair.load(Path(__file__).resolve().parents[2] / "shared/foreign/multi_pass_hardening.npz")
+    (off,) = visit_offsets(pair)
+    assert off["visit"] == 1 and off["distance_m"] == 0.0 and off["cells"] > 10000
+    along_y = abs(np.cos(np.median(pair.poses[:, 6]))) < 0.3     # this drive runs along the grid's y axis
+    moved = np.full_like(pair.visit_front, np.nan)
+    moved[0] = pair.visit_front[0]
+    if along_y:
+        moved[1][4:] = pair.visit_front[1][:-4]
+    else:
+        moved[1][:, 4:] = pair.visit_front[1][:, :-4]
+    pair.visit_front = moved
+    (bad,) = visit_offsets(pair)
+    assert bad["shift_m"] == pytest.approx([0.08, 0.0] if along_y else [0.0, 0.08])
+    assert bad["rms_m"] < 1.2 * off["rms_m"]

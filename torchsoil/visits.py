@@ -127,6 +127,40 @@ def ground_offset(before: np.ndarray, after: np.ndarray, dx: float, max_shift: f
     return best
 
 
+def visit_offsets(pair, max_shift: float = 0.2, evidence: float = 0.8) -> list[dict]:
+    """The shift between the two views of the ground between each pair of visits (the back
+    lidar's after visit v, the front lidar's before visit v + 1; `ground_offset`), for a pair
+    with visit layers. Where the map holds they lie on the same cells; where it broke, the way
+    back sees the ruts of the way out displaced (and the estimator would see doubled ruts).
+
+    A shift counts only where it explains the difference: its RMS below `evidence` times the
+    RMS without a shift (flat ground, with nothing to align, gives shift 0).
+
+    Returns per v (0 .. V - 2) a dict: visit (v + 1), shift_m (2,) [m], distance_m, rms_m and
+    rms0_m (RMS height difference at the shift and unshifted, m), cells, and t0, t1 (s, the
+    poses' clock: when visit v + 1 passed those cells). No common cells: not listed."""
+    out = []
+    if getattr(pair, "visit_front", None) is None:
+        return out
+    for v in range(pair.visit_front.shape[0] - 1):
+        a, b = np.asarray(pair.visit_back[v], np.float64), np.asarray(pair.visit_front[v + 1], np.float64)
+        both = np.isfinite(a) & np.isfinite(b)
+        if both.sum() < 100:
+            continue
+        ii, jj = np.flatnonzero(both.any(1)), np.flatnonzero(both.any(0))
+        box = (slice(ii[0], ii[-1] + 1), slice(jj[0], jj[-1] + 1))
+        shift, rms, n = ground_offset(a[box], b[box], pair.dx, max_shift)
+        d0 = (a - b)[both]
+        rms0 = float(np.sqrt(np.mean((d0 - d0.mean()) ** 2)))
+        if not rms < evidence * rms0:
+            shift, rms = np.zeros(2), rms0
+        times = np.asarray(pair.visit_time[v + 1], np.float64)[both]
+        out.append({"visit": v + 1, "shift_m": shift, "distance_m": float(np.hypot(*shift)), "rms_m": rms,
+                    "rms0_m": rms0, "cells": int(both.sum()),
+                    "t0": float(np.nanmin(times)), "t1": float(np.nanmax(times))})
+    return out
+
+
 def pass_layers(pair, passes: np.ndarray, visit_back: list[np.ndarray] | np.ndarray) -> dict[str, np.ndarray]:
     """The layers of passes.npz on the pair's grid.
 
