@@ -229,6 +229,9 @@ class MappingConfig(Section):
     one_sided: bool = Field(True, description="drop matches on steep faces turned away from the robot")
     use_gyro: bool = Field(True, description="the IMU's rate gyro (when the recording has one) predicts the "
                                              "rotation between sweeps")
+    max_visit_shift: float = Field(0.04, gt=0, description="the ground between two visits, as the way out "
+                                                           "left it and as the way back finds it, may lie this "
+                                                           "far apart before the map counts as broken there, m")
     retry_turn: float = Field(1.0, gt=0, description="a registration that turns this far from the "
                                                      "constant-velocity prediction, or is weak or poor, is "
                                                      "tried again from other starts, degrees")

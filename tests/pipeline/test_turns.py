@@ -101,3 +101,32 @@ def test_a_crab_drive_is_tracked(tmp_path):
     res, scene = run(tmp_path, crab=np.radians(20.0), yaw_rate=0.2)
     yaw, pos = errors(res, scene)
     assert yaw.max() < 0.5 and pos.max() < 0.03
+
+
+def test_a_map_broken_between_visits_flags_the_later_visit():
+    """The foreign out-and-back pair with its way back moved 5 cells across the drive (as a
+    map broken in the turn leaves it): check_visits says so and flags the sweeps of the second
+    visit over that ground, and only those; the pair as made passes."""
+    from pathlib import Path
+
+    from torchsoil.pipeline.run import check_visits
+    from torchsoil.terrain import TerrainPair
+
+    pair = TerrainPair.load(Path(__file__).resolve().parents[3] / "shared/foreign/multi_pass_hardening.npz")
+    stamps = pair.poses[:, 0].copy()
+    pair.extras.update(scan_stamps=stamps, scan_flags=np.zeros(len(stamps), np.int64))
+    assert check_visits(pair, 0.04) == [] and not pair.extras["scan_flags"].any()
+    back = np.isfinite(pair.visit_time[1])
+    t0, t1 = np.nanmin(pair.visit_time[1]), np.nanmax(pair.visit_time[1])
+    moved = pair.visit_front.copy()
+    if abs(np.cos(np.median(pair.poses[:, 6]))) < 0.3:    # the drive runs along y: move along x
+        moved[1][5:], moved[1][:5] = pair.visit_front[1][:-5], np.nan
+    else:
+        moved[1][:, 5:], moved[1][:, :5] = pair.visit_front[1][:, :-5], np.nan
+    pair.visit_front = moved
+    problems = check_visits(pair, 0.04)
+    assert len(problems) == 1 and "10 cm" in problems[0] and "map broke" in problems[0]
+    hit = (pair.extras["scan_flags"] & mapping.MAP_CONFLICT) != 0
+    assert hit.any() and np.all((stamps[hit] >= t0) & (stamps[hit] <= t1)) and back.any()
+    assert pair.extras["visit_shift"][0] == pytest.approx([0.1, 0.0], abs=1e-9) or \
+        pair.extras["visit_shift"][0] == pytest.approx([0.0, 0.1], abs=1e-9)

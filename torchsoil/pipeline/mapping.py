@@ -38,13 +38,14 @@ MISSING_BACK = 64   # no back sweep close in time
 RETRIED = 128       # registered again from other starts (the motion changed, or the first fit was weak)
 MISSING_FRONT = 256  # no front sweep close in time: the back sweep was mapped alone
 GAP = 512           # first sweep after more than 3 periods without one (both lidars silent)
+MAP_CONFLICT = 1024  # taken on a visit that finds the ground of the visit before displaced (a broken map)
 
 PROBLEMS = ~RETRIED  # the bits that mark a sweep's ground as doubtful (a retried sweep did register)
 
 FLAG_NAMES = {EMPTY: "empty", DEGENERATE: "degenerate", POOR_FIT: "poor_fit",
               STATIONARY: "stationary", RETRIED: "retried", REREG_FRONT_FAILED: "rereg_front_failed",
               REREG_BACK_FAILED: "rereg_back_failed", MISSING_BACK: "missing_back",
-              MISSING_FRONT: "missing_front", GAP: "gap"}
+              MISSING_FRONT: "missing_front", GAP: "gap", MAP_CONFLICT: "map_conflict"}
 
 
 def flag_names(flags: int) -> list[str]:

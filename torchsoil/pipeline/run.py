@@ -112,7 +112,7 @@ def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]
     """Human-readable runs of flagged sweeps: 'sweeps 40-75 (t = 4.00-7.50 s): degenerate'."""
     out = []
     for bit, name in mapping.FLAG_NAMES.items():
-        if bit == mapping.RETRIED:   # registered after all: not a problem
+        if bit in (mapping.RETRIED, mapping.MAP_CONFLICT):   # registered after all; said by check_visits
             continue
         on = (flags & bit) != 0
         k = 0
@@ -183,13 +183,42 @@ def finish_result(online: OnlinePipeline, rec: Recording, bag_path, wall: float)
     timings["finish"] = time.perf_counter() - t0
     timings["read"] = max(wall - sum(timings.values()), 0.0)
     stamps, flags = terrain.extras["scan_stamps"], terrain.extras["scan_flags"]
-    problems = list(rec.problems) + flagged_spans(stamps, flags, rec.start)
+    conflicts = check_visits(terrain, online.cfg.mapping.max_visit_shift, rec.start)
+    problems = list(rec.problems) + conflicts + flagged_spans(stamps, flags, rec.start)
     for name in ("front", "back"):
         ok = online.stats[name]["ok"]
         kept = float(np.mean(ok)) if len(ok) else 0.0
         if kept < 0.5:
             problems.append(f"only {kept:.0%} of the {name} sweeps were re-registered")
     return PipelineResult(terrain, maps, timings, problems, rec.duration)
+
+
+def check_visits(terrain: TerrainPair, max_shift: float, t_start: float = 0.0) -> list[str]:
+    """Ground driven more than once, checked: the state between visits as the way out left it
+    (`visit_back[v]`) and as the way back finds it (`visit_front[v + 1]`) must lie on the same
+    cells (`visits.visit_offsets`). Where they lie more than `max_shift` m apart, the map broke
+    between the visits: the sweeps of the later visit over that ground get MAP_CONFLICT (their
+    windows are flagged) and a problem says so. Writes `visit_shift` (V - 1, 2) [m] into the
+    extras. Returns the problems."""
+    from torchsoil.visits import visit_offsets
+
+    offsets = visit_offsets(terrain)
+    if not offsets:
+        return []
+    shifts = np.zeros((terrain.visit_front.shape[0] - 1, 2))
+    stamps, flags = terrain.extras["scan_stamps"], terrain.extras["scan_flags"]
+    problems = []
+    for off in offsets:
+        shifts[off["visit"] - 1] = off["shift_m"]
+        if off["distance_m"] > max_shift:
+            flags[(stamps >= off["t0"]) & (stamps <= off["t1"])] |= mapping.MAP_CONFLICT
+            problems.append(
+                f"the ground between visits {off['visit'] - 1} and {off['visit']} lies {100 * off['distance_m']:.0f} cm "
+                f"from where the earlier visit left it (seen again at t = {off['t0'] - t_start:.1f}-"
+                f"{off['t1'] - t_start:.1f} s after the start): the map broke between the visits, so the ruts "
+                "would double there; its windows are flagged (map_conflict)")
+    terrain.extras["visit_shift"] = shifts
+    return problems
 
 
 def _bars(enabled: bool):
