@@ -165,9 +165,9 @@ class OnlinePipeline:
     # ----------------------------------------------------------------- stages
     def _fuse(self, final: bool) -> None:
         """Each front sweep with the back sweep nearest in time (within half a period), once no
-        nearer one can come, into the mapper; a back sweep with no front sweep within 3/4 of a
-        period (the front lidar silent or frozen) goes in alone, so the map and the trajectory
-        go on. Sweeps enter the mapper in time order."""
+        nearer one can come, into the mapper; a back sweep with no front sweep within 1.5
+        periods either way once the front has started (the front lidar silent or frozen) goes in
+        alone, so the map and the trajectory go on. Sweeps enter the mapper in time order."""
         if self.period is None:
             if len(self.first_stamps) < 6 and not final:
                 return
@@ -179,10 +179,13 @@ class OnlinePipeline:
             b = self.back_wait[0] if self.back_wait else None
             if b is not None and (f is None or b.stamp < f.stamp):
                 # b's front partners are mapped, f, or later: decided once a front came after it
-                if f is None and not (final or self.last_front >= b.stamp + 0.75 * P or len(self.back_wait) >= 10):
+                if f is None and not (final or self.last_front >= b.stamp + 1.5 * P or len(self.back_wait) >= 10):
                     return
                 self.back_wait.pop(0)
-                alone = b.stamp - self.mapped_front > 0.75 * P and (f is None or f.stamp - b.stamp > 0.75 * P)
+                # alone only inside a silence of the front lidar (not before its first sweep, nor a
+                # back sweep stamped a period off by its driver's convention)
+                alone = (self.mapped_front > -np.inf and b.stamp - self.mapped_front > 1.5 * P
+                         and (f is None or f.stamp - b.stamp > 1.5 * P))
                 if alone:
                     self._map(b, mapping.MISSING_FRONT)
                 continue
