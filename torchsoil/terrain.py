@@ -44,8 +44,9 @@ class TerrainPair:
         visit_front: (V, X, Y) float32 surface just before each cell's visit v, m; NaN where the
             cell has fewer than v + 1 visits or no measurement. None: one visit per cell.
         visit_back: (V, X, Y) float32 surface just after each cell's visit v, m; NaN likewise.
-        visit_time: (V, X, Y) float32 time (poses clock) base_link passed closest to the cell
-            during visit v, s; NaN where no such visit.
+        visit_time: (V, X, Y) float32 or float64 time (poses clock) base_link passed closest to
+            the cell during visit v, s; NaN where no such visit. A float64 one stays float64 (at
+            a bag's clock, about 1.7e9 s, float32 resolves only 128 s).
     """
 
     dx: float
@@ -136,7 +137,8 @@ class TerrainPair:
                 fail(key, f"must hold floating-point values, got dtype {v.dtype}")
             if np.any(np.isinf(v)):
                 fail(key, "holds infinite values (use NaN where a cell has no such visit)")
-            setattr(self, key, v.astype(np.float32, copy=False))
+            dtype = np.promote_types(v.dtype, np.float32) if key == "visit_time" else np.float32
+            setattr(self, key, v.astype(dtype, copy=False))
 
     # ----------------------------------------------------------------- derived
     @property
@@ -173,7 +175,7 @@ class TerrainPair:
         if self.wheel_section_exponent != 1.0:
             out["wheel_section_exponent"] = np.float64(self.wheel_section_exponent)
         if self.visit_front is not None:
-            out.update({k: getattr(self, k).astype(np.float32) for k in VISITS})
+            out.update({k: getattr(self, k) for k in VISITS})
         out.update(self.extras)
         return out
 

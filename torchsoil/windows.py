@@ -14,6 +14,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from torchsoil.grid import Grid
+from torchsoil.pipeline.visit_tracker import visit_gap
 from torchsoil.robot import Robot
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import WheelGeometry, wheel_geometry
@@ -296,12 +297,6 @@ def sim_reach(robot: Robot, sim: SimConfig) -> float:
     """How far from a wheel's centre line the simulator changes the ground, m: half a wheel
     width (the footprint) plus the relaxation margin (0.35 m on the paper's platform)."""
     return robot.wheel_width * (0.5 + sim.relax_margin)
-
-
-def visit_gap(robot: Robot) -> float:
-    """base_link travel [m] after which the wheels coming back over some ground make a new
-    visit: twice the wheelbase plus a wheel width (as the recorder's world counts them)."""
-    return 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
 
 
 def _wheel_samples(poses: np.ndarray, robot: Robot, spacing: float) -> tuple[np.ndarray, np.ndarray]:

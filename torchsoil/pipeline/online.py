@@ -4,10 +4,13 @@
 front and back are fused and registered into the reference map and trajectory (mapping.Mapper),
 the world frame is levelled once the first seconds are in (gravity), and each stream's sweep
 is re-registered onto the reference map near it (reregister) and rasterized into tiles of a
-fixed lattice (raster.Tiles) as soon as the trajectory around it is known. Nothing else is
-kept: sweeps are dropped once rasterized, and with a spill directory the tiles far from the
-robot go to disk. `terrain(...)` assembles a terrain pair of any stretch (or the whole drive)
-from the tiles; `process_bag` is this pipeline run over a recording to its end.
+fixed lattice (raster.Tiles) as soon as the trajectory around it is known. Ground driven more
+than once keeps every visit: the registered path feeds a per-cell visit tracker
+(visit_tracker), and each point goes to the tiles of its cell's visit (one layer per visit and
+stream). Nothing else is kept: sweeps are dropped once rasterized, and with a spill directory
+the tiles far from the robot go to disk. `terrain(...)` assembles a terrain pair of any stretch
+(or the whole drive) from the tiles; `process_bag` is this pipeline run over a recording to
+its end.
 """
 
 from __future__ import annotations
@@ -22,8 +25,9 @@ from torchsoil.io.bag import ImuSample, Recording, imu_data
 from torchsoil.io.pointcloud import Cloud
 from torchsoil.pipeline import gravity, icp, mapping
 from torchsoil.pipeline.mapping import Mapper, Sweep
-from torchsoil.pipeline.raster import Tiles, corridor
+from torchsoil.pipeline.raster import Heightmap, Tiles, corridor
 from torchsoil.pipeline.reregister import register_sweep
+from torchsoil.pipeline.visit_tracker import VisitTracker, visit_gap, visit_reach
 from torchsoil.robot import Robot
 from torchsoil.settings import PipelineConfig
 from torchsoil.terrain import TerrainPair
@@ -44,6 +48,11 @@ class OnlinePipeline:
     Feed `add_cloud("front" | "back", cloud)` and `add_imu(sample)` in arrival order, then
     `finish()`. `ground_stamp` is the time of the last back sweep rasterized: the ground
     behind the robot at that time is measured before and after.
+
+    Visits: `visits` (VisitTracker) follows the registered path (levelled like the tiles). A
+    front point at time t on a cell goes to front layer v = the visits of the cell base_link
+    had passed closest by t (the surface before visit v), a back point to back layer
+    max(v - 1, 0) (the surface after visit v - 1); `tiles[stream][v]` holds layer v.
     """
 
     def __init__(self, robot: Robot, cfg: PipelineConfig, rec: Recording, spill_dir=None):
@@ -69,8 +78,13 @@ class OnlinePipeline:
         self.refined = False
         self.ok_stamps: list[float] = []
         self.ok_poses: list[np.ndarray] = []
-        self.tiles = {n: Tiles(cfg.raster.dx, spill_dir=None if spill_dir is None else f"{spill_dir}/{n}")
-                      for n in STREAMS}
+        self.spill_dir = spill_dir
+        self.tiles: dict[str, list[Tiles]] = {n: [] for n in STREAMS}    # per stream, one per visit layer
+        rc = cfg.raster
+        self.visits = VisitTracker(rc.dx, visit_reach(robot, rc.visit_margin),
+                                   rc.visit_gap if rc.visit_gap is not None else visit_gap(robot),
+                                   spill_dir=None if spill_dir is None else f"{spill_dir}/visits")
+        self.n_tracked = 0                               # ok poses fed to the visit tracker
         self.stats = {n: defaultdict(list) for n in STREAMS}
         self.target: icp.Target | None = None
         self.target_at = (np.full(3, np.inf), 0)
@@ -293,20 +307,39 @@ class OnlinePipeline:
         if self.L is None or not self.ok_stamps:
             return
         t0 = time.perf_counter()
+        self._track()
         for name in STREAMS:
             q = self.queue[name]
             while q and (final or q[0].stamp + self.period <= self.ok_stamps[-1]):
                 self._rasterize(name, q.pop(0))
-        if self.tiles["back"].spill_dir is not None and self.n_final % 50 == 0:
+        if self.spill_dir is not None and self.n_final % 50 == 0:
             self._bound_memory()
         self.timings["reregister_raster"] += time.perf_counter() - t0
+
+    def _track(self) -> None:
+        """The registered poses not yet fed to the visit tracker, in the tiles' frame (L)."""
+        if self.n_tracked < len(self.ok_poses):
+            xyz = np.asarray(self.ok_poses[self.n_tracked:])[:, :3, 3]
+            self.visits.add(self.ok_stamps[self.n_tracked:], xyz @ self.L[:2, :3].T)
+            self.n_tracked = len(self.ok_poses)
+
+    def _layer(self, name: str, v: int) -> Tiles:
+        """Stream `name`'s tiles of visit layer v (made, with the layers below, when missing)."""
+        layers = self.tiles[name]
+        while len(layers) <= v:
+            k = len(layers)
+            sub = name if k == 0 else f"{name}_visit{k}"
+            layers.append(Tiles(self.cfg.raster.dx, spill_dir=None if self.spill_dir is None else
+                                f"{self.spill_dir}/{sub}"))
+        return layers[v]
 
     def _bound_memory(self) -> None:
         """Tiles beyond the raster range (plus a corridor) of the robot's last second go to disk;
         reference-map voxels beyond the mapper's and the re-registration's reach are dropped."""
         xy = np.asarray(self.ok_poses[-10:])[:, :2, 3]
-        for tiles in self.tiles.values():
-            tiles.spill(xy @ self.L[:2, :2].T, self.cfg.raster.max_range + self.cfg.raster.corridor_width)
+        radius = self.cfg.raster.max_range + self.cfg.raster.corridor_width
+        for tiles in (*self.tiles["front"], *self.tiles["back"], self.visits):
+            tiles.spill(xy @ self.L[:2, :2].T, radius)
         reach = max(self.cfg.mapping.map_radius, self.cfg.reregister.max_range + 2.0) + 10.0
         self.mapper.local.forget(xy, reach)
 
@@ -326,7 +359,11 @@ class OnlinePipeline:
         if not ok:
             return
         sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & self.keep_x[name](pts[:, 0])
-        self.tiles[name].add(icp.apply(self.L @ T, pts[sel]))
+        world = icp.apply(self.L @ T, pts[sel])
+        passed = self.visits.passed(world[:, :2], sw.stamp + sw.t[sel])
+        layer = passed if name == "front" else np.maximum(passed - 1, 0)
+        for v in range(int(layer.max(initial=0)) + 1):
+            self._layer(name, v).add(world if v == 0 and not layer.any() else world[layer == v])
         if name == "back":
             self.ground_stamp = sw.stamp
 
@@ -377,7 +414,13 @@ class OnlinePipeline:
     def terrain(self, t0: float = -np.inf, t1: float = np.inf) -> TerrainPair:
         """The terrain pair of the stretch driven between t0 and t1 (s; default: all so far): the
         corridor around that part of T_ref, H_f and H_b from the tiles, poses and per-sweep flags
-        of the stretch as extras (docs/formats.md section 3)."""
+        of the stretch as extras (docs/formats.md section 3).
+
+        H_f is the first view (front layer 0); H_b per cell the back layer of its last visit
+        (layer 0 where never visited). Where a cell of the grid was visited twice or more, the
+        visit layers too: `visit_front`, `visit_back` (V, X, Y) float32 [m] and `visit_time`
+        (V, X, Y) float64 [s, the poses' clock], NaN where a cell has fewer than v + 1 visits.
+        The extras valid/measured/count/var_front and _back are those of H_f and H_b."""
         stamps, poses = self.trajectory()
         sel = (stamps >= t0) & (stamps <= t1)
         if sel.sum() < 2:
@@ -385,13 +428,30 @@ class OnlinePipeline:
         stamps, poses = stamps[sel], poses[sel]
         rc = self.cfg.raster
         grid, mask = corridor(poses[:, :2, 3], rc.corridor_width, rc.dx)
-        hf = self.tiles["front"].heightmap(grid, mask, rc.fill_radius)
-        hb = self.tiles["back"].heightmap(grid, mask, rc.fill_radius)
-        if not np.array_equal(self.D, np.eye(3)):   # tiles hold heights levelled by L: turn by D
-            X, Y = np.meshgrid(*grid.centers(), indexing="ij")
-            d = self.D
-            hf, hb = (h._replace(h=(h.h + d[2, 0] * X + d[2, 1] * Y + (d[2, 2] - 1) * h.h).astype(np.float32))
-                      for h in (hf, hb))
+        i0, j0 = (int(round(o / rc.dx)) for o in grid.origin)
+        _, times = self.visits.region(i0, i0 + grid.shape[0], j0, j0 + grid.shape[1])
+        n = np.where(mask, np.isfinite(times).sum(0), 0)                     # visits per cell
+        V = max(int(n.max()), 1)
+        X, Y = np.meshgrid(*grid.centers(), indexing="ij")
+
+        def layer(name: str, v: int) -> Heightmap:
+            h = self._layer(name, v).heightmap(grid, mask, rc.fill_radius)
+            if np.array_equal(self.D, np.eye(3)):
+                return h
+            d = self.D                                   # tiles hold heights levelled by L: turn by D
+            return h._replace(h=(h.h + d[2, 0] * X + d[2, 1] * Y + (d[2, 2] - 1) * h.h).astype(np.float32))
+
+        fronts = [layer("front", v) for v in range(V)]
+        backs = [layer("back", v) for v in range(V)]
+        hf = fronts[0]
+        last = np.maximum(n - 1, 0)[None]
+        hb = Heightmap(*(np.take_along_axis(np.stack(f), last, 0)[0] for f in zip(*backs, strict=True)))
+        visits = {}
+        if V > 1:
+            there = n[None] > np.arange(V)[:, None, None]
+            visits = {"visit_front": np.where(there, np.stack([h.h for h in fronts]), np.nan).astype(np.float32),
+                      "visit_back": np.where(there, np.stack([h.h for h in backs]), np.nan).astype(np.float32),
+                      "visit_time": np.where(there, times[:V], np.nan)}
         scan_stamps, flags = self.scan_flags()
         keep = (scan_stamps >= stamps[0] - 1.0) & (scan_stamps <= stamps[-1] + 1.0)
         extras = {"valid_front": hf.valid, "valid_back": hb.valid,
@@ -401,7 +461,8 @@ class OnlinePipeline:
         from torchsoil.pipeline.run import poses_to_rows
 
         return TerrainPair(grid.dx, np.array(grid.origin), hf.h, hb.h, poses_to_rows(stamps, poses),
-                           self.robot.wheels, self.robot.wheel_width, self.robot.wheel_flat_fraction, extras)
+                           self.robot.wheels, self.robot.wheel_width, self.robot.wheel_flat_fraction, extras,
+                           **visits)
 
     def mapping_result(self) -> mapping.MappingResult:
         """The mapper's result (P_ref as held), levelled."""
@@ -419,5 +480,5 @@ class OnlinePipeline:
 
     def flush(self) -> None:
         """Every tile to the spill directory (when there is one)."""
-        for tiles in self.tiles.values():
+        for tiles in (*self.tiles["front"], *self.tiles["back"], self.visits):
             tiles.spill(np.zeros((1, 2)), -np.inf)
