@@ -21,7 +21,7 @@ if _workers > 1:
 # is built once rather than once per worker
 SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed": "streamed",
                    "moving_bag": "moving_bag", "side_slope": "side_slope", "rec": "recording",
-                   "drives": "fleet", "ray_instance": "fleet"}
+                   "drives": "fleet", "ray_instance": "fleet", "keyhole": "keyhole"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks

@@ -387,7 +387,8 @@ def cmd_record(args) -> int:
         out = args.out if args.out.suffix == ".npz" else args.out.with_name(args.out.name + ".npz")
         out.parent.mkdir(parents=True, exist_ok=True)
         scn = load_scenario(args.scenario)
-        np.savez_compressed(out, **make_terrain_pair(scn.realistic() if args.realistic else scn, args.seed, args.dx))
+        np.savez_compressed(out, **make_terrain_pair(scn.realistic() if args.realistic else scn, args.seed, args.dx,
+                                                        visits=True))
         print(f"wrote {out}")
         return 0
     from torchsoil.synth.record import make_recording

@@ -189,6 +189,33 @@ def test_terrain_pair_noise_and_truth():
     assert (pair["h_front"] - pair["h_back"]).max() > 0.02
 
 
+def test_visit_layers_of_ground_driven_twice():
+    """A short out-and-back through a keyhole turn (back on the same ruts): with visits, the
+    pair holds two layers where the wheels came twice (FORMATS v1.1): the first before is
+    h_front, each cell's last after is h_back, and the state between the visits, seen twice,
+    is the world's (states[1]) up to the 3 mm noise, independently drawn in the two layers. A
+    drive that never comes back gets no layers."""
+    scn = {"name": "bulb", "trajectory": {"segments": [
+        {"straight": 2.0, "speed": 1.0}, {"arc": 1.5, "angle_deg": -60, "speed": 1.0},
+        {"arc": 1.5, "angle_deg": 300, "speed": 1.0}, {"arc": 1.5, "angle_deg": -60, "speed": 1.0},
+        {"straight": 2.0, "speed": 1.0}]}, "terrain": {"margin": 1.0}}
+    truth = build_truth(scn, seed=3)
+    pair = make_terrain_pair(scn, seed=3, visits=True)
+    w = truth.world
+    n = np.isfinite(pair["visit_time"]).sum(0)
+    assert pair["visit_front"].shape[0] == 2 and (n == 2).sum() > 2000
+    np.testing.assert_array_equal(n, w.n_visits)
+    np.testing.assert_array_equal(pair["visit_front"][0], np.where(n > 0, pair["h_front"], np.nan))
+    last = np.take_along_axis(pair["visit_back"], np.maximum(n - 1, 0)[None], 0)[0]
+    np.testing.assert_array_equal(last[n > 0], pair["h_back"][n > 0])
+    twice = n == 2
+    out, back = pair["visit_back"][0][twice] - w.states[1][twice], pair["visit_front"][1][twice] - w.states[1][twice]
+    assert out.std() == pytest.approx(0.003, rel=0.1) and back.std() == pytest.approx(0.003, rel=0.1)
+    assert abs(np.corrcoef(out, back)[0, 1]) < 0.05
+    assert np.all(np.isnan(pair["visit_front"][1][n < 2]))
+    assert not any(k.startswith("visit") for k in make_terrain_pair(SMALL, seed=1, visits=True))
+
+
 def test_generation_is_deterministic_for_a_seed():
     a, b, c = (make_terrain_pair(SMALL, seed=s) for s in (4, 4, 5))
     for k in a:

@@ -53,20 +53,53 @@ def pipeline_errors(terrain, truth: TruthFile) -> dict[str, float]:
     out = {"ate_first_m": float(np.sqrt(np.mean(np.sum(err**2, 1)))),
            "ate_aligned_m": float(np.sqrt(np.mean(np.sum(err_al**2, 1)))),
            "yaw_rms_deg": float(np.degrees(np.sqrt(np.mean(yaw**2))))}
-    xs, ys = terrain.grid.centers()
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
     for name, h, layer in (("front", terrain.h_front, "h_before"), ("back", terrain.h_back, "h_after")):
-        v = np.isfinite(h)
-        p = np.column_stack([X[v], Y[v], h[v], np.ones(v.sum())]) @ A.T
-        ij = truth.grid.index(p[:, :2])
-        inside = np.all((ij >= 0) & (ij < np.array(truth.grid.shape)), axis=1)
-        d = p[inside, 2] - truth[layer][ij[inside, 0], ij[inside, 1]]
-        ok = np.isfinite(d)
-        M = np.column_stack([np.ones(ok.sum()), p[inside][ok, :2]])
-        rest = d[ok] - M @ np.linalg.lstsq(M, d[ok], rcond=None)[0]
-        out[f"h_{name}_rms_m"] = float(np.sqrt(np.mean(d[ok] ** 2)))
+        d, xy = _against(terrain, h, truth[layer], truth, A)
+        M = np.column_stack([np.ones(len(d)), xy])
+        rest = d - M @ np.linalg.lstsq(M, d, rcond=None)[0]
+        out[f"h_{name}_rms_m"] = float(np.sqrt(np.mean(d**2)))
         out[f"h_{name}_plane_rms_m"] = float(np.sqrt(np.mean(rest**2)))
     hd = terrain.h_delta
     out["h_delta_mean_m"] = float(np.nanmean(hd))
     out["h_delta_std_m"] = float(np.nanstd(hd))
+    return out
+
+
+def _against(terrain, h: np.ndarray, layer: np.ndarray, truth: TruthFile, A: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Height differences [m] of the (X, Y) map h of `terrain` (its cells placed by the (4, 4)
+    alignment A into the truth's frame) against the truth's (X', Y') `layer`, where both are
+    finite: (K,) differences and (K, 2) the cells' truth-frame x, y."""
+    X, Y = np.meshgrid(*terrain.grid.centers(), indexing="ij")
+    v = np.isfinite(h)
+    p = np.column_stack([X[v], Y[v], h[v], np.ones(v.sum())]) @ A.T
+    ij = truth.grid.index(p[:, :2])
+    inside = np.all((ij >= 0) & (ij < np.array(truth.grid.shape)), axis=1)
+    d = p[inside, 2] - layer[ij[inside, 0], ij[inside, 1]]
+    ok = np.isfinite(d)
+    return d[ok], p[inside][ok, :2]
+
+
+def visit_errors(terrain, truth: TruthFile) -> dict[str, float]:
+    """The visit layers of a pipeline terrain pair against the truth's surface at each visit
+    (`states`, `n_visits`: the recorder's world), on the cells both count two visits or more:
+    visit_front_rms_m[v] (the surface before visit v, states[v]) and visit_back_rms_m[v] (after
+    it, states[v + 1]), each net of its mean (a map offset is not a visit's error), m; and the
+    cells compared. Where the pair has no visit layers: {}."""
+    from torchsoil.pipeline.run import rows_to_poses
+
+    if getattr(terrain, "visit_front", None) is None:
+        return {}
+    est = rows_to_poses(terrain.poses)
+    A = truth_poses(truth, terrain.poses[:1, 0])[0] @ np.linalg.inv(est[0])
+    states, twice = truth["states"], truth["n_visits"] >= 2
+    again = np.isfinite(terrain.visit_time[1])                  # the pair's cells with two visits or more
+    out: dict[str, float] = {}
+    for v in range(min(terrain.visit_front.shape[0], states.shape[0] - 1)):
+        for name, h, state in (("front", terrain.visit_front[v], states[v]),
+                               ("back", terrain.visit_back[v], states[v + 1])):
+            d, _ = _against(terrain, np.where(again, h, np.nan), np.where(twice, state, np.nan), truth, A)
+            if len(d):
+                out[f"visit_{name}_rms_m_{v}"] = float(np.std(d))
+                out[f"visit_{name}_cells_{v}"] = len(d)
     return out

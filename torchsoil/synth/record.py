@@ -185,7 +185,7 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
     """Robot YAML, terrain pair and truth files beside the bag path `out`."""
     specs = specs or lidars_for(truth)
     sidecar(out, "robot.yaml").write_text(yaml.safe_dump(truth.robot.to_dict(), sort_keys=False))
-    np.savez_compressed(sidecar(out, "pair.npz"), **terrain_pair_from_truth(truth, seed))
+    np.savez_compressed(sidecar(out, "pair.npz"), **terrain_pair_from_truth(truth, seed, visits=True))
     w = truth.world
     np.savez_compressed(
         sidecar(out, "truth.npz"),

@@ -202,7 +202,7 @@ def draw_tyre(cfg: TyreConfig, seed: int) -> dict:
             "dig_order": str(orders[rng.integers(len(orders))]) if orders else None}
 
 
-def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None) -> dict:
+def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None, visits: bool = False) -> dict:
     """Measured before/after heightmaps from the truth (docs/formats.md section 3).
 
     h_front: the surface before the last visit of the wheels to each cell (before the robot
@@ -210,10 +210,16 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
     robot everywhere; h_back: the final surface; each with the scenario's measurement
     nuisances drawn from `seed` (synth.measurement; by default independent per-cell Gaussian
     noise of 3 mm only). noise: overrides measurement.noise, m. Extra keys: `n_visits`
-    (X, Y), `scenario` (its name) and `nuisances` (JSON: the tyre and measurement draws)."""
+    (X, Y), `scenario` (its name) and `nuisances` (JSON: the tyre and measurement draws).
+
+    visits: where ground was driven twice or more, also the visit layers (docs/formats.md
+    section 3, v1.1) as a pipeline keeping every visit writes them: h_front is then the first
+    view everywhere (= visit_front[0]) and h_back the last (= the last visit's visit_back); the
+    layers between are the world's states with their own noise of the same level."""
     w = truth.world
     cfg = truth.scenario.measurement
     first_view = bool(np.random.default_rng(np.random.SeedSequence([int(seed), 19])).random() < cfg.first_view)
+    first_view = first_view or (visits and bool((w.n_visits > 1).any()))
     last = np.zeros_like(w.n_visits) if first_view else np.maximum(w.n_visits - 1, 0)
     h_pre = np.take_along_axis(w.states, last[None], 0)[0]
     half_width = float(np.abs(truth.robot.wheels[:, 1]).max()) + CORRIDOR / 2
@@ -221,7 +227,9 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
                                                half_width)
     drawn["front_view"] = "first_view" if first_view else "last_visit"
     r = truth.robot
-    return {
+    layers = _visit_layers(w, h_front, h_back, cfg.noise if noise is None else float(noise), seed) if (
+        visits and (w.n_visits > 1).any()) else {}
+    return {**layers,
         "dx": np.float64(w.grid.dx),
         "origin": np.asarray(w.grid.origin, dtype=np.float64),
         "h_front": h_front,
@@ -236,10 +244,29 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
     }
 
 
+def _visit_layers(w: WorldResult, h_front: np.ndarray, h_back: np.ndarray, sd: float, seed: int) -> dict:
+    """visit_front, visit_back (V, X, Y) float32 [m] and visit_time (V, X, Y) [s] of the world's
+    visits (NaN where a cell has fewer than v + 1): the measured h_front as the first layer
+    before, h_back as each cell's last layer after, the states between with noise `sd` m."""
+    V = int(w.n_visits.max())
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
+    there = w.n_visits[None] > np.arange(V)[:, None, None]
+    front = w.states[:V] + rng.normal(0.0, sd, (V, *h_front.shape))
+    back = w.states[1:V + 1] + rng.normal(0.0, sd, (V, *h_back.shape))
+    front[0] = h_front
+    last = np.arange(V)[:, None, None] == np.maximum(w.n_visits - 1, 0)[None]
+    back = np.where(last, h_back[None], back)
+    times = np.where(np.isfinite(w.visit_time[:V]), w.visit_time[:V], np.nan)
+    return {"visit_front": np.where(there, front, np.nan).astype(np.float32),
+            "visit_back": np.where(there, back, np.nan).astype(np.float32),
+            "visit_time": np.where(there, times, np.nan)}
+
+
 def make_terrain_pair(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
-                      noise: float | None = None) -> dict:
-    """Terrain pair dict (docs/formats.md section 3 keys) for a scenario, without lidars.
+                      noise: float | None = None, visits: bool = False) -> dict:
+    """Terrain pair dict (docs/formats.md section 3 keys) for a scenario, without lidars
+    (`terrain_pair_from_truth`; visits: with the visit layers where ground was driven twice).
 
     The noise-free truth is identical to that of a recording of the same scenario, seed
     and dx."""
-    return terrain_pair_from_truth(build_truth(scenario, seed, dx), seed, noise)
+    return terrain_pair_from_truth(build_truth(scenario, seed, dx), seed, noise, visits)
