@@ -73,6 +73,24 @@ def finish(count: np.ndarray, total: np.ndarray, sumsq: np.ndarray, mask: np.nda
                      np.maximum(var, 0).astype(np.float32))
 
 
+def spill_far(store, xy: np.ndarray, radius: float) -> int:
+    """Move to disk the tiles of `store` (its `tiles` {(A, B): array}, `spilled` set, `size`
+    cells, `dx` m, `spill_dir`, `_path(key)`) with no cell within `radius` m of any of the (K, 2)
+    positions xy (radius -inf: all); returns how many (none without a spill directory)."""
+    if store.spill_dir is None or not store.tiles:
+        return 0
+    side = store.size * store.dx
+    keys = list(store.tiles)
+    centres = (np.array(keys, dtype=np.float64) + 0.5) * side - store.dx / 2
+    d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
+    far = d > radius + side / np.sqrt(2) if np.isfinite(radius) else np.full(len(keys), radius < 0)
+    for k, f in zip(keys, far, strict=True):
+        if f:
+            np.save(store._path(k), store.tiles.pop(k))
+            store.spilled.add(k)
+    return int(far.sum())
+
+
 class Tiles:
     """Per-cell count, sum and sum of squares of z over an unbounded lattice of `dx` cells (cell
     (I, J) centred at (I dx, J dx), as every corridor grid), in square tiles of `size` cells
@@ -118,20 +136,7 @@ class Tiles:
         of the (K, 2) positions xy (radius -inf: all); returns how many. Without a spill
         directory: none. Each tile is `tile_A_B.npy`, (3, size, size) float64 count, sum and sum
         of squares of z [m] of lattice cells [A size:(A+1) size, B size:(B+1) size]."""
-        if self.spill_dir is None or not self.tiles:
-            return 0
-        from scipy.spatial import cKDTree
-
-        side = self.size * self.dx
-        keys = list(self.tiles)
-        centres = (np.array(keys, dtype=np.float64) + 0.5) * side - self.dx / 2
-        d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
-        far = d > radius + side / np.sqrt(2) if np.isfinite(radius) else np.full(len(keys), radius < 0)
-        for k, f in zip(keys, far, strict=True):
-            if f:
-                np.save(self._path(k), self.tiles.pop(k))
-                self.spilled.add(k)
-        return int(far.sum())
+        return spill_far(self, xy, radius)
 
     def region(self, i0: int, i1: int, j0: int, j1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """count, sum, sumsq (each (i1 - i0, j1 - j0)) of lattice cells [i0:i1, j0:j1], read from

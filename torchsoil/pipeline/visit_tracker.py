@@ -204,20 +204,9 @@ class VisitTracker:
         of the (K, 2) positions xy (radius -inf: all); returns how many (none without a spill
         directory). Each tile is `visits_A_B.npy`, the (2 + 2 V, size, size) stack of the class
         docstring of lattice cells [A size:(A+1) size, B size:(B+1) size]."""
-        if self.spill_dir is None or not self.tiles:
-            return 0
-        from scipy.spatial import cKDTree
+        from torchsoil.pipeline.raster import spill_far
 
-        side = self.size * self.dx
-        keys = list(self.tiles)
-        centres = (np.array(keys, dtype=np.float64) + 0.5) * side - self.dx / 2
-        d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
-        far = d > radius + side / np.sqrt(2) if np.isfinite(radius) else np.full(len(keys), radius < 0)
-        for k, f in zip(keys, far, strict=True):
-            if f:
-                np.save(self._path(k), self.tiles.pop(k))
-                self.spilled.add(k)
-        return int(far.sum())
+        return spill_far(self, xy, radius)
 
     def memory(self) -> int:
         """Bytes held in memory."""
