@@ -209,8 +209,9 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
     for single passes), or with probability measurement.first_view the surface before the
     robot everywhere; h_back: the final surface; each with the scenario's measurement
     nuisances drawn from `seed` (synth.measurement; by default independent per-cell Gaussian
-    noise of 3 mm only). noise: overrides measurement.noise, m. Extra keys: `n_visits`
-    (X, Y), `scenario` (its name) and `nuisances` (JSON: the tyre and measurement draws)."""
+    noise of 3 mm only). noise: overrides measurement.noise, m. Where a cell was visited twice
+    or more, the visit layers too (`visit_layers`). Extra keys: `n_visits` (X, Y), `scenario`
+    (its name) and `nuisances` (JSON: the tyre and measurement draws)."""
     w = truth.world
     cfg = truth.scenario.measurement
     first_view = bool(np.random.default_rng(np.random.SeedSequence([int(seed), 19])).random() < cfg.first_view)
@@ -221,6 +222,13 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
                                                half_width)
     drawn["front_view"] = "first_view" if first_view else "last_visit"
     r = truth.robot
+    visits = visit_layers(w)
+    for v in range(len(visits.get("visit_front", ()))):   # each visit measured on its own: noise per layer
+        there = np.isfinite(visits["visit_front"][v])
+        vf, vb, _ = apply_measurement(w.states[v], w.states[v + 1], w.grid, truth.traj.poses, cfg, seed, noise,
+                                      half_width, layer=v + 1)
+        visits["visit_front"][v] = np.where(there, vf, np.nan)
+        visits["visit_back"][v] = np.where(there, vb, np.nan)
     return {
         "dx": np.float64(w.grid.dx),
         "origin": np.asarray(w.grid.origin, dtype=np.float64),
@@ -230,10 +238,25 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None)
         "wheels": r.wheels.astype(np.float64),
         "wheel_width": np.float64(r.wheel_width),
         "wheel_flat_fraction": np.float64(r.wheel_flat_fraction),
+        **visits,
         "n_visits": w.n_visits.astype(np.int16),
         "scenario": np.asarray(truth.scenario.name),
         "nuisances": np.asarray(json.dumps({"tyre": truth.tyre, "measurement": drawn})),
     }
+
+
+def visit_layers(world: WorldResult) -> dict[str, np.ndarray]:
+    """The noise-free visit layers of docs/formats.md section 3 from the world, where a cell was
+    visited twice or more (else {}): visit_front[v] = states[v] (the surface before visit v),
+    visit_back[v] = states[v + 1] (after it), visit_time[v] = pass_time[v] (base_link passed
+    closest, s), each (V, X, Y) float32, NaN where the cell has fewer than v + 1 visits."""
+    V = len(world.pass_time)
+    if V < 2:
+        return {}
+    there = world.n_visits[None] > np.arange(V)[:, None, None]
+    return {"visit_front": np.where(there, world.states[:V], np.nan).astype(np.float32),
+            "visit_back": np.where(there, world.states[1:V + 1], np.nan).astype(np.float32),
+            "visit_time": np.where(there, world.pass_time, np.nan).astype(np.float32)}
 
 
 def make_terrain_pair(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
