@@ -21,7 +21,8 @@ if _workers > 1:
 # is built once rather than once per worker
 SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed": "streamed",
                    "moving_bag": "moving_bag", "side_slope": "side_slope", "rec": "recording",
-                   "drives": "fleet", "ray_instance": "fleet", "keyhole": "keyhole"}
+                   "drives": "fleet", "ray_instance": "fleet", "keyhole": "keyhole",
+                   "out_and_back": "out_and_back", "out_and_back_pair": "out_and_back"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks
@@ -60,3 +61,28 @@ def window():
 
 def deg(a):
     return math.radians(a)
+
+
+# 3 m out, a light-bulb turn of radius 1.5 m (60 deg one way, 300 the other, 60), 3 m back on
+# the same ruts (torchsoil.diagnosis.study_cases, random_path "out_and_back"), 2 x 16 x 512 beams
+OUT_AND_BACK = {
+    "name": "out_and_back",
+    "trajectory": {"segments": [{"straight": 3.0, "speed": 1.0}, {"arc": 1.5, "angle_deg": -60, "speed": 1.0},
+                                {"arc": 1.5, "angle_deg": 300, "speed": 1.0},
+                                {"arc": 1.5, "angle_deg": -60, "speed": 1.0}, {"straight": 3.0, "speed": 1.0}],
+                   "accel_limit": 0.5},
+    "soil": {"base": {"d": 0.03, "chi": 0.2, "beta_deg": 30.0, "moisture": 0.3}},
+    "lidar": {"columns": 512, "beams": 16},
+}
+
+
+@pytest.fixture(scope="session")  # SHARED_FIXTURES: built once
+def out_and_back(tmp_path_factory):
+    """A 17 s recording that drives back over its own ruts: the bag path and its truth
+    (torchsoil.synth.truthfile.TruthFile)."""
+    from torchsoil.synth.record import make_recording
+    from torchsoil.synth.truthfile import load_truth
+
+    bag = tmp_path_factory.mktemp("out_and_back") / "out_and_back"
+    make_recording(OUT_AND_BACK, bag, seed=0)
+    return bag, load_truth(bag)

@@ -57,6 +57,11 @@ def test_heightmaps_match_the_true_surfaces_and_show_the_ruts(moving_result):
     assert np.median(d[rut]) == pytest.approx(-scene.rut_depth, abs=0.006)
 
 
+def test_a_drive_that_never_comes_back_has_no_visit_layers(moving_result):
+    tp = moving_result[0].terrain
+    assert tp.n_visits == 1 and tp.visit_front is None and "visit_front" not in tp.to_dict()
+
+
 def test_terrain_pair_round_trips(moving_result, tmp_path):
     from torchsoil.terrain import TerrainPair
 

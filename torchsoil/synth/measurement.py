@@ -24,18 +24,24 @@ from torchsoil.settings import MeasurementConfig
 
 def apply_measurement(h_front: np.ndarray, h_back: np.ndarray, grid: Grid, poses: np.ndarray,
                       cfg: MeasurementConfig, seed: int, noise: float | None = None,
-                      half_width: float = 1.0) -> tuple[np.ndarray, np.ndarray, dict]:
+                      half_width: float = 1.0, layer: int = 0) -> tuple[np.ndarray, np.ndarray, dict]:
     """Measured (h_front, h_back) float32 (X, Y) [m, NaN where lost] from the true surfaces
     (X, Y) [m] on `grid`, for the drive's poses (N, 7) [t, x, y, z, roll, pitch, yaw].
 
     noise: overrides cfg.noise, m; half_width: occlusion streaks start within this many m
-    of the path. Returns also what was drawn: {noise_dof (None: Gaussian),
+    of the path; layer: which measurement of the drive this pair of maps is (0: the terrain
+    pair's H_f and H_b, v + 1: the visit layers of visit v): each layer has its own noise and
+    lost cells, while the noise law, offset and tilt (the lidars' own) are the drive's. Returns
+    also what was drawn: {noise_dof (None: Gaussian),
     offset [m], tilt_x_deg, tilt_y_deg (H_b - H_f rises by tan(tilt) per m along x, y from
     the grid centre), lost_front, lost_back (fractions of cells)}."""
     sd = cfg.noise if noise is None else float(noise)
-    r_noise = np.random.default_rng(np.random.SeedSequence([int(seed), 11]))
+    r_noise = np.random.default_rng(np.random.SeedSequence([int(seed), 11] + ([int(layer)] if layer else [])))
     r_dof, r_offset, r_tilt, r_front, r_back = (np.random.default_rng(s) for s in
                                                 np.random.SeedSequence([int(seed), 13]).spawn(5))
+    if layer:                                     # a layer's own lost cells
+        lost = np.random.SeedSequence([int(seed), 13, int(layer)]).spawn(2)
+        r_front, r_back = (np.random.default_rng(s) for s in lost)
     dof = None if cfg.noise_dof is None else float(r_dof.uniform(*cfg.noise_dof))
     hf = h_front + per_cell_noise(r_noise, h_front.shape, sd, dof)
     hb = h_back + per_cell_noise(r_noise, h_back.shape, sd, dof)

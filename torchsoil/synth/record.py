@@ -7,8 +7,9 @@ Files written for `make_recording(..., out=PATH)`::
     PATH.robot.yaml       the robot description (docs/formats.md section 2)
     PATH.pair.npz         terrain pair straight from the truth, 3 mm per-cell noise (section 3)
     PATH.truth.npz        the truth: noise-free surfaces, per-visit states and times, soil
-                          fields, true poses, time of last wheel passage (tools under test
-                          must not read it)
+                          fields, true poses, time of last wheel passage, and on ground driven
+                          twice or more the noise-free visit layers (tools under test must not
+                          read it)
     PATH.truth.json       scenario, effects and parameters, seed, extrinsics, clock
 """
 
@@ -28,7 +29,7 @@ from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter, imu_message
 from torchsoil.synth.conventions import driver_message, driver_of
 from torchsoil.synth.imu import ImuSpec, imu_samples
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
-from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth
+from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth, visit_layers
 
 T0_NS = 1_750_000_000 * 1_000_000_000   # bag clock of trajectory time 0, ns
 IMU_TOPIC = "/imu/data"
@@ -198,6 +199,8 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         soil_d=w.soil["d"].astype(np.float32), soil_chi=w.soil["chi"].astype(np.float32),
         soil_beta=w.soil["beta"].astype(np.float32), soil_moisture=w.soil["moisture"].astype(np.float32),
         cylinders=truth.landmarks.cylinders, boxes=truth.landmarks.boxes,
+        pass_time=w.pass_time.astype(np.float32),
+        **{k: v for k, v in visit_layers(w).items() if k != "visit_time"},   # visit_time: the states' (above)
     )
     eff = fx.resolve(truth.scenario.effects)
     meta = {

@@ -227,8 +227,18 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None,
                                                half_width)
     drawn["front_view"] = "first_view" if first_view else "last_visit"
     r = truth.robot
-    layers = _visit_layers(w, h_front, h_back, cfg.noise if noise is None else float(noise), seed) if (
-        visits and (w.n_visits > 1).any()) else {}
+    layers = visit_layers(w) if visits else {}
+    for v in range(len(layers.get("visit_front", ()))):   # each visit measured on its own: noise per layer
+        there = np.isfinite(layers["visit_front"][v])
+        vf, vb, _ = apply_measurement(w.states[v], w.states[v + 1], w.grid, truth.traj.poses, cfg, seed, noise,
+                                      half_width, layer=v + 1)
+        layers["visit_front"][v] = np.where(there, vf, np.nan)
+        layers["visit_back"][v] = np.where(there, vb, np.nan)
+    if layers:   # the first view before and each cell's last after are H_f and H_b themselves
+        n = w.n_visits
+        layers["visit_front"][0] = np.where(n > 0, h_front, np.nan)
+        last = (np.arange(len(layers["visit_back"]))[:, None, None] == np.maximum(n - 1, 0)[None]) & (n > 0)[None]
+        layers["visit_back"] = np.where(last, h_back[None], layers["visit_back"]).astype(np.float32)
     return {**layers,
         "dx": np.float64(w.grid.dx),
         "origin": np.asarray(w.grid.origin, dtype=np.float64),
@@ -244,22 +254,18 @@ def terrain_pair_from_truth(truth: Truth, seed: int, noise: float | None = None,
     }
 
 
-def _visit_layers(w: WorldResult, h_front: np.ndarray, h_back: np.ndarray, sd: float, seed: int) -> dict:
-    """visit_front, visit_back (V, X, Y) float32 [m] and visit_time (V, X, Y) [s] of the world's
-    visits (NaN where a cell has fewer than v + 1): the measured h_front as the first layer
-    before, h_back as each cell's last layer after, the states between with noise `sd` m."""
-    V = int(w.n_visits.max())
-    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 23]))
-    there = w.n_visits[None] > np.arange(V)[:, None, None]
-    front = w.states[:V] + rng.normal(0.0, sd, (V, *h_front.shape))
-    back = w.states[1:V + 1] + rng.normal(0.0, sd, (V, *h_back.shape))
-    front[0] = h_front
-    last = np.arange(V)[:, None, None] == np.maximum(w.n_visits - 1, 0)[None]
-    back = np.where(last, h_back[None], back)
-    times = np.where(np.isfinite(w.visit_time[:V]), w.visit_time[:V], np.nan)
-    return {"visit_front": np.where(there, front, np.nan).astype(np.float32),
-            "visit_back": np.where(there, back, np.nan).astype(np.float32),
-            "visit_time": np.where(there, times, np.nan)}
+def visit_layers(world: WorldResult) -> dict[str, np.ndarray]:
+    """The noise-free visit layers of docs/formats.md section 3 from the world, where a cell was
+    visited twice or more (else {}): visit_front[v] = states[v] (the surface before visit v),
+    visit_back[v] = states[v + 1] (after it), visit_time[v] = pass_time[v] (base_link passed
+    closest, s), each (V, X, Y) float32, NaN where the cell has fewer than v + 1 visits."""
+    V = len(world.pass_time)
+    if V < 2:
+        return {}
+    there = world.n_visits[None] > np.arange(V)[:, None, None]
+    return {"visit_front": np.where(there, world.states[:V], np.nan).astype(np.float32),
+            "visit_back": np.where(there, world.states[1:V + 1], np.nan).astype(np.float32),
+            "visit_time": np.where(there, world.pass_time, np.nan).astype(np.float32)}
 
 
 def make_terrain_pair(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,

@@ -16,8 +16,10 @@ from torchsoil.grid import Grid
 @dataclass
 class TruthFile:
     """grid: the truth's corridor grid; arrays: every array of PATH.truth.npz (h_before,
-    h_after (X, Y) m, states (V+1, X, Y), visit_time (V, X, Y) s, n_visits, t_last_wheel,
-    poses (N, 7), soil_d / soil_chi / soil_beta / soil_moisture, cylinders, boxes, ...);
+    h_after (X, Y) m, states (V+1, X, Y), visit_time (V, X, Y) s at which each visit ended,
+    pass_time (V, X, Y) s at which base_link passed closest in it, n_visits, t_last_wheel,
+    poses (N, 7), soil_d / soil_chi / soil_beta / soil_moisture, cylinders, boxes, and where a
+    cell was visited twice or more the noise-free visit_front / visit_back (V, X, Y) m, ...);
     meta: PATH.truth.json (scenario, seed, effects, extrinsics, clock)."""
 
     grid: Grid

@@ -42,6 +42,8 @@ class WorldResult:
     visit_time: (V, X, Y) time the cell reached states[v+1], s (inf: no such visit).
     n_visits: (X, Y) int, visits per cell.     t_last_wheel: time a wheel last covered the cell, s (nan: never).
     soil: {d, chi, beta, moisture} per cell.
+    pass_time: (V, X, Y) time base_link passed closest to the cell during visit v, s (nan: no
+    such visit; a terrain pair's `visit_time`).
     """
 
     grid: Grid
@@ -52,6 +54,7 @@ class WorldResult:
     n_visits: np.ndarray
     t_last_wheel: np.ndarray
     soil: dict
+    pass_time: np.ndarray
 
     def surface_at(self, t: float) -> np.ndarray:
         """(X, Y) true surface at time t [s]: each cell in its state after the visits done by t."""
@@ -171,6 +174,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     n_visits = np.zeros(grid.shape, dtype=np.int64)
     states = np.repeat(h0[None], MAX_VISITS + 1, axis=0)
     visit_time = np.full((MAX_VISITS, *grid.shape), np.inf)
+    pass_time = np.full((MAX_VISITS, *grid.shape), np.nan)
+    pass_dist = np.full(grid.shape, np.inf)             # base_link's closest so far in the visit under way
     t_wheel = np.full(grid.shape, np.nan)
     radius0 = robot.wheel_width * width_scale / 2
     reach = radius0 * 1.5 + (config.band_width + 1) * dx + config.relax_margin * robot.wheel_width + 2 * dx
@@ -218,6 +223,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
                 h_ref[win] = np.where(again, ref, h_ref[win])
             n_visits[win] = v + new
         last_arc[win] = np.where(near, float(traj.arc[idx[-1]]), last_arc[win])
+        under_way = (n_visits[win] >= 1) & (float(traj.arc[idx[0]]) - last_arc[win] <= gap)
+        _pass_times(pass_time, pass_dist, win, under_way, new, n_visits[win] - 1, gp, xs[i0:i1], ys[j0:j1])
 
         # sinkage per wheel and cell: soil d x track x pose-driven effects x pass effects (+ tread)
         sp, ac, yr = (np.interp(gp[:, 0], tt, a) for a in (traj.speed, traj.accel, traj.yaw_rate))
@@ -253,7 +260,25 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     V = int(n_visits.max())
     for k in range(1, V + 1):                               # the final state after the last visit
         states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
-    return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf)
+    return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf,
+                       pass_time[:V].copy())
+
+
+def _pass_times(pass_time: np.ndarray, pass_dist: np.ndarray, win, under_way: np.ndarray, new: np.ndarray,
+                visit: np.ndarray, poses: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> None:
+    """Update in place, on window `win`, the time base_link passed closest to each cell in its
+    visit under way (pass_time (V, X, Y) s, pass_dist (X, Y) that distance, m) from one chunk's
+    (M, 4) poses t, x, y, yaw: on the window's (x, y) `under_way` cells (visited, the robot
+    less than the revisit gap away), whose visit under way is `visit` ((x, y) int) and just
+    started where `new`. xs, ys: the window's cell centres, m."""
+    best = pass_dist[win]
+    best[new] = np.inf
+    cells = np.stack(np.meshgrid(xs, ys, indexing="ij"), -1).reshape(-1, 2)
+    d, k = cKDTree(poses[:, 1:3]).query(cells)
+    d, t = d.reshape(under_way.shape), poses[k, 0].reshape(under_way.shape)
+    ii, jj = np.nonzero(under_way & (d < best))
+    pass_time[visit[ii, jj], ii + win[0].start, jj + win[1].start] = t[ii, jj]
+    best[ii, jj] = d[ii, jj]
 
 
 def _turn_reference(h_ref: np.ndarray, lead: list, turn_dug: np.ndarray, win, poses: np.ndarray,
