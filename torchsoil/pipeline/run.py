@@ -213,9 +213,9 @@ def check_visits(terrain: TerrainPair, max_shift: float, t_start: float = 0.0) -
         if off["distance_m"] > max_shift:
             flags[(stamps >= off["t0"]) & (stamps <= off["t1"])] |= mapping.MAP_CONFLICT
             problems.append(
-                f"the ground between visits {off['visit'] - 1} and {off['visit']} lies {100 * off['distance_m']:.0f} cm "
-                f"from where the earlier visit left it (seen again at t = {off['t0'] - t_start:.1f}-"
-                f"{off['t1'] - t_start:.1f} s after the start): the map broke between the visits, so the ruts "
+                f"the ground between visits {off['visit'] - 1} and {off['visit']} lies "
+                f"{100 * off['distance_m']:.0f} cm from where the earlier visit left it (seen again at "
+                f"t = {off['t0'] - t_start:.1f}-{off['t1'] - t_start:.1f} s after the start): the map broke between the visits, so the ruts "
                 "would double there; its windows are flagged (map_conflict)")
     terrain.extras["visit_shift"] = shifts
     return problems
