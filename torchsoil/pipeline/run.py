@@ -215,8 +215,8 @@ def check_visits(terrain: TerrainPair, max_shift: float, t_start: float = 0.0) -
             problems.append(
                 f"the ground between visits {off['visit'] - 1} and {off['visit']} lies "
                 f"{100 * off['distance_m']:.0f} cm from where the earlier visit left it (seen again at "
-                f"t = {off['t0'] - t_start:.1f}-{off['t1'] - t_start:.1f} s after the start): the map broke between the visits, so the ruts "
-                "would double there; its windows are flagged (map_conflict)")
+                f"t = {off['t0'] - t_start:.1f}-{off['t1'] - t_start:.1f} s after the start): the map broke "
+                "between the visits, so the ruts would double there; its windows are flagged (map_conflict)")
     terrain.extras["visit_shift"] = shifts
     return problems
 
