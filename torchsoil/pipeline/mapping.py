@@ -450,7 +450,7 @@ class Mapper:
         usual = float(np.median(self.costs)) if len(self.costs) >= 3 else np.inf
         if (fit.poor or fit.weak or turn > cfg.retry_turn or fit.cost > cfg.retry_cost * usual
                 or self.flags[k] & GAP):
-            fit = self._retry(sweep, T_prev, T_pred, dt, gate, fit)
+            fit = self._retry(sweep, T_prev, T_pred, dt, gate, fit, bool(self.flags[k] & GAP))
             self.flags[k] |= RETRIED
         res, T, pts = fit.res, fit.T, fit.pts
         self.fitness[k], self.rmse[k] = res.fitness, res.rmse
@@ -508,11 +508,11 @@ class Mapper:
                     icp.truncated_cost(src, T, self.local.target, cfg.voxel / 2))
 
     def _retry(self, sweep: Sweep, T_prev: np.ndarray, T_pred: np.ndarray, dt: float, gate: float,
-               first: _Fit) -> _Fit:
+               first: _Fit, gap: bool) -> _Fit:
         """The registration again from other starts: the first result, and the motion from the
         last pose at the present speed and predicted rates, with every change of yaw rate that
         adds or loses up to 2 max_yaw_rate dt of yaw (in retry_step steps; on arcs), each
-        de-skewed with its own motion (after a gap, registered with a wide gate first). The
+        de-skewed with its own motion (after a `gap`, registered with a wide gate first). The
         start with the lowest truncated cost wins if the scene fixes it in every direction and
         it beats the first result's cost by the factor retry_gain; then it is de-skewed with its
         own motion and refined."""
@@ -520,14 +520,13 @@ class Mapper:
         span = min(2.0 * cfg.max_yaw_rate * dt, 180.0)
         yaws = np.arange(-span, span + 1e-9, cfg.retry_step) if span >= cfg.retry_step else np.zeros(1)
         w = _k.rotvec_of(np.ascontiguousarray((np.linalg.inv(T_prev) @ T_pred)[:3, :3])) / dt   # predicted rates
-        seeds = [first.T] + [T_prev @ _arc_motion(w + [0.0, 0.0, np.radians(a) / dt], self.velocity[:3, 3], dt)
-                             for a in yaws]
-        wide = max(gate, self.cfg.startup_dist) if self.flags[len(self.stamps) - 1] & GAP else None
+        seeds = [T_prev @ _arc_motion(w + [0.0, 0.0, np.radians(a) / dt], self.velocity[:3, 3], dt) for a in yaws]
+        wide = max(gate, cfg.startup_dist) if gap else None
         # a third of the iterations ranks the starts; the winner is refined in full below
-        fits = [first] + [self._fit(sweep, T_prev, s, dt, gate, wide, max(cfg.max_iter // 3, 1)) for s in seeds[1:]]
+        fits = [self._fit(sweep, T_prev, s, dt, gate, wide, max(cfg.max_iter // 3, 1)) for s in seeds]
         # another start must fit clearly better, and be fixed in every direction: where the scene
         # leaves one free, a start's pose along it is its own guess, not a measurement
-        best = min(fits[1:], key=lambda f: (f.poor or f.weak, f.cost))
+        best = min(fits, key=lambda f: (f.poor or f.weak, f.cost))
         if best.poor or best.weak or (not first.poor and not best.cost < cfg.retry_gain * first.cost):
             best = first
         if best.poor or best.weak:   # nothing better: the prediction stands where the scene is silent
