@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import tempfile
 import time
+from pathlib import Path
 
 
 def run(quick: bool = False) -> dict[str, float]:
@@ -35,6 +36,8 @@ def run(quick: bool = False) -> dict[str, float]:
     s = diag.summary
     scaling = {} if quick else {f"diagnosis_{name}_{length}m": v
                                 for length in (20, 100) for name, v in _pass_times(length).items()}
+    if not quick:
+        scaling.update(_field_length())
     return {
         **scaling,
         "diagnosis_resume_seconds": resume,
@@ -82,3 +85,27 @@ def _pass_times(length: float) -> dict[str, float]:
     n = len(base.rows)
     return {"base_pass_ms_per_window": 1e3 * t_base / n, "hardening_pass_ms_per_window": 1e3 * t_hard / n,
             "estimator_setup_seconds": t_setup}
+
+
+def _field_length(lengths: tuple[float, ...] = (20.0, 200.0)) -> dict[str, float]:
+    """Peak resident memory [MB] and wall time per metre [s/m] of `torchsoil diagnose` on the
+    speed drive's stretches (5 m each at 1.0, 0.5, 1.5, 0.6, 1.4 m/s) repeated to each length."""
+    from benchmarks.online import peak_rss_mb
+    from torchsoil.settings import merge
+    from torchsoil.synth.scenario import load_scenario, make_terrain_pair
+    from torchsoil.terrain import TerrainPair
+
+    out: dict[str, float] = {}
+    speeds = (1.0, 0.5, 1.5, 0.6, 1.4)
+    with tempfile.TemporaryDirectory() as tmp:
+        for length in lengths:
+            segments = [{"straight": 5.0, "speed": speeds[i % 5]} for i in range(int(round(length / 5.0)))]
+            scn = load_scenario(merge(load_scenario("speed_dependent_sinkage").model_dump(),
+                                      {"trajectory": {"segments": segments}}))
+            path = Path(tmp) / f"speed_{length:g}m.npz"
+            TerrainPair.from_mapping(make_terrain_pair(scn, seed=0)).save(path)
+            t0 = time.perf_counter()
+            out[f"diagnosis_peak_rss_mb_{length:g}m"] = peak_rss_mb(
+                ["diagnose", str(path), "--out", str(Path(tmp) / f"diag{length:g}"), "--no-tensorboard"])
+            out[f"diagnosis_seconds_per_m_{length:g}m"] = (time.perf_counter() - t0) / length
+    return out

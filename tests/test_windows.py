@@ -250,9 +250,9 @@ def test_a_window_simulates_every_wheel_pass_over_its_ground(lap_and_a_half):
 
 
 def test_a_full_window_store_prepares_anew_instead_of_growing():
-    """A store of 2 kB keeps the first two 1 kB windows (64 float64 and, nested, 128 int32
-    each) and no more."""
-    store, made = WindowStore(max_bytes=2048), []
+    """A store of 2 kB that does not spill to disk keeps the first two 1 kB windows (64 float64
+    and, nested, 128 int32 each) and no more."""
+    store, made = WindowStore(max_bytes=2048, spill=False), []
 
     def window(key):
         made.append(key)

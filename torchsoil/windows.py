@@ -4,6 +4,7 @@ which cells its cost counts, and the cropped, simulation-ready data of one windo
 from __future__ import annotations
 
 import math
+import tempfile
 from dataclasses import dataclass
 from itertools import chain
 from typing import NamedTuple
@@ -236,27 +237,42 @@ class WindowStore:
     window (crop, masks, wheel geometry) is about a quarter of a run. Share a store, like the
     PathIndex, only among estimators over the same pair and map nuisance; the key holds what
     may differ between them (tyre section, settings, view, device, the window's span). Windows
-    are kept while their tensors take at most `max_bytes` (0.2 to 0.5 MB a window with the
-    default corridor and 2 cm cells); beyond that, windows are prepared anew each time, so
-    that an hour's drive does not hold every window in memory."""
+    are kept in memory while their tensors take at most `max_bytes` (0.2 to 0.5 MB a window
+    with the default corridor and 2 cm cells: a 20 m drive's windows of one tyre section take
+    about 20 MB); beyond that they are written to a temporary directory under `spill_dir`
+    (None: the system's; removed with the store) and read back from there, so that memory
+    does not grow with the drive and a long drive is not prepared anew on every pass.
+    spill=False: beyond `max_bytes`, windows are prepared anew each time."""
 
-    def __init__(self, max_bytes: int = 2 << 30):
-        self.max_bytes = max_bytes
+    def __init__(self, max_bytes: int = 256 << 20, spill: bool = True, spill_dir: str | None = None):
+        self.max_bytes, self.spill, self.spill_dir = max_bytes, spill, spill_dir
         self.nbytes = 0
+        self.spilled_bytes = 0
         self._kept: dict[tuple, WindowData | None] = {}
+        self._files: dict[tuple, str] = {}
+        self._tmp = None
 
     def __len__(self) -> int:
-        return len(self._kept)
+        return len(self._kept) + len(self._files)
 
     def get(self, key: tuple, prepare) -> WindowData | None:
         """The window under `key`, from `prepare()` the first time (None: not preparable)."""
         if key in self._kept:
             return self._kept[key]
+        if key in self._files:
+            return torch.load(self._files[key], weights_only=False)
         wd = prepare()
         size = _nbytes(wd)
         if self.nbytes + size <= self.max_bytes:
             self._kept[key] = wd
             self.nbytes += size
+        elif self.spill:
+            if self._tmp is None:
+                self._tmp = tempfile.TemporaryDirectory(prefix="torchsoil-windows-", dir=self.spill_dir)
+            path = f"{self._tmp.name}/{len(self._files)}.pt"
+            torch.save(wd, path)
+            self._files[key] = path
+            self.spilled_bytes += size
         return wd
 
 

@@ -173,9 +173,10 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     shared = dict(shared or {})
     shared.setdefault("store", WindowStore())
     for sec in candidates:
+        # every third window of each section once: prepared for this pass only, not stored
         estimator = Estimator(with_section(pair, sec), est, sim,
-                              modifiers=model.modifiers if model is not None else None, **shared)
-        shared = shared_of(estimator)
+                              modifiers=model.modifiers if model is not None else None, **{**shared, "store": None})
+        shared = {**shared_of(estimator), "store": shared["store"]}
         what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
         cost = cache.load("section", what) if cache is not None else None
         if cost is None:

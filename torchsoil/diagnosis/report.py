@@ -11,6 +11,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
+from torchsoil.figures import coarse, coarse_extent
+
 KEYS = ("verdict", "missing_physics", "where", "explanation", "cost_before", "cost_after", "noise_floor",
         "extension_parameters", "candidates")
 VERDICTS = ("adequate", "missing_physics", "unexplained")
@@ -187,14 +189,17 @@ def write_json(summary: dict, path: Path) -> Path:
 
 # ------------------------------------------------------------------ figures
 def fig_residual_map(diag, pair, path: Path) -> Path:
-    r = diag.residual_map
+    r, f = coarse(diag.residual_map)
     fig = Figure(figsize=(10, 3.5))
     ax = fig.subplots()
-    xs, ys = pair.grid.centers()
+    extent = coarse_extent(pair.origin, pair.dx, diag.residual_map.shape, f)
     lim = 3 * np.nanstd(r) if np.isfinite(r).any() else 1e-3
-    im = ax.pcolormesh(xs, ys, r.T * 1e3, cmap="RdBu_r", vmin=-1e3 * lim, vmax=1e3 * lim, shading="nearest")
+    im = ax.imshow(r.T * 1e3, origin="lower", extent=extent, cmap="RdBu_r", vmin=-1e3 * lim, vmax=1e3 * lim,
+                   interpolation="nearest")
     fig.colorbar(im, ax=ax, label="simulated - measured H_b [mm]")
-    sidx = diag.s_index
+    sidx = coarse(diag.s_index)[0]
+    xs = extent[0] + (np.arange(r.shape[0]) + 0.5) * f * pair.dx
+    ys = extent[2] + (np.arange(r.shape[1]) + 0.5) * f * pair.dx
     for a, b in diag.summary["where"]["along_track"]:
         mask = np.isfinite(sidx) & (sidx >= a) & (sidx < b)
         if mask.any():

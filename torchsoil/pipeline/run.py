@@ -243,6 +243,8 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from torchsoil.figures import coarse, coarse_extent
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tp = result.terrain
@@ -252,16 +254,15 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path
                header="t,x,y,z,roll,pitch,yaw", comments="")
     traj.with_suffix(".tmp").replace(traj)
     paths["trajectory"] = traj
-    x0, y0 = tp.origin
-    X, Y = tp.h_front.shape
-    extent = (y0 - tp.dx / 2, y0 + (Y - 0.5) * tp.dx, x0 - tp.dx / 2, x0 + (X - 0.5) * tp.dx)
     hd = tp.h_delta
     lim = float(np.nanpercentile(np.abs(hd), 99)) if np.isfinite(hd).any() else 0.01
     for name, h, kw in (("h_front", tp.h_front, {"cmap": "viridis"}),
                         ("h_back", tp.h_back, {"cmap": "viridis"}),
                         ("h_delta", hd, {"cmap": "RdBu_r", "vmin": -lim, "vmax": lim})):
         fig, ax = plt.subplots(figsize=(4, 8))
-        im = ax.imshow(h, origin="lower", extent=extent, aspect="equal", **kw)
+        h, f = coarse(h)
+        x0, x1, y0, y1 = coarse_extent(tp.origin, tp.dx, tp.h_front.shape, f)
+        im = ax.imshow(h, origin="lower", extent=(y0, y1, x0, x1), aspect="equal", **kw)
         ax.plot(tp.poses[:, 2], tp.poses[:, 1], "k-", lw=0.5)
         ax.set_xlabel("y [m]")
         ax.set_ylabel("x [m]")
