@@ -132,6 +132,8 @@ def parser() -> argparse.ArgumentParser:
     _robot_option(p, extra=" (needed for a recording; default for a pair: its own wheels)")
     _bag_options(p)
     p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted diagnosis in --out: its finished "
+                                                         "passes (OUT/passes) are read back, not run again")
     _job_options(p)
     _fleet_options(p)
 
@@ -371,7 +373,7 @@ def cmd_diagnose(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     summary = diagnose_input(source, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
                              overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads or 1,
-                             extrinsics=given)
+                             extrinsics=given, resume=args.resume)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
 

@@ -225,11 +225,13 @@ class Estimator:
         as it is done; per visit, each visit of a window in turn (visit 0 first).
 
         theta: warm start (P_free,) (default: config estimator.init), or one per visit
-        {visit: (P_free,)} (each visit's fits warm-start from the same visit's previous window).
+        {visit: (P_free,)} (each visit's fits warm-start from the same visit's previous window;
+        key None: the warm start of the visits without one, default config estimator.init).
         skip: (s, visit) keys (s rounded to 1e-6 m) of rows not to fit again (a resumed run).
         """
-        thetas = theta if isinstance(theta, dict) else {}
-        theta0 = self.theta0.clone() if theta is None or isinstance(theta, dict) else theta.to(self.theta0)
+        thetas = dict(theta) if isinstance(theta, dict) else {None: theta}
+        first = thetas.pop(None, None)
+        theta0 = self.theta0.clone() if first is None else first.to(self.theta0)
         thetas = {v: t.to(self.theta0) for v, t in thetas.items()}
         skip = skip or set()
         for k in range(start, len(self.windows) if stop is None else min(stop, len(self.windows))):

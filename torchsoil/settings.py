@@ -335,6 +335,9 @@ class DiagnosisConfig(Section):
                                                    "(a term that predicts neighbouring ground better but fits its "
                                                    "own worse stands in for soil that changes along the drive)")
     block_m: float = Field(2.4, gt=0, description="cross-validation block length, m")
+    checkpoint_s: float = Field(15.0, ge=0, description="seconds between two saves of a pass in progress "
+                                                        "(OUT/passes; a killed run resumes after the last save; 0: "
+                                                        "after every window)")
     refine_steps: int = Field(2, ge=0, description="parabolic refinements of a candidate's coefficient")
     offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "
                                                             "each fit is also scored")

@@ -103,3 +103,33 @@ def test_the_command_run_again_into_its_folder_reads_every_pass_back(tmp_path, s
     again = diagnose_input(tmp_path / "short.npz", tmp_path / "out", settings, progress=False, tensorboard=False)
     assert runs == [] and again == first
     assert json.loads((tmp_path / "out" / "diagnosis.json").read_text()) == json.loads(json.dumps(first))
+
+
+class StopAtWindow(StopAfter):
+    """A progress bar that interrupts the base pass when it reports window `k` (a kill mid-pass)."""
+
+    def __init__(self, k):
+        super().__init__(10 ** 6)
+        self.k = k
+
+    def set_postfix_str(self, text):
+        if text == f"base window {self.k}":
+            raise Interrupt
+
+
+def test_a_pass_killed_midway_resumes_from_its_last_window(tmp_path, short_drive, monkeypatch):
+    """Kept after every window (every=0), a base pass stopped as it reports window 10 goes on
+    from window 10, not from the start, and the diagnosis ends as one run straight through."""
+    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
+    straight = diagnose(short_drive, cfg).summary
+    with pytest.raises(Interrupt):
+        diagnose(short_drive, cfg, progress=StopAtWindow(10), cache=PassCache(tmp_path / "p", {"i": 1}, every=0))
+    assert len(list((tmp_path / "p").glob("base-partial-*.pkl"))) == 1
+    starts = []
+    original = fit_module.Estimator.run
+    monkeypatch.setattr(fit_module.Estimator, "run",
+                        lambda self, *a, start=0, **k: starts.append(start) or original(self, *a, start=start, **k))
+    resumed = diagnose(short_drive, cfg, cache=PassCache(tmp_path / "p", {"i": 1}, every=0)).summary
+    assert starts[0] == 10 and all(s == 0 for s in starts[1:])
+    assert resumed == straight
+    assert not list((tmp_path / "p").glob("*-partial-*.pkl"))      # dropped once their passes were done

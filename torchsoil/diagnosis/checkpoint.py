@@ -27,10 +27,11 @@ class PassCache:
 
     directory: where they are kept (created). key: JSON-ready dict of what they depend on
     (`provenance.cache_key` of the run record, with the torchsoil version); a folder holding
-    another key is emptied first."""
+    another key is emptied first. every: seconds between two saves of a pass in progress
+    (`fit.Partial`; 0: after every window)."""
 
-    def __init__(self, directory: str | Path, key: dict):
-        self.dir = Path(directory)
+    def __init__(self, directory: str | Path, key: dict, every: float = 15.0):
+        self.dir, self.every = Path(directory), every
         key_text = json.dumps(key, sort_keys=True)
         meta = self.dir / KEY_FILE
         if self.dir.exists() and (not meta.exists() or meta.read_text() != key_text):
@@ -67,6 +68,10 @@ class PassCache:
         with tmp.open("wb") as fh:
             pickle.dump((repr(what), value), fh, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(tmp, path)
+
+    def drop(self, label: str, what: tuple) -> None:
+        """Forget what was saved under (label, what) (a pass in progress, once it is done)."""
+        self._path(label, what).unlink(missing_ok=True)
 
     def __len__(self) -> int:
         return sum(1 for _ in self.dir.glob("*.pkl"))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,7 +105,13 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     rows, floor, backward = [], [], []
     wheels_y = pair.robot.wheels[:, 1]
     recent: dict[int, object] = {}
-    for k, o in enumerate(estimator.run(theta=theta0)):
+    part = Partial(cache, label, what)
+    start, thetas = 0, theta0
+    if part.state is not None:        # an interrupted pass: on from its last finished window
+        start, thetas, rows, floor, backward, prof, sim_state, recent = part.restore(estimator, theta0)
+        if stitcher is not None:
+            stitcher.h_sim, stitcher.best = sim_state
+    for k, o in enumerate(estimator.run(start=start, theta=thetas), start=len(rows)):
         rows.append(o.row)
         floor.append(o.reference["floor"])
         recent[k] = o.data
@@ -125,6 +132,9 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
                      (idx.offset[i0:i1, j0:j1], idx.wheel_dist[i0:i1, j0:j1]))
         if on_window is not None:
             on_window(k, o, estimator)
+        part.fitted(o)
+        if o.final:
+            part.window_done(rows, floor, backward, prof, stitcher, recent)
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
     out = Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
@@ -132,7 +142,54 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
                h_sim=stitcher.h_sim if stitcher is not None else None, **shared)
     if cache is not None:
         cache.save(label, what, portable(out))
+        part.drop()
     return out
+
+
+class Partial:
+    """The state of a pass in progress, kept in its PassCache every `PassCache.every` seconds (at
+    the end of a window; 0: after every window) and read back by the same pass run again, so
+    that an interrupted pass loses at most the windows fitted since: the next window's index and
+    each visit's warm start, the rows, costs, profiles and stitched H_b so far, and which windows
+    the held-out scores still need (prepared again)."""
+
+    def __init__(self, cache: PassCache | None, label: str, what: tuple):
+        self.cache, self.label, self.what = cache, f"{label}-partial", what
+        self.state = cache.load(self.label, what) if cache is not None else None
+        self.saved = time.monotonic()
+        self.next = 0                 # the window the pass fits next
+        self.thetas: dict = {}        # visit -> its last fit's free parameters (the next warm start)
+
+    def restore(self, estimator, theta0):
+        """(start window, warm starts {visit or None (any other): (P_free,)}, rows, floor,
+        backward, profiles, (h_sim, best) or None, recent {output: WindowData}) of the kept state."""
+        st = self.state
+        self.next, self.thetas = st["start"], dict(st["thetas"])
+        recent = {k: None if at is None else (estimator.visit_data(at[0]).get(at[1]) if estimator.per_visit
+                                              else estimator.data(at[0])) for k, at in st["recent"].items()}
+        return (self.next, {None: theta0, **self.thetas}, st["rows"], st["floor"], st["backward"], st["prof"],
+                st["stitch"], recent)
+
+    def window_done(self, rows, floor, backward, prof, stitcher, recent) -> None:
+        """After each window's last visit."""
+        self.next += 1
+        if self.cache is None or time.monotonic() - self.saved < self.cache.every:
+            return
+        self.cache.save(self.label, self.what, {
+            "start": self.next, "thetas": self.thetas, "rows": rows, "floor": floor, "backward": backward,
+            "prof": prof, "stitch": None if stitcher is None else (stitcher.h_sim, stitcher.best),
+            "recent": {k: None if wd is None else (wd.spec.index, rows[k].get("visit", 0))
+                       for k, wd in recent.items()}})
+        self.saved = time.monotonic()
+
+    def fitted(self, o) -> None:
+        """After each output: its fit is its visit's next warm start."""
+        if o.fit is not None:
+            self.thetas[o.row.get("visit", 0)] = o.fit.theta
+
+    def drop(self) -> None:
+        if self.cache is not None:
+            self.cache.drop(self.label, self.what)
 
 
 Section = tuple[float, float]

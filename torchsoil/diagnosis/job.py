@@ -21,14 +21,16 @@ OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covar
 def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
                    robot: Robot | None = None, progress: bool = True, tensorboard: bool = True,
                    overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None,
-                   extrinsics: dict[str, list[float]] | None = None, rows: list | None = None) -> dict:
+                   extrinsics: dict[str, list[float]] | None = None, rows: list | None = None,
+                   resume: bool = False) -> dict:
     """Diagnose a terrain pair (.npz) or a recording (bag, through the lidar pipeline).
 
     Writes out_dir/run.json (what made the folder; another run's folder is refused unless
     `overwrite`), diagnosis.json, report.md, figures and TensorBoard events; returns the
     diagnosis.json dict. Each finished estimator pass is kept in out_dir/passes
     (checkpoint.PassCache): the same diagnosis run again into out_dir (after an interruption)
-    reads them back and runs only the rest. robot_yaml (`lidars:`) and extrinsics ({frame or
+    reads them back and runs only the rest (`resume`: out_dir must hold such a run's run.json).
+    robot_yaml (`lidars:`) and extrinsics ({frame or
     topic: [x, y, z, roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's. rows: a list that
     receives the base model's window rows (params.csv rows: s [m], d1..dT [m], chi, beta [deg],
     costs [m], flags), for summaries of many diagnoses (torchsoil.fleet)."""
@@ -36,14 +38,14 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
     out = Path(out_dir)
     pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
     record = run_record("diagnose", input_path, settings, pipeline, robot, ("sim", "estimator", "diagnosis"))
-    provenance.claim(out, record, overwrite=overwrite, outputs=OUTPUTS)
+    provenance.claim(out, record, resume=resume, overwrite=overwrite, outputs=OUTPUTS)
     pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))
     cfg = settings.diagnosis
     with torch_threads(threads), tqdm(total=n_steps(cfg), unit="pass", desc="diagnosing",
                                       disable=not progress) as bar:
         key = provenance.cache_key(record, "sim", "estimator", "diagnosis", "pipeline") | {
             "torchsoil": record["torchsoil"]}
-        cache = PassCache(out / "passes", key)
+        cache = PassCache(out / "passes", key, every=cfg.checkpoint_s)
         diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar, cache=cache)
         bar.update(bar.total - bar.n)
     if cache.hits and progress:
