@@ -124,6 +124,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     _bag_options(p)
     p.add_argument("--no-reregister", action="store_true", help="ablation: rasterize with T_ref")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out that was interrupted: from "
+                                                         "its last checkpoint (OUT/checkpoint, every "
+                                                         "pipeline.checkpoint_s)")
 
     p = sub.add_parser("diagnose", help="locate model mismatch, name the missing physics, show the fit improve")
     p.add_argument("input", nargs="*", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag); "
@@ -343,16 +346,32 @@ def cmd_estimate(args) -> int:
 
 
 def cmd_process_bag(args) -> int:
+    import shutil
+
+    from torchsoil.pipeline.resume import Checkpoints
     from torchsoil.pipeline.run import process_bag, write_outputs
     from torchsoil.runner import pipeline_settings
 
     extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
     settings, given = _bag_settings(args, extra)
     cfg = pipeline_settings(settings, _robot_yaml(args.robot), given)
-    result = process_bag(args.bag, _robot(args.robot), cfg, progress=True)
+    out = Path(args.out)
+    checkpoints = Checkpoints(out / "checkpoint", out / "tiles", cfg.checkpoint_s)
+    if not args.resume:
+        checkpoints.clear()
+        shutil.rmtree(out / "tiles", ignore_errors=True)
+    elif not (out / "checkpoint" / "latest").exists():
+        print(f"note: {out} holds no checkpoint to resume from: processing from the start", file=sys.stderr)
+    result = process_bag(args.bag, _robot(args.robot), cfg, progress=True, spill_dir=out / "tiles",
+                         checkpoints=checkpoints)
     for p in result.problems:
         print(f"warning: {p}", file=sys.stderr)
+    if checkpoints.resumed is not None:
+        print(f"resumed from the checkpoint taken after {checkpoints.resumed} of the recording's messages",
+              file=sys.stderr)
     paths = write_outputs(result, args.out)
+    checkpoints.clear()
+    shutil.rmtree(out / "tiles", ignore_errors=True)
     t = sum(result.timings.values())
     print(f"processed {result.duration:.1f} s of recording in {t:.1f} s "
           f"({t / max(result.duration, 1e-9):.2f} x real time); wrote " + ", ".join(str(p) for p in paths.values()))

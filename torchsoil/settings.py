@@ -306,6 +306,9 @@ class PipelineConfig(Section):
     level: LevelConfig = LevelConfig()
     reregister: ReregisterConfig = ReregisterConfig()
     raster: RasterConfig = RasterConfig()
+    checkpoint_s: float = Field(30.0, ge=0, description="process-bag: seconds between two checkpoints of the "
+                                                        "pipeline's state (OUT/checkpoint; --resume goes on from "
+                                                        "the last one)")
 
 
 # ---------------------------------------------------------------------------- diagnosis

@@ -92,8 +92,8 @@ class OnlinePipeline:
         self.ground_stamp = -np.inf
         self.n_final = 0
         self.finished = False
-        wheel_x, edge = robot.wheels[:, 0], robot.wheel_width / 2 + cfg.raster.wheel_margin
-        self.keep_x = {"front": lambda x: x > wheel_x.max() + edge, "back": lambda x: x < wheel_x.min() - edge}
+        edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
+        self.keep_beyond = {"front": robot.wheels[:, 0].max() + edge, "back": robot.wheels[:, 0].min() - edge}
 
     # ------------------------------------------------------------------ input
     def add_cloud(self, name: str, cloud: Cloud) -> None:
@@ -358,7 +358,9 @@ class OnlinePipeline:
         st["fitness"].append(fit), st["rmse"].append(rmse), st["ok"].append(ok), st["empty"].append(False)
         if not ok:
             return
-        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & self.keep_x[name](pts[:, 0])
+        x = pts[:, 0]       # each lidar's ground: ahead of the front wheels, behind the rear ones
+        beyond = x > self.keep_beyond[name] if name == "front" else x < self.keep_beyond[name]
+        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & beyond
         world = icp.apply(self.L @ T, pts[sel])
         passed = self.visits.passed(world[:, :2], sw.stamp + sw.t[sel])
         layer = passed if name == "front" else np.maximum(passed - 1, 0)

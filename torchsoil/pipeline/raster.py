@@ -10,6 +10,7 @@ NaN and invalid. Per-cell point count and variance are kept.
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
@@ -85,8 +86,11 @@ def spill_far(store, xy: np.ndarray, radius: float) -> int:
     d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
     far = d > radius + side / np.sqrt(2) if np.isfinite(radius) else np.full(len(keys), radius < 0)
     for k, f in zip(keys, far, strict=True):
-        if f:
-            np.save(store._path(k), store.tiles.pop(k))
+        if f:   # replaced whole, never written in place (a pipeline checkpoint links the old file)
+            path = store._path(k)
+            with open(f"{path}.tmp", "wb") as fh:
+                np.save(fh, store.tiles.pop(k))
+            os.replace(f"{path}.tmp", path)
             store.spilled.add(k)
     return int(far.sum())
 
@@ -103,8 +107,6 @@ class Tiles:
         self.tiles: dict[tuple[int, int], np.ndarray] = {}   # (3, size, size): count, sum, sumsq
         self.spilled: set[tuple[int, int]] = set()
         if spill_dir is not None:
-            import os
-
             os.makedirs(spill_dir, exist_ok=True)
 
     def add(self, points: np.ndarray) -> None:
