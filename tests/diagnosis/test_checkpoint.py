@@ -133,3 +133,41 @@ def test_a_pass_killed_midway_resumes_from_its_last_window(tmp_path, short_drive
     assert starts[0] == 10 and all(s == 0 for s in starts[1:])
     assert resumed == straight
     assert not list((tmp_path / "p").glob("*-partial-*.pkl"))      # dropped once their passes were done
+
+
+def test_a_diagnose_killed_with_sigkill_resumes_to_the_straight_run(tmp_path, short_drive):
+    """`torchsoil diagnose` killed once a pass in progress has been kept, then `--resume`: the
+    diagnosis.json of a run straight through."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    short_drive.save(tmp_path / "short.npz")
+    sets = [a for kv in ("diagnosis.n_fit=1", "diagnosis.sections=[]", "diagnosis.dig_orders=[]",
+                         "diagnosis.refine_steps=1", "diagnosis.checkpoint_s=0") for a in ("--set", kv)]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+
+    def run(out, *extra):
+        return subprocess.Popen([sys.executable, "-m", "torchsoil", "diagnose", str(tmp_path / "short.npz"), "--out",
+                                 str(out), "--no-tensorboard", *sets, *extra], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    straight = run(tmp_path / "straight")
+    assert straight.communicate(timeout=600) and straight.returncode == 0
+    killed = run(tmp_path / "killed")
+    passes = tmp_path / "killed" / "passes"
+    while killed.poll() is None and not (passes.exists() and any(passes.glob("*-partial-*.pkl"))):
+        time.sleep(0.01)
+    assert killed.poll() is None, "the run ended before it could be killed"
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert not (tmp_path / "killed" / "diagnosis.json").exists()
+    again = run(tmp_path / "killed", "--resume")
+    said, err = again.communicate(timeout=600)
+    assert again.returncode == 0, err.decode()[-2000:]
+    assert "resumed:" in said.decode()
+    assert (json.loads((tmp_path / "killed" / "diagnosis.json").read_text())
+            == json.loads((tmp_path / "straight" / "diagnosis.json").read_text()))

@@ -49,7 +49,8 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
         diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar, cache=cache)
         bar.update(bar.total - bar.n)
     if cache.hits and progress:
-        tqdm.write(f"resumed: {cache.hits} finished passes and section scores read back from {cache.dir}")
+        tqdm.write(f"resumed: {cache.hits} kept results (finished passes, section scores, a pass in progress) "
+                   f"read back from {cache.dir}")
     if rows is not None:
         rows.extend(diag.base.rows)
     write_all(diag, pair, out, Path(input_path).name, tb=tensorboard)
