@@ -105,7 +105,23 @@ def _field_length(lengths: tuple[float, ...] = (20.0, 200.0)) -> dict[str, float
             path = Path(tmp) / f"speed_{length:g}m.npz"
             TerrainPair.from_mapping(make_terrain_pair(scn, seed=0)).save(path)
             t0 = time.perf_counter()
-            out[f"diagnosis_peak_rss_mb_{length:g}m"] = peak_rss_mb(
-                ["diagnose", str(path), "--out", str(Path(tmp) / f"diag{length:g}"), "--no-tensorboard"])
-            out[f"diagnosis_seconds_per_m_{length:g}m"] = (time.perf_counter() - t0) / length
+            run = Path(tmp) / f"diag{length:g}"
+            out[f"diagnosis_peak_rss_mb_{length:g}m"] = peak_rss_mb(["diagnose", str(path), "--out", str(run),
+                                                                     "--no-tensorboard"])
+            wall = time.perf_counter() - t0
+            out[f"diagnosis_seconds_per_m_{length:g}m"] = wall / length
+            out[f"diagnosis_ms_per_window_pass_{length:g}m"] = 1e3 * wall / _window_passes(run / "passes")
     return out
+
+
+def _window_passes(kept: Path) -> float:
+    """Windows fitted by a diagnosis, from its kept passes (checkpoint.PassCache): each full pass
+    fits every window of the base pass, each tyre-section score every third. A longer drive may
+    put more candidates to the test (more passes), so time per metre alone overstates its cost."""
+    import pickle
+
+    with next(kept.glob("base-*.pkl")).open("rb") as fh:
+        windows = len(pickle.load(fh)[1].rows)
+    files = [f.name for f in kept.glob("*.pkl")]
+    sections = sum(f.startswith("section-") for f in files)
+    return windows * (len(files) - sections + sections / 3)
