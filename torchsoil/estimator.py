@@ -85,6 +85,9 @@ class Estimator:
             told (default: est.front_view, "auto" told from the maps by `windows.front_view`).
         store: a `windows.WindowStore` that keeps prepared windows for later runs over the same
             pair and map nuisance (a diagnosis's passes share one); None: prepared per run.
+        surfaces: (h_start, h_back) (X, Y) float64 [m] of an earlier estimator over the same pair,
+            map nuisance and settings (`self.surfaces`), so that the passes of a diagnosis share
+            them rather than each holding its own (default: made here).
         per_visit: on a pair with visit layers (docs/formats.md v1.1), fit each visit of a window's
             ground on its own before and after maps (`visit_front[v]` -> `visit_back[v]`) with
             the wheels of that visit, one row per visit (`visit`, `passes_before`); without
@@ -102,6 +105,7 @@ class Estimator:
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
                  dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None,
                  arc0: float = 0.0, view: str | None = None, store: WindowStore | None = None,
+                 surfaces: tuple[np.ndarray, np.ndarray] | None = None,
                  per_visit: bool = False):
         self.pair = pair
         self.modifiers = modifiers
@@ -123,9 +127,12 @@ class Estimator:
         self.per_visit = per_visit and getattr(pair, "visit_front", None) is not None
         view = "last_visit" if self.per_visit else view or est.front_view   # per visit: each from its own H_f
         self.view, self.view_info = (front_view(pair, self.index) if view == "auto" else (view, {}))
-        self.h_back = np.asarray(pair.h_back, np.float64)
-        if self.nuisance is not None:
-            self.h_back = self.h_back - self.nuisance.field
+        if surfaces is None:
+            h_back = np.asarray(pair.h_back, np.float64)
+            h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
+            surfaces = (h_start, h_back - self.nuisance.field if self.nuisance is not None else h_back)
+        self.surfaces = surfaces
+        self.h_start, self.h_back = surfaces
         self.arc0 = arc0
         self.store = store
         # what a prepared window depends on besides its span, the pair and the map nuisance
@@ -150,7 +157,6 @@ class Estimator:
         init = {"d": est.init.d, "chi": est.init.chi, "beta": math.radians(est.init.beta_deg)}
         self.theta0 = torch.tensor([init[k] for k in kinds], **kw)
         self._cache: dict[int, WindowData | None] = {}
-        self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
         if self.per_visit:
             self._visit_setup()
 

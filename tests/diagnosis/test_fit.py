@@ -182,7 +182,7 @@ def test_tyre_section_is_fitted_as_a_nuisance(section, want):
     best, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
     assert best == want and set(costs) == set(tried)
     assert costs[want] < min(c for k, c in costs.items() if k != want)
-    assert set(shared) == {"index", "nuisance", "view", "store"}
+    assert set(shared) == {"index", "nuisance", "view", "store", "surfaces"}
     assert pair.wheel_flat_fraction == 0.0                                   # not changed in place
 
 

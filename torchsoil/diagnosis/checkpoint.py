@@ -79,5 +79,5 @@ class PassCache:
 
 def portable(p):
     """A `fit.Pass` without what a later run rebuilds from the pair (its path index, map
-    nuisance and window store), for `PassCache.save`."""
-    return dataclasses.replace(p, index=None, nuisance=None, store=None)
+    nuisance, window store and surfaces), for `PassCache.save`."""
+    return dataclasses.replace(p, index=None, nuisance=None, store=None, surfaces=None)

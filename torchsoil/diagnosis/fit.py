@@ -54,6 +54,7 @@ class Pass:
     nuisance: object = None
     view: str | None = None
     store: object = None
+    surfaces: object = None
     h_sim: np.ndarray | None = None
 
     @property
@@ -67,28 +68,30 @@ class Pass:
 
 
 def shared_of(done) -> dict:
-    """run_pass's keywords for later passes over the same pair (index, nuisance, view, store),
-    from an Estimator or a Pass."""
-    return {"index": done.index, "nuisance": done.nuisance, "view": done.view, "store": done.store}
+    """run_pass's keywords for later passes over the same pair (index, nuisance, view, store,
+    surfaces), from an Estimator or a Pass."""
+    return {"index": done.index, "nuisance": done.nuisance, "view": done.view, "store": done.store,
+            "surfaces": done.surfaces}
 
 
 def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
              profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
              index=None, nuisance=None, view: str | None = None, store: WindowStore | None = None,
-             stitch: bool = False, cache: PassCache | None = None) -> Pass:
+             stitch: bool = False, cache: PassCache | None = None, surfaces=None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
     on_window: optional callable(k, WindowOutput, estimator) called after every window.
     offsets: windows back (in strides) on whose ground each fit is also scored; use
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
-    recomputing it; nuisance, view and store likewise (Pass.nuisance, Pass.view, Pass.store;
-    a new store when None). stitch: also keep the simulated H_b over the drive (Pass.h_sim).
+    recomputing it; nuisance, view, store and surfaces likewise (Pass.nuisance, Pass.view,
+    Pass.store, Pass.surfaces; a new store when None). stitch: also keep the simulated H_b over the drive (Pass.h_sim).
     cache: where finished passes are kept (checkpoint.PassCache): a pass found there is read
     back (on_window is then not called), a new one is saved."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
-                          nuisance=nuisance, view=view, store=store if store is not None else WindowStore())
+                          nuisance=nuisance, view=view, store=store if store is not None else WindowStore(),
+                          surfaces=surfaces)
     shared = shared_of(estimator)
     label = "base" if model is None else model.ext.id
     what = (None if model is None else model.k, section_of(pair), sim.dig_order, tuple(offsets), profiles, stitch,
