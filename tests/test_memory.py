@@ -109,11 +109,9 @@ def test_a_window_store_over_its_memory_budget_reads_windows_back_from_disk():
 _HEAP = """
 import sys
 import numpy as np
-from torchsoil.memory import bound_heap
+from torchsoil.memory import release
 def rss():
     return next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmRSS")) / 1024
-if sys.argv[1] == "bound":
-    assert bound_heap()
 np.ones(2 << 20)                                   # a 16 MB block, mmapped and freed
 keep, gone = [], []
 for k in range(12):                                # 16 MB maps with small live objects between them
@@ -121,20 +119,22 @@ for k in range(12):                                # 16 MB maps with small live 
     keep.append(np.ones(100))
 before = rss()
 gone.clear()
+if sys.argv[1] == "release":
+    assert release()
 print(before - rss())
 """
 
 
-def test_whole_drive_arrays_are_given_back_once_freed(tmp_path):
-    """Six of twelve 16 MB arrays freed, after one of that size had been: with the mmap threshold
-    fixed (memory.bound_heap) the 96 MB go back to the system; glibc's moving threshold (the
-    default) had put them on the heap, between live blocks, where they stay resident."""
+def test_whole_drive_arrays_are_given_back_once_released(tmp_path):
+    """Six of twelve 16 MB arrays freed, after one of that size had been (glibc then serves that
+    size from the heap, between live blocks): memory.release gives the 96 MB back; without it
+    they stay resident."""
     import subprocess
     import sys
 
     script = tmp_path / "heap.py"
     script.write_text(_HEAP)
     freed = {mode: float(subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True,
-                                        check=True).stdout) for mode in ("bound", "default")}
-    assert freed["bound"] > 80, freed
-    assert freed["default"] < 40, freed           # what the fix is for (glibc's own behaviour)
+                                        check=True).stdout) for mode in ("release", "default")}
+    assert freed["release"] > 80, freed
+    assert freed["default"] < 40, freed           # what it is for (glibc's own behaviour)

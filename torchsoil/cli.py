@@ -214,9 +214,6 @@ def main(argv: list[str] | None = None) -> int:
     # before torch or numba start their OpenMP runtimes: threads that spin while waiting starve
     # the other pool (3-10x slower on 2 busy cores)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from torchsoil.memory import bound_heap
-
-    bound_heap()        # whole-drive arrays given back when freed (torchsoil.memory)
     from torchsoil.fleet import EngineError
     from torchsoil.logging import DiskFull
     from torchsoil.provenance import OutputMismatch

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from torchsoil.cost import weighted_l1
+from torchsoil.memory import release
 from torchsoil.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
@@ -131,6 +132,7 @@ class Estimator:
             h_back = np.asarray(pair.h_back, np.float64)
             h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
             surfaces = (h_start, h_back - self.nuisance.field if self.nuisance is not None else h_back)
+            release()                  # the whole-grid temporaries of the index, nuisance and smoothing
         self.surfaces = surfaces
         self.h_start, self.h_back = surfaces
         self.arc0 = arc0

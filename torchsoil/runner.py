@@ -20,6 +20,7 @@ from tqdm import tqdm
 from torchsoil import figures, provenance
 from torchsoil.estimator import Estimator, Stitcher
 from torchsoil.logging import CsvLog, TensorBoardLog
+from torchsoil.memory import release
 from torchsoil.robot import Robot
 from torchsoil.settings import PipelineConfig, Settings
 from torchsoil.terrain import TerrainPair
@@ -309,6 +310,7 @@ def _finish_whole(live, bag: Path, out: Path, settings: Settings, sims: SimTiles
     from torchsoil.pipeline.run import finish_result, write_outputs
 
     result = finish_result(live.pipeline, live.rec, bag, wall)
+    release()
     for problem in result.problems:
         print(f"warning: {problem}")
     write_outputs(result, out / "pipeline")

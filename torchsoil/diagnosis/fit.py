@@ -23,6 +23,7 @@ from torchsoil.diagnosis.checkpoint import PassCache, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, term_test
 from torchsoil.estimator import Estimator, Stitcher
+from torchsoil.memory import release
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.windows import WindowStore
 
@@ -146,6 +147,7 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     if cache is not None:
         cache.save(label, what, portable(out))
         part.drop()
+    release()
     return out
 
 
