@@ -356,19 +356,19 @@ def cmd_process_bag(args) -> int:
     settings, given = _bag_settings(args, extra)
     cfg = pipeline_settings(settings, _robot_yaml(args.robot), given)
     out = Path(args.out)
-    checkpoints = Checkpoints(out / "checkpoint", out / "tiles", cfg.checkpoint_s)
+    key = (str(Path(args.bag).resolve()), cfg.replace(checkpoint_s=0).model_dump_json(), repr(_robot(args.robot)))
+    checkpoints = Checkpoints(out / "checkpoint", out / "tiles", cfg.checkpoint_s, key)
     if not args.resume:
         checkpoints.clear()
         shutil.rmtree(out / "tiles", ignore_errors=True)
-    elif not (out / "checkpoint" / "latest").exists():
-        print(f"note: {out} holds no checkpoint to resume from: processing from the start", file=sys.stderr)
     result = process_bag(args.bag, _robot(args.robot), cfg, progress=True, spill_dir=out / "tiles",
                          checkpoints=checkpoints)
     for p in result.problems:
         print(f"warning: {p}", file=sys.stderr)
-    if checkpoints.resumed is not None:
-        print(f"resumed from the checkpoint taken after {checkpoints.resumed} of the recording's messages",
-              file=sys.stderr)
+    if args.resume:
+        print(f"resumed from the checkpoint taken after {checkpoints.resumed} of the recording's messages"
+              if checkpoints.resumed is not None else f"note: {out} held no checkpoint of this recording and "
+              "settings to resume from: processed from the start", file=sys.stderr)
     paths = write_outputs(result, args.out)
     checkpoints.clear()
     shutil.rmtree(out / "tiles", ignore_errors=True)

@@ -87,9 +87,10 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
     recomputing it; nuisance, view, store and surfaces likewise (Pass.nuisance, Pass.view,
-    Pass.store, Pass.surfaces; a new store when None). stitch: also keep the simulated H_b over the drive (Pass.h_sim).
-    cache: where finished passes are kept (checkpoint.PassCache): a pass found there is read
-    back (on_window is then not called), a new one is saved."""
+    Pass.store, Pass.surfaces; a new store when None). stitch: also keep the simulated H_b
+    over the drive (Pass.h_sim). cache: where finished passes are kept (checkpoint.PassCache):
+    a pass found there is read back (on_window is then not called), a new one is saved, and a
+    pass in progress is kept as it goes (`Partial`) and resumed from its last kept window."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
                           nuisance=nuisance, view=view, store=store if store is not None else WindowStore(),
                           surfaces=surfaces)

@@ -40,10 +40,12 @@ def _link_tree(src: Path, dst: Path) -> None:
 
 class Checkpoints:
     """Pipeline checkpoints in `directory` for a pipeline spilling its tiles to `spill_dir`
-    (None: all in memory), taken at most every `every` seconds of wall time."""
+    (None: all in memory), taken at most every `every` seconds of wall time. key: what the run
+    depends on (recording, robot, settings; any picklable value): a checkpoint taken under
+    another key is not resumed from."""
 
-    def __init__(self, directory: str | Path, spill_dir: str | Path | None, every: float = 30.0):
-        self.dir, self.every = Path(directory), every
+    def __init__(self, directory: str | Path, spill_dir: str | Path | None, every: float = 30.0, key=None):
+        self.dir, self.every, self.key = Path(directory), every, key
         self.spill = Path(spill_dir) if spill_dir is not None else None
         self.last = time.monotonic()
         self.n = 0
@@ -62,7 +64,8 @@ class Checkpoints:
         if self.spill is not None and self.spill.exists():
             _link_tree(self.spill, step / "spill")
         with (step / "state.pkl").open("wb") as fh:
-            pickle.dump({"format": FORMAT, "taken": taken, "online": online}, fh, protocol=pickle.HIGHEST_PROTOCOL)
+            pickle.dump({"format": FORMAT, "key": self.key, "taken": taken, "online": online}, fh,
+                        protocol=pickle.HIGHEST_PROTOCOL)
         tmp = self.dir / "latest.tmp"
         tmp.write_text(str(self.n))
         os.replace(tmp, self.dir / "latest")
@@ -73,7 +76,8 @@ class Checkpoints:
 
     def load(self):
         """(OnlinePipeline, items taken) of the newest checkpoint, its spilled tiles put back in
-        spill_dir; None when there is none (or it is unreadable: start afresh)."""
+        spill_dir; None when there is none, it is unreadable or was taken under another key
+        (start afresh)."""
         latest = self.dir / "latest"
         if not latest.exists():
             return None
@@ -83,7 +87,7 @@ class Checkpoints:
                 state = pickle.load(fh)
         except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ValueError):
             return None
-        if state.get("format") != FORMAT:
+        if state.get("format") != FORMAT or state.get("key") != self.key:
             return None
         if self.spill is not None:
             if self.spill.exists():
