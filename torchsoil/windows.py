@@ -244,7 +244,7 @@ class WindowStore:
     does not grow with the drive and a long drive is not prepared anew on every pass.
     spill=False: beyond `max_bytes`, windows are prepared anew each time."""
 
-    def __init__(self, max_bytes: int = 64 << 20, spill: bool = True, spill_dir: str | None = None):
+    def __init__(self, max_bytes: int = 16 << 20, spill: bool = True, spill_dir: str | None = None):
         self.max_bytes, self.spill, self.spill_dir = max_bytes, spill, spill_dir
         self.nbytes = 0
         self.spilled_bytes = 0

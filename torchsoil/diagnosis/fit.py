@@ -105,7 +105,7 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
-        prof = Profiles.empty(r, pair.dx, est.weight_width * pair.robot.wheel_width)
+        prof = Profiles.empty(r, pair.dx, est.weight_width * pair.robot.wheel_width, floor=model is None)
     stride = est.stride
     rows, floor, backward = [], [], []
     wheels_y = pair.robot.wheels[:, 1]

@@ -255,11 +255,14 @@ class Profiles:
     floor_s: list = field(default_factory=list)
     floor_r: list = field(default_factory=list)
     floor_side: list = field(default_factory=list)
+    floor: bool = True
 
     @classmethod
-    def empty(cls, radius: float, dx: float, reach: float) -> Profiles:
+    def empty(cls, radius: float, dx: float, reach: float, floor: bool = True) -> Profiles:
+        """No segment yet; floor=False: without the rut-floor series (a candidate's pass, whose
+        cross-track profiles alone are drawn: half a pass's memory on a long drive)."""
         n = int(math.ceil(reach / dx))
-        return cls(np.arange(-n, n + 1) * dx, dx, radius)
+        return cls(np.arange(-n, n + 1) * dx, dx, radius, floor=floor)
 
     def add(self, wd, h_sim, s_cells: np.ndarray, s0: float, s1: float, wheels_y: np.ndarray,
             outer: tuple[np.ndarray, np.ndarray] | None = None) -> None:
@@ -303,6 +306,8 @@ class Profiles:
         self.seg_s.append(0.5 * (s0 + s1))
         for k in acc:
             getattr(self, k).append(acc[k])
+        if not self.floor:
+            return
         fl = (zone_of(lat, self.radius, self.dx) == 0) & (w_side == 1)
         self.floor_s.append(s[fl])
         self.floor_r.append((hs - hb)[fl])
