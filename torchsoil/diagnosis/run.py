@@ -29,7 +29,9 @@ from torchsoil.windows import path_arc
 
 @dataclass
 class Diagnosis:
-    """Everything the report needs: `summary` is the diagnosis.json dict (docs/formats.md 4)."""
+    """Everything the report needs: `summary` is the diagnosis.json dict (docs/formats.md 4);
+    residual_map: (X, Y) float32 simulated - measured H_b of the base model [m]; s_index: (X, Y)
+    arc length of each cell [m]."""
 
     summary: dict
     base: Pass
@@ -359,10 +361,9 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     }
     from torchsoil.diagnosis.report import explain
 
-    h_back = np.asarray(pair.h_back, np.float64)
-    if base.nuisance is not None:
-        h_back = h_back - base.nuisance.field               # as the estimator fitted it (Estimator.h_back)
-    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, base.h_sim - h_back, base.index.s)
+    h_back = base.surfaces[1]                               # as the estimator fitted it (Estimator.h_back)
+    residual = (base.h_sim - h_back).astype(np.float32)     # drawn only (report.fig_residual_map)
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s)
     summary["explanation"] = explain(diag)
     return diag
 
