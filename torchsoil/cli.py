@@ -361,8 +361,16 @@ def cmd_process_bag(args) -> int:
     if not args.resume:
         checkpoints.clear()
         shutil.rmtree(out / "tiles", ignore_errors=True)
-    result = process_bag(args.bag, _robot(args.robot), cfg, progress=True, spill_dir=out / "tiles",
-                         checkpoints=checkpoints)
+    fresh = not out.exists()
+    try:
+        result = process_bag(args.bag, _robot(args.robot), cfg, progress=True, spill_dir=out / "tiles",
+                             checkpoints=checkpoints)
+    except Exception:          # an unusable recording: nothing left behind (an interrupt keeps the checkpoint)
+        checkpoints.clear()
+        shutil.rmtree(out / "tiles", ignore_errors=True)
+        if fresh and out.exists() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     for p in result.problems:
         print(f"warning: {p}", file=sys.stderr)
     if args.resume:
