@@ -23,6 +23,7 @@ from torchsoil.diagnosis.fit import (
     with_section,
 )
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
+from torchsoil.diagnosis.revisits import hardening_across_visits, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
 
@@ -39,6 +40,7 @@ class Diagnosis:
     windows: dict
     residual_map: np.ndarray
     s_index: np.ndarray
+    revisits: dict | None = None
 
 
 def _z_two_sided(alpha: float) -> float:
@@ -277,7 +279,15 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
-    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
+    alpha = cfg.alpha_accept
+    revisit = None
+    if getattr(pair, "visit_front", None) is not None:       # hardening on the same ground: half the level
+        alpha = cfg.alpha_accept / 2
+        vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
+        revisit = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+        if progress is not None:
+            progress.update(1)
+    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], alpha,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
                       strict=True))
@@ -296,7 +306,12 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     located = bool(sig_zones or sig_asym or sig_line)
     s0, s1 = s - window / 2, s + window / 2
     covariate = None
-    if best is not None:
+    by_visits = revisit is not None and revisit["accepted"] and (best is None or best.ext.id == "multi_pass_hardening")
+    if by_visits:
+        verdict, cross, covariate, best = "missing_physics", "rut_floor", "passes", None
+        spans = _spans(np.ones(len(revisit["s"]), bool), np.array(revisit["s"]) - window / 2,
+                       np.array(revisit["s"]) + window / 2)
+    elif best is not None:
         verdict = "missing_physics"
         gain = base.held_out - best.held_out            # scored on the neighbouring windows' ground
         spans = _spans(_outliers(gain), s0, s1)
@@ -332,6 +347,11 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     before = {"residual": float(np.nanmean(base.residual)), "prediction": float(np.nanmean(base.prediction))}
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
+    params = {best.ext.parameter: round(best.k, 4)} if best is not None else {}
+    if by_visits:                   # costs of predicting the later visits from the first visit's soil
+        before = {"residual": before["residual"], "prediction": revisit["cost_before"]}
+        after = {"residual": before["residual"], "prediction": revisit["cost_after"]}
+        params = {revisit["parameter"]: round(revisit["coefficient"], 4)}
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "rut_shape": prof.shape(z_loc),
                 "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
@@ -343,17 +363,18 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "tyre_section": section,
                 "dig_order": dig,
+                "revisits": revisit,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
         "verdict": verdict,
-        "missing_physics": best.ext.id if best is not None else None,
+        "missing_physics": "multi_pass_hardening" if by_visits else best.ext.id if best is not None else None,
         "where": {"cross_track": cross, "along_track": spans, "covariate": covariate},
         "explanation": "",
         "cost_before": before,
         "cost_after": after,
         "noise_floor": float(np.nanmean(base.floor)),
-        "extension_parameters": {best.ext.parameter: round(best.k, 4)} if best is not None else {},
+        "extension_parameters": params,
         "candidates": [{"id": f.ext.id, "prediction": float(np.nanmean(f.prediction)), "accepted": bool(f.accepted)}
                        for f in fits],
     }
@@ -362,15 +383,17 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     h_back = np.asarray(pair.h_back, np.float64)
     if base.nuisance is not None:
         h_back = h_back - base.nuisance.field               # as the estimator fitted it (Estimator.h_back)
-    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, base.h_sim - h_back, base.index.s)
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, base.h_sim - h_back, base.index.s,
+                     revisit)
     summary["explanation"] = explain(diag)
     return diag
 
 
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:
-    """Upper bound on the estimator passes of one diagnosis (for a progress bar)."""
+    """Upper bound on the estimator passes of one diagnosis (for a progress bar; one per visit
+    pass on a pair with visit layers)."""
     cfg = cfg or DiagnosisConfig()
-    return 1 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)
+    return 2 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)   # + the per-visit pass
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]
