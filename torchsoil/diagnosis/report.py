@@ -126,8 +126,8 @@ def revisit_text(rev: dict, s: dict, span: str) -> str:
     """The explanation of hardening named on the same ground (revisits.hardening_across_visits)."""
     shape = rev["shape"] or "geometric"
     how = (f"a {shape} law fits best ({LAW_TEXT[shape]}, {rev['parameter']} = {rev['coefficient']:.3g})"
-           if rev["shape"] else f"{LAW_TEXT['geometric']} with g = {rev['g']:.3g} per wheel pass (the drive has "
-           f"one pass count between visits, at which every law fits: "
+           if rev["shape"] else f"{LAW_TEXT['geometric']} with g = {rev['g']:.3g} per wheel pass (the drive does "
+           f"not tell the laws' shapes apart: "
            + ", ".join(f"{k} {v['coefficient']:.3g}" for k, v in rev["laws"].items()) + ")")
     rut = rev["rut"]
     return (f"The base model leaves out: each later pass over the same ground sinks less than the first "
@@ -326,7 +326,7 @@ def revisit_markdown(rev: dict) -> str:
              f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}.", "",
              "| law | coefficient | cross-visit cost |", "| --- | --- | --- |"]
     lines += [f"| {k}: {LAW_TEXT[k]} | {v['coefficient']:.3g} | {_mm(v['cost'])} |" for k, v in rev["laws"].items()]
-    lines += ["", f"Shape: {rev['shape'] or 'not told apart (one pass count between visits)'}."]
+    lines += ["", f"Shape: {rev['shape'] or 'not told apart on this drive'}."]
     return "\n".join(lines)
 
 

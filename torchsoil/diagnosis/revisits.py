@@ -236,17 +236,24 @@ def fit_cost_law(later: dict, shape: str = "geometric") -> float:
     return float(grid[int(np.nanargmin(c))])
 
 
-def _shapes(later: dict, min_windows: int = 4) -> tuple[dict, str | None]:
+def _shapes(later: dict, level: float, min_windows: int = 4) -> tuple[dict, str | None]:
     """Each law's coefficient fitted on the cross-visit costs and its mean cost, m; the
-    best-fitting shape, or None when fewer than two pass distances (passes since the first
-    visit) have `min_windows` windows each: with one, every law fits exactly."""
-    laws = {}
+    best-fitting shape, or None when the shapes are not told apart: fewer than two pass
+    distances (passes since the first visit) with `min_windows` windows each (with one, every
+    law fits exactly), or the best law's per-window costs not lower than each other law's at
+    z `level` (`locate.paired_improvement`)."""
+    from torchsoil.diagnosis.locate import paired_improvement
+
+    laws, costs = {}, {}
     for shape in LAWS:
         c = fit_cost_law(later, shape)
-        laws[shape] = {"coefficient": c, "cost": float(np.nanmean(cross_costs(later, c, shape)))}
+        costs[shape] = cross_costs(later, c, shape)
+        laws[shape] = {"coefficient": c, "cost": float(np.nanmean(costs[shape]))}
     dn = np.array([v["passes"] for v in later.values()])
     levels = [n for n in np.unique(dn) if (dn == n).sum() >= min_windows]
-    return laws, (min(LAWS, key=lambda k: laws[k]["cost"]) if len(levels) >= 2 else None)
+    best = min(LAWS, key=lambda k: laws[k]["cost"])
+    apart = all(paired_improvement(costs[k], costs[best])[2] > level for k in LAWS if k != best)
+    return laws, (best if len(levels) >= 2 and apart else None)
 
 
 def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, block_m: float,
@@ -291,7 +298,7 @@ def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, blo
     level = float(stats.norm.isf(alpha))
     gain = float(np.nanmean(base - ext))
     rut_at = [at_factor(v, "rut", float(law_factor("geometric", g, v["passes"]))) for v in later.values()]
-    laws, shape = _shapes(later)
+    laws, shape = _shapes(later, level)
     named = shape or "geometric"          # the geometric law is the one a visit's ratio measures directly
     accepted = bool(z_vis > level and all(x < 1.0 for x in g_folds) and gain > 0 and 1.0 - g >= materiality)
     return {**out, "accepted": accepted, "z_visible": float(z_vis), "z_level": level, "g": g,
