@@ -193,7 +193,8 @@ class Estimator:
         for g in wd.earlier:
             h = simulate(h, g, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, g), h_ref=h_ref).h
             again = g.domain if again is None else again | g.domain
-            h_ref = revisit_reference(h, wd.h_ref, again, self.sim.revisit_ref, self.sim.ref_radius, g.radius, g.dx)
+            # the paper's disc, as torchsoil's synthetic world digs its revisits (sim.revisit_ref: per-visit fits)
+            h_ref = revisit_reference(h, wd.h_ref, again, "disc", self.sim.ref_radius, g.radius, g.dx)
         return simulate(h, wd.geom, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, wd.geom),
                         h_ref=h_ref)
 

@@ -17,9 +17,9 @@ from torchsoil.diagnosis.revisits import (
     fit_law,
     hardening_across_visits,
     law_factor,
+    ratio_test,
     revisits,
     run_visits,
-    test_hardening as sinkage_ratio_test,
 )
 from torchsoil.settings import load_settings
 from torchsoil.terrain import TerrainPair
@@ -67,14 +67,14 @@ def test_each_law_is_recovered_from_three_pass_counts(shape, c):
     w = revisits(windows(lambda n: law_factor(shape, c, n), n=(0, 2, 4)), 2)
     got, rms = fit_law(w, shape)
     assert got == pytest.approx(c, rel=1e-3) and rms < 1e-6
-    result = sinkage_ratio_test(w, 0.05, 0.05)
+    result = ratio_test(w, 0.05, 0.05)
     assert result["shape"] == shape and result["accepted"]
 
 
 def test_sinkage_ratio_test_keeps_soil_that_does_not_harden():
-    result = sinkage_ratio_test(revisits(windows(lambda n: 1.0, noise=0.1), 2), 0.05, 0.05)
+    result = ratio_test(revisits(windows(lambda n: 1.0, noise=0.1), 2), 0.05, 0.05)
     assert not result["accepted"] and result["shape"] is None    # two pass counts: shapes not told apart
-    hard = sinkage_ratio_test(revisits(windows(lambda n: 0.5 ** n, noise=0.1), 2), 0.05, 0.05)
+    hard = ratio_test(revisits(windows(lambda n: 0.5 ** n, noise=0.1), 2), 0.05, 0.05)
     assert hard["accepted"] and hard["g"] == pytest.approx(0.5, abs=0.05)
 
 

@@ -123,7 +123,7 @@ def per_pass(wins: list[Revisit], floor: float = 1e-4) -> np.ndarray:
     return np.array(out)
 
 
-def test_hardening(wins: list[Revisit], alpha: float, materiality: float) -> dict:
+def ratio_test(wins: list[Revisit], alpha: float, materiality: float) -> dict:
     """Is the sinkage at later visits of the same ground lower than at the first?
 
     Per window, the log factor per pass (`per_pass`); their mean is tested against 0 with a
@@ -276,7 +276,7 @@ def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, blo
     g and g_folds, effect, gain (m), cost_before / cost_after (mean cross-visit cost without
     and with the law, m), noise_floor (m), rut (measured, simulated without the law and with it,
     mean over the later visits, m), laws {shape: {coefficient, cost}}, shape (best-fitting
-    law, or None), and the per-visit fits' sinkage ratios (`test_hardening`, for reference)."""
+    law, or None), and the per-visit fits' sinkage ratios (`ratio_test`, for reference)."""
     from torchsoil.diagnosis.locate import paired_improvement
 
     later = {k: v for k, v in vp.later.items() if np.all(np.isfinite(v["cost"])) and np.isfinite(v["floor"])}
@@ -311,4 +311,4 @@ def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, blo
             "laws": laws, "shape": shape, "parameter": PARAMETER[named],
             "coefficient": g if named == "geometric" else laws[named]["coefficient"],
             "s": [float(s) for s, _ in keys],
-            "sinkage_ratios": test_hardening(revisits(vp.rows, n_tracks), alpha, materiality)}
+            "sinkage_ratios": ratio_test(revisits(vp.rows, n_tracks), alpha, materiality)}

@@ -226,6 +226,35 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     return with_section(pair, best), sim, section, dig, shared, best_few(costs) if cfg.sections else ()
 
 
+def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass, n_tracks: int,
+             progress=None) -> tuple[float, dict | None]:
+    """Hardening on the same ground (revisits.hardening_across_visits) on a pair with visit
+    layers, at half the family-wise level. Returns (the level left to the catalogue's
+    candidates, the test's dict or None without visit layers)."""
+    if getattr(pair, "visit_front", None) is None:
+        return cfg.alpha_accept, None
+    alpha = cfg.alpha_accept / 2
+    vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
+    if progress is not None:
+        progress.update(1)
+    return alpha, hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+
+
+def _named_on_visits(revisit: dict | None, best) -> bool:
+    """Hardening is named on the ground driven again when its test there accepted it and no
+    other catalogue term was (a term accepted on the last view wins: its own evidence)."""
+    return revisit is not None and revisit["accepted"] and (best is None or best.ext.id == "multi_pass_hardening")
+
+
+def _visit_costs(revisit: dict, residual: float) -> tuple[dict, dict, dict]:
+    """cost_before, cost_after and extension_parameters of hardening named on the same
+    ground: the cost of predicting the later visits from the first visit's soil without and
+    with the law [m] (the windows' mean residual [m] beside them), the law's coefficient."""
+    before = {"residual": residual, "prediction": revisit["cost_before"]}
+    after = {"residual": residual, "prediction": revisit["cost_after"]}
+    return before, after, {revisit["parameter"]: round(revisit["coefficient"], 4)}
+
+
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
              sim: SimConfig | None = None, progress=None, cache: PassCache | None = None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
@@ -279,14 +308,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
-    alpha = cfg.alpha_accept
-    revisit = None
-    if getattr(pair, "visit_front", None) is not None:       # hardening on the same ground: half the level
-        alpha = cfg.alpha_accept / 2
-        vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
-        revisit = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
-        if progress is not None:
-            progress.update(1)
+    alpha, revisit = _revisit(pair, cfg, est, sim, base, n_tracks, progress)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], alpha,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
@@ -306,12 +328,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     located = bool(sig_zones or sig_asym or sig_line)
     s0, s1 = s - window / 2, s + window / 2
     covariate = None
-    by_visits = revisit is not None and revisit["accepted"] and (best is None or best.ext.id == "multi_pass_hardening")
-    if by_visits:
-        verdict, cross, covariate, best = "missing_physics", "rut_floor", "passes", None
-        spans = _spans(np.ones(len(revisit["s"]), bool), np.array(revisit["s"]) - window / 2,
-                       np.array(revisit["s"]) + window / 2)
-    elif best is not None:
+    if best is not None:
         verdict = "missing_physics"
         gain = base.held_out - best.held_out            # scored on the neighbouring windows' ground
         spans = _spans(_outliers(gain), s0, s1)
@@ -348,10 +365,12 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
     params = {best.ext.parameter: round(best.k, 4)} if best is not None else {}
-    if by_visits:                   # costs of predicting the later visits from the first visit's soil
-        before = {"residual": before["residual"], "prediction": revisit["cost_before"]}
-        after = {"residual": before["residual"], "prediction": revisit["cost_after"]}
-        params = {revisit["parameter"]: round(revisit["coefficient"], 4)}
+    named = best.ext.id if best is not None else None
+    if _named_on_visits(revisit, best):      # hardening named on the ground driven again
+        verdict, cross, covariate, best, named = "missing_physics", "rut_floor", "passes", None, "multi_pass_hardening"
+        spans = _spans(np.ones(len(revisit["s"]), bool), np.array(revisit["s"]) - window / 2,
+                       np.array(revisit["s"]) + window / 2)
+        before, after, params = _visit_costs(revisit, before["residual"])
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "rut_shape": prof.shape(z_loc),
                 "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
@@ -368,7 +387,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                                     for n in SIGNALS}}
     summary = {
         "verdict": verdict,
-        "missing_physics": "multi_pass_hardening" if by_visits else best.ext.id if best is not None else None,
+        "missing_physics": named,
         "where": {"cross_track": cross, "along_track": spans, "covariate": covariate},
         "explanation": "",
         "cost_before": before,
