@@ -19,6 +19,10 @@ For every pose and every wheel:
    over the one-cell-wide band beside the wheel: the cells with r < |lateral| <= r + dx
    and |longitudinal| <= r, left and right of the footprint.
 
+On ground earlier wheels dug (`dug`: a visit after the first, in the first's ruts), the
+reference of step 2 is instead the mean of the surface before the robot over the whole
+footprint (the cells within r): a wheel spans a rut of its own width and rests on its walls.
+
 With dig="wheel" the axles take turns instead (front first; the drives made here go forward):
 each digs the whole drive in step 3 from a reference height taken anew from the surface the
 axles before it left (deposits included), so the rear wheel digs again in the front one's rut.
@@ -109,9 +113,10 @@ def relax(h: np.ndarray, dx: float, beta: float, tau: float = 0.01, eps_scale: f
 
 def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.ndarray, wheel_width: float,
              d: tuple[float, ...], chi: float, beta: float, ref_radius: float = 0.5, flat: float = 0.0,
-             tau: float = 0.01, dig: str = "robot") -> tuple[np.ndarray, dict]:
+             tau: float = 0.01, dig: str = "robot", dug: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Algorithm 1 on the surface h0 (X, Y) [m]; d: sinkage per track [m]; beta [rad]; dig:
-    "robot" (every wheel from the surface before the robot) or "wheel" (axle after axle).
+    "robot" (every wheel from the surface before the robot) or "wheel" (axle after axle);
+    dug: (X, Y) bool cells earlier wheels dug (reference over the whole footprint there).
 
     Returns the surface after the drive and {"removed": total removed volume m^3,
     "deposited": total deposited volume m^3, "iterations": relaxation iterations}."""
@@ -119,6 +124,8 @@ def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.nd
     h = h0.copy()
     r = wheel_width / 2
     h_ref = disc_mean(h0, ref_radius * r, dx)
+    if dug is not None:
+        h_ref = np.where(dug, disc_mean(h0, r, dx), h_ref)
     xs = origin[0] + dx * np.arange(h.shape[0])
     ys = origin[1] + dx * np.arange(h.shape[1])
     reach = int(math.ceil((r + 2 * dx) / dx))

@@ -22,7 +22,7 @@ from torchsoil.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import ParamSpec, simulate
-from torchsoil.sim.sinkage import reference_height
+from torchsoil.sim.sinkage import revisit_reference
 from torchsoil.visits import passes_before, rut_depth, visit_counts, visit_poses, wheel_passes
 from torchsoil.windows import (
     WindowData,
@@ -201,7 +201,8 @@ class Estimator:
         for g in wd.earlier:
             h = simulate(h, g, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, g), h_ref=h_ref).h
             again = g.domain if again is None else again | g.domain
-            h_ref = torch.where(again, reference_height(h, self.sim.ref_radius * g.radius, g.dx), wd.h_ref)
+            # the paper's disc, as torchsoil's synthetic world digs its revisits (sim.revisit_ref: per-visit fits)
+            h_ref = revisit_reference(h, wd.h_ref, again, "disc", self.sim.ref_radius, g.radius, g.dx)
         return simulate(h, wd.geom, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, wd.geom),
                         h_ref=h_ref)
 
@@ -320,9 +321,22 @@ class Estimator:
                                     extra_flags=self._registration_flags(spec), h_start=self.visit_start[v],
                                     h_back=self.visit_back[v], h_measured=pair.visit_front[v], poses=poses,
                                     keep=keep)
+                if wd is not None:
+                    wd = self._dug_reference(wd, v)
                 out[v] = wd if wd is None or v == own else wd._replace(t=t_med[v])
         self._visit_cache[k] = out
         return out
+
+    def _dug_reference(self, wd: WindowData, visit: int) -> WindowData:
+        """wd with its reference height on the cells earlier wheel passes went over before visit
+        `visit` (`passes_before`) taken as a wheel coming back finds it (sim.revisit_ref)."""
+        i0, i1, j0, j1 = wd.crop
+        dug = torch.as_tensor(self.passes_before[visit, i0:i1, j0:j1] > 0, device=wd.h_ref.device)
+        if not bool(dug.any()):
+            return wd
+        ref = revisit_reference(wd.h_front, wd.h_ref, dug, self.sim.revisit_ref, self.sim.ref_radius,
+                                wd.geom.radius, wd.geom.dx)
+        return wd._replace(h_ref=ref)
 
     def _passes_before(self, wd: WindowData | None, visit: int) -> float:
         """Wheel passes the window's ruts (its ground within a quarter wheel width of a wheel

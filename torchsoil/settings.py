@@ -49,6 +49,11 @@ class SimConfig(Section):
                                                            "(capped relaxation); null: until tau")
     ref_radius: float = Field(0.5, ge=0, description="reference-height disc radius, fraction of half the "
                                                      "wheel width")
+    revisit_ref: Literal["footprint", "disc"] = Field(
+        "footprint", description="reference height of a visit after the first, fitted on its own maps, on the "
+                                 "cells earlier wheel passes went over: footprint: the mean over the wheel's "
+                                 "whole footprint, the level a wheel that spans the rut rests on "
+                                 "(docs/visits.md); disc: the ref_radius disc of fresh ground")
     band_width: float = Field(1.0, gt=0, description="deposition band beside the rut, cells")
     relax_margin: float = Field(2.0, ge=0, description="relaxation domain: rut plus this many wheel widths "
                                                        "each side")

@@ -50,7 +50,8 @@ def explain(diag) -> str:
                  "surface before the robot, so d is the sinkage of each wheel, not of the robot, and a "
                  "hardening term counts every wheel's pass (a rear wheel in its front wheel's rut runs the "
                  "second).")
-    return _explain(diag) + _nearest(diag) + note
+    named = diag.summary["verdict"] == "missing_physics"        # by a candidate, or on the ground driven again
+    return _explain(diag) + ("" if named else _nearest(diag)) + note
 
 
 def _nearest(diag) -> str:
@@ -120,11 +121,37 @@ def effect_text(f) -> str:
     return f" At that coefficient the term changes the sinkage by {100 * e:.0f} % or more on a twentieth of the drive."
 
 
+LAW_TEXT = {"geometric": "d_n = d_0 g^n", "hyperbolic": "d_n = d_0 / (1 + a n)", "power": "d_n = d_0 (1 + n)^b"}
+
+
+def revisit_text(rev: dict, s: dict, span: str) -> str:
+    """The explanation of hardening named on the same ground (revisits.hardening_across_visits)."""
+    shape = rev["shape"] or "geometric"
+    how = (f"a {shape} law fits best ({LAW_TEXT[shape]}, {rev['parameter']} = {rev['coefficient']:.3g})"
+           if rev["shape"] else f"{LAW_TEXT['geometric']} with g = {rev['g']:.3g} per wheel pass (the drive does "
+           f"not tell the laws' shapes apart: "
+           + ", ".join(f"{k} {v['coefficient']:.3g}" for k, v in rev["laws"].items()) + ")")
+    rut = rev["rut"]
+    return (f"The base model leaves out: each later pass over the same ground sinks less than the first "
+            f"(multi_pass_hardening), named on the ground driven more than once. {len(rev['s'])} windows were "
+            f"fitted visit by visit; the first visit's soil predicts the later visits' ground at "
+            f"{_mm(rev['cost_before'])} against their noise floor {_mm(rev['noise_floor'])} (paired over windows, "
+            f"z = {rev['z_visible']:.1f} against {rev['z_level']:.1f}), and sinking less by {how} brings it to "
+            f"{_mm(rev['cost_after'])} (g chosen on the other fold of blocks: {rev['g_folds'][0]:.3g}, "
+            f"{rev['g_folds'][1]:.3g}). Each pass sinks {100 * rev['effect']:.0f} % less than the one before. The "
+            f"later visits dug ruts of {_mm(rut['measured'])}; the first visit's soil would dig "
+            f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}. The mismatch "
+            f"lies on the rut floor and follows the passes; it matters at {span}.")
+
+
 def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
     where = s["where"]
     span = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in where["along_track"]) or "no particular stretch"
+    rev = getattr(diag, "revisits", None)
+    if s["verdict"] == "missing_physics" and diag.best is None and rev is not None:
+        return revisit_text(rev, s, span)
     if s["verdict"] == "missing_physics":
         f = diag.best
         (k, v), = s["extension_parameters"].items()
@@ -290,6 +317,24 @@ def fig_costs(diag, path: Path) -> Path:
     return path
 
 
+def revisit_markdown(rev: dict) -> str:
+    """The per-visit hardening test (revisits.hardening_across_visits) as Markdown."""
+    if "z_visible" not in rev:
+        return f"Not tested: {rev.get('reason', 'no later visits')}."
+    rut = rev["rut"]
+    lines = [f"Each later visit of {rev['windows']} windows simulated from its own start with the first visit's "
+             f"soil: cost {_mm(rev['cost_before'])} against a noise floor of {_mm(rev['noise_floor'])} (z = "
+             f"{rev['z_visible']:.2f}, needed {rev['z_level']:.2f}); with each pass sinking g = {rev['g']:.3g} "
+             f"times the one before (folds {rev['g_folds'][0]:.3g}, {rev['g_folds'][1]:.3g}; mean gain "
+             f"{_mm(rev['gain'])}): {_mm(rev['cost_after'])}. Accepted: {rev['accepted']}.", "",
+             f"Rut the later visits added: measured {_mm(rut['measured'])}, simulated from the first visit's soil "
+             f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}.", "",
+             "| law | coefficient | cross-visit cost |", "| --- | --- | --- |"]
+    lines += [f"| {k}: {LAW_TEXT[k]} | {v['coefficient']:.3g} | {_mm(v['cost'])} |" for k, v in rev["laws"].items()]
+    lines += ["", f"Shape: {rev['shape'] or 'not told apart on this drive'}."]
+    return "\n".join(lines)
+
+
 def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -> Path:
     s, ev = diag.summary, diag.evidence
     lines = [f"# Diagnosis of {input_name}", "", f"**Verdict: {s['verdict']}**"
@@ -334,7 +379,11 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
               f"prediction {_mm(s['cost_before']['prediction'])}",
               f"- after: residual {_mm(s['cost_after']['residual'])}, "
               f"prediction {_mm(s['cost_after']['prediction'])}",
-              f"- noise floor: {_mm(s['noise_floor'])}", "", "## Figures", ""]
+              f"- noise floor: {_mm(s['noise_floor'])}", ""]
+    rev = getattr(diag, "revisits", None)
+    if rev is not None:
+        lines += ["## Ground driven more than once", "", revisit_markdown(rev), ""]
+    lines += ["## Figures", ""]
     lines += [f"![{k}]({v})" for k, v in figures.items()]
     path.write_text("\n".join(lines) + "\n")
     return path

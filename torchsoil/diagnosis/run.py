@@ -23,6 +23,7 @@ from torchsoil.diagnosis.fit import (
     with_section,
 )
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
+from torchsoil.diagnosis.revisits import hardening_across_visits, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
 
@@ -41,6 +42,7 @@ class Diagnosis:
     windows: dict
     residual_map: np.ndarray
     s_index: np.ndarray
+    revisits: dict | None = None
 
 
 def _z_two_sided(alpha: float) -> float:
@@ -226,6 +228,35 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     return with_section(pair, best), sim, section, dig, shared, best_few(costs) if cfg.sections else ()
 
 
+def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass, n_tracks: int,
+             progress=None) -> tuple[float, dict | None]:
+    """Hardening on the same ground (revisits.hardening_across_visits) on a pair with visit
+    layers, at half the family-wise level. Returns (the level left to the catalogue's
+    candidates, the test's dict or None without visit layers)."""
+    if getattr(pair, "visit_front", None) is None:
+        return cfg.alpha_accept, None
+    alpha = cfg.alpha_accept / 2
+    vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
+    if progress is not None:
+        progress.update(1)
+    return alpha, hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+
+
+def _named_on_visits(revisit: dict | None, best) -> bool:
+    """Hardening is named on the ground driven again when its test there accepted it and no
+    other catalogue term was (a term accepted on the last view wins: its own evidence)."""
+    return revisit is not None and revisit["accepted"] and (best is None or best.ext.id == "multi_pass_hardening")
+
+
+def _visit_costs(revisit: dict, residual: float) -> tuple[dict, dict, dict]:
+    """cost_before, cost_after and extension_parameters of hardening named on the same
+    ground: the cost of predicting the later visits from the first visit's soil without and
+    with the law [m] (the windows' mean residual [m] beside them), the law's coefficient."""
+    before = {"residual": residual, "prediction": revisit["cost_before"]}
+    after = {"residual": residual, "prediction": revisit["cost_after"]}
+    return before, after, {revisit["parameter"]: round(revisit["coefficient"], 4)}
+
+
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
              sim: SimConfig | None = None, progress=None, cache: PassCache | None = None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
@@ -279,7 +310,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
-    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
+    alpha, revisit = _revisit(pair, cfg, est, sim, base, n_tracks, progress)
+    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], alpha,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
                       strict=True))
@@ -334,6 +366,13 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     before = {"residual": float(np.nanmean(base.residual)), "prediction": float(np.nanmean(base.prediction))}
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
+    params = {best.ext.parameter: round(best.k, 4)} if best is not None else {}
+    named = best.ext.id if best is not None else None
+    if _named_on_visits(revisit, best):      # hardening named on the ground driven again
+        verdict, cross, covariate, best, named = "missing_physics", "rut_floor", "passes", None, "multi_pass_hardening"
+        spans = _spans(np.ones(len(revisit["s"]), bool), np.array(revisit["s"]) - window / 2,
+                       np.array(revisit["s"]) + window / 2)
+        before, after, params = _visit_costs(revisit, before["residual"])
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "rut_shape": prof.shape(z_loc),
                 "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
@@ -345,17 +384,18 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "tyre_section": section,
                 "dig_order": dig,
+                "revisits": revisit,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
         "verdict": verdict,
-        "missing_physics": best.ext.id if best is not None else None,
+        "missing_physics": named,
         "where": {"cross_track": cross, "along_track": spans, "covariate": covariate},
         "explanation": "",
         "cost_before": before,
         "cost_after": after,
         "noise_floor": float(np.nanmean(base.floor)),
-        "extension_parameters": {best.ext.parameter: round(best.k, 4)} if best is not None else {},
+        "extension_parameters": params,
         "candidates": [{"id": f.ext.id, "prediction": float(np.nanmean(f.prediction)), "accepted": bool(f.accepted)}
                        for f in fits],
     }
@@ -363,15 +403,16 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
 
     h_back = base.surfaces[1]                               # as the estimator fitted it (Estimator.h_back)
     residual = (base.h_sim - h_back).astype(np.float32)     # drawn only (report.fig_residual_map)
-    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s)
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s, revisit)
     summary["explanation"] = explain(diag)
     return diag
 
 
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:
-    """Upper bound on the estimator passes of one diagnosis (for a progress bar)."""
+    """Upper bound on the estimator passes of one diagnosis (for a progress bar; one per visit
+    pass on a pair with visit layers)."""
     cfg = cfg or DiagnosisConfig()
-    return 1 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)
+    return 2 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)   # + the per-visit pass
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]

@@ -49,6 +49,31 @@ def reference_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
     return num / den
 
 
+def contact_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
+    """Reference height of a wheel coming back over ground that wheels dug before: the mean of
+    h over the wheel's whole footprint, a disc of `radius` [m] (half the wheel width).
+
+    A wheel cannot follow relief narrower than itself: on a rut of its own width it rests on
+    the walls and shoulders as much as on the floor. Pressed into soft ground, a rigid
+    footprint comes to the level at which it holds the same soil as flat ground would (the
+    shoulders it presses fill the hollow beneath it): the mean height under it, from which it
+    sinks d. On flat or planar ground this is the surface itself, as `reference_height` over
+    the paper's smaller disc. (B, X, Y) -> (B, X, Y), m."""
+    return reference_height(h, radius, dx)
+
+
+def revisit_reference(h: torch.Tensor, h_ref: torch.Tensor, dug: torch.Tensor, how: str, ref_radius: float,
+                      radius: float, dx: float) -> torch.Tensor:
+    """Reference height over a surface h (B, X, Y) [m] part of which earlier wheel passes dug
+    (`dug`, (X, Y) or (B, X, Y) bool): `contact_height` of h there (how "footprint", the
+    footprint radius `radius` [m]) or the disc of ref_radius * radius (how "disc"), h_ref
+    (B|1, X, Y) [m] elsewhere."""
+    if how not in ("footprint", "disc"):
+        raise ValueError(f"revisit reference must be 'footprint' or 'disc', got {how!r}")
+    ref = contact_height(h, radius, dx) if how == "footprint" else reference_height(h, ref_radius * radius, dx)
+    return torch.where(dug, ref, h_ref)
+
+
 def sink(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torch.Tensor,
          s: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Dig every footprint at once (the min over poses commutes because h_ref is fixed).
