@@ -28,7 +28,8 @@ def coarse(img: np.ndarray, max_cells: int = 2000) -> tuple[np.ndarray, int]:
     blocks = pad.reshape(pad.shape[0] // f, f, pad.shape[1] // f, f)
     ok = np.isfinite(blocks)
     n = ok.sum(axis=(1, 3))
-    total = np.where(ok, blocks, 0.0).sum(axis=(1, 3), dtype=np.float64)
+    blocks[~ok] = 0.0                                    # in place: the padded copy is ours
+    total = blocks.sum(axis=(1, 3), dtype=np.float64)
     return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32), f
 
 

@@ -402,7 +402,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     from torchsoil.diagnosis.report import explain
 
     h_back = base.surfaces[1]                               # as the estimator fitted it (Estimator.h_back)
-    residual = (base.h_sim - h_back).astype(np.float32)     # drawn only (report.fig_residual_map)
+    residual = base.h_sim - h_back.astype(np.float32)       # drawn only (report.fig_residual_map)
     diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s, revisit)
     summary["explanation"] = explain(diag)
     return diag
