@@ -137,6 +137,13 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
     p.add_argument("--resume", action="store_true", help="continue the interrupted diagnosis in --out: its finished "
                                                          "passes (OUT/passes) are read back, not run again")
+    p.add_argument("--pass-workers", type=int, default=1, metavar="N",
+                   help="one recording: run its independent passes (tyre sections, dig orders, candidates) as N "
+                        "tasks at once on a local process pool (same results; each worker holds the drive's "
+                        "maps too); with --pass-engine ray, on RAY_ADDRESS's cluster or a local Ray instance")
+    p.add_argument("--pass-engine", choices=["local", "ray"], default="local",
+                   help="where --pass-workers' tasks run (default local; ray needs pip install 'torchsoil[fleet]' "
+                        "and a folder --out that every node reads and writes)")
     _job_options(p)
     _fleet_options(p)
 
@@ -400,7 +407,8 @@ def cmd_diagnose(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     summary = diagnose_input(source, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
                              overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads or 1,
-                             extrinsics=given, resume=args.resume)
+                             extrinsics=given, resume=args.resume, workers=args.pass_workers,
+                             engine=args.pass_engine)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
 

@@ -168,6 +168,6 @@ def test_a_diagnose_killed_with_sigkill_resumes_to_the_straight_run(tmp_path, sh
     again = run(tmp_path / "killed", "--resume")
     said, err = again.communicate(timeout=600)
     assert again.returncode == 0, err.decode()[-2000:]
-    assert "resumed:" in said.decode()
+    assert "resuming:" in said.decode()
     assert (json.loads((tmp_path / "killed" / "diagnosis.json").read_text())
             == json.loads((tmp_path / "straight" / "diagnosis.json").read_text()))

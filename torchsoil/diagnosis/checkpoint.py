@@ -40,6 +40,16 @@ class PassCache:
         meta.write_text(key_text)
         self.hits = 0
 
+    @classmethod
+    def open(cls, directory: str | Path, every: float = 15.0) -> PassCache:
+        """The cache a diagnosis made in `directory`, as it is (for its parallel passes:
+        diagnosis.parallel; its key is neither checked nor written again)."""
+        cache = cls.__new__(cls)
+        cache.dir, cache.every, cache.hits = Path(directory), every, 0
+        if not (cache.dir / KEY_FILE).exists():
+            raise FileNotFoundError(f"no diagnosis cache in {directory}")
+        return cache
+
     def _path(self, label: str, what: tuple) -> Path:
         digest = hashlib.sha1(repr(what).encode()).hexdigest()[:16]
         return self.dir / f"{label}-{digest}.pkl"

@@ -231,30 +231,44 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     back (checkpoint.PassCache). Returns (best (f, e), {(f, e): mean residual, m},
     {index, nuisance, view, store}: run_pass's keywords for later passes)."""
     own = section_of(pair)
-    candidates = list(dict.fromkeys([own, *((float(f), float(e)) for f, e in sections)]))
+    candidates = section_candidates(pair, sections)
     costs: dict[Section, float] = {}
     shared = dict(shared or {})
     shared.setdefault("store", WindowStore())
     for sec in candidates:
-        # every third window of each section once: prepared for this pass only, not stored
-        estimator = Estimator(with_section(pair, sec), est, sim,
-                              modifiers=model.modifiers if model is not None else None, **{**shared, "store": None})
-        shared = {**shared_of(estimator), "store": shared["store"]}
-        what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
-        cost = cache.load("section", what) if cache is not None else None
-        if cost is None:
-            estimator.windows = estimator.windows[::max(1, every)]
-            res = [o.row["residual"] for o in estimator.run()]
-            cost = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
-            if cache is not None:
-                cache.save("section", what, cost)
-        costs[sec] = cost
+        costs[sec], found = section_cost(pair, est, sim, sec, every, model, shared, cache)
+        shared = {**found, "store": shared["store"]}
         if progress is not None:
             progress.set_postfix_str(f"tyre section f={sec[0]:.2f} e={sec[1]:.2f}")
     best = min(candidates, key=lambda c: (costs[c], c != own))
     if progress is not None:
         progress.update(1)
     return best, costs, shared
+
+
+def section_candidates(pair, sections) -> list[Section]:
+    """The sections `fit_section` tries: the pair's own first, then `sections`, each once."""
+    return list(dict.fromkeys([section_of(pair), *((float(f), float(e)) for f, e in sections)]))
+
+
+def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: Section, every: int = 3,
+                 model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
+                 ) -> tuple[float, dict]:
+    """One tyre section's score for `fit_section`: the mean window residual [m] of every
+    `every`-th window with the section (f, e) (math.inf when none was fitted), read back from
+    or kept in `cache`; and run_pass's keywords (index, nuisance, view, surfaces) of its
+    estimator. Its windows are prepared for this pass only, not stored."""
+    estimator = Estimator(with_section(pair, sec), est, sim, modifiers=model.modifiers if model is not None else None,
+                          **{**(shared or {}), "store": None})
+    what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
+    cost = cache.load("section", what) if cache is not None else None
+    if cost is None:
+        estimator.windows = estimator.windows[::max(1, every)]
+        res = [o.row["residual"] for o in estimator.run()]
+        cost = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+        if cache is not None:
+            cache.save("section", what, cost)
+    return cost, shared_of(estimator)
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -335,33 +349,27 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     soil's angle looks like a rounder tyre's standing). cache: where finished passes are kept and
     read back (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
-    shared = shared_of(base)
     sec: dict[float, Section] = {0.0: section_of(pair)}
     counts = PassCounts()
 
     def run(k: float) -> None:
-        k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
-        model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts)
-        sec[k] = sec[0.0]
         if progress is not None:
             progress.set_postfix_str(f"{ext.id} k={k:+.3g}")
-        if ext.kind in ("radius", "wall") and sections:
-            sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
-        passes[k] = run_pass(with_section(pair, sec[k]), est, sim, model,
-                             profiles=True, theta0=theta0, offsets=offsets, cache=cache, **shared)
+        passes[k], sec[k] = candidate_pass(pair, est, sim, ext, k, drive, base, theta0, offsets, sections, cache,
+                                           counts)
         if progress is not None:
             progress.update(1)
 
-    for k in ext.trials:
+    for k in trial_ks(ext):
         run(k)
     every = np.ones(len(base.prediction), bool)
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
         if new is not None:
-            run(new)
+            run(float(np.clip(new, *ext.bounds)))
     ks = sorted(passes)
     lab = folds(len(base.prediction), int(round(block_m / est.stride)))
     k_fold = fold_choice({k: passes[k].held_out for k in ks}, lab)
@@ -372,6 +380,32 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     effects = {k: effect_size(ext, k, drive, pair.robot) for k in ks}
     return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z,
                         held_z=held_z, effects=effects)
+
+
+def trial_ks(ext: Extension) -> list[float]:
+    """The coefficients `fit_extension` tries first: ext.trials within ext.bounds, but 0 (the
+    base model's pass)."""
+    ks = dict.fromkeys(float(np.clip(k, *ext.bounds)) for k in ext.trials)
+    return [k for k in ks if abs(k) >= 1e-9]
+
+
+def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k: float, drive: DriveSignals,
+                   base: Pass, theta0=None, offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
+                   cache: PassCache | None = None, counts: PassCounts | None = None) -> tuple[Pass, Section]:
+    """One pass of `fit_extension`: the extension at coefficient k (within its bounds), under
+    the pair's tyre section or, for a footprint or wall term given `sections`, the one of
+    them that fits best with it (`fit_section`); read back from or kept in `cache`. base: the
+    base model's pass (its shared index, nuisance, view, store and surfaces). counts: the
+    hardening term's pass counts kept across a candidate's passes. Returns (the pass, its
+    section (f, e))."""
+    shared = shared_of(base)
+    model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts or PassCounts())
+    sec = section_of(pair)
+    if ext.kind in ("radius", "wall") and sections:
+        sec = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
+    done = run_pass(with_section(pair, sec), est, sim, model, profiles=True, theta0=theta0, offsets=offsets,
+                    cache=cache, **shared)
+    return done, sec
 
 
 def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:

@@ -19,6 +19,10 @@ from torchsoil.diagnosis.fit import (
     fit_extension,
     fit_section,
     run_pass,
+    section_candidates,
+    shared_of,
+    trial_ks,
+    section_cost,
     section_of,
     with_section,
 )
@@ -196,14 +200,14 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
 
 
 def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None,
-                       cache: PassCache | None = None):
+                       cache: PassCache | None = None, pool=None):
     """The tyre section and the dig order as nuisances (`fit_section`; SimConfig.dig_order):
     the section searched over cfg.sections under sim's order, then each other order of
     cfg.dig_orders at the best few sections; the lowest mean window residual wins.
 
     Returns (the pair with that section, sim with that order, section evidence, dig-order
     evidence (None when only one order was tried), run_pass keywords, the sections a footprint
-    or wall term may choose from)."""
+    or wall term may choose from). pool: a parallel.PassPool that scores the sections first."""
     section, dig = None, None
     declared = section_of(pair)
     if not cfg.sections and not set(cfg.dig_orders) - {sim.dig_order}:
@@ -212,9 +216,17 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     def best_few(costs):
         return tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
 
-    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache)
+    shared = None
+    if pool is not None:                  # the pair's own section here, the others as tasks
+        shared = section_cost(pair, est, sim, declared, cache=cache)[1]
+        pool.share(pair, shared)
+        pool.run("section", [(est, sim, sec, 3, None) for sec in section_candidates(pair, cfg.sections)[1:]])
+    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache, shared=shared)
     orders, tried = {sim.dig_order: costs[best]}, best_few(costs)
-    for order in dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order):
+    others = list(dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order))
+    if pool is not None:
+        pool.run("section", [(est, sim.replace(dig_order=o), sec, 3, None) for o in others for sec in tried])
+    for order in others:
         alt = sim.replace(dig_order=order)
         b, c, shared = fit_section(pair, est, alt, tried, shared=shared, cache=cache)
         orders[order] = c[b]
@@ -258,14 +270,16 @@ def _visit_costs(revisit: dict, residual: float) -> tuple[dict, dict, dict]:
 
 
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
-             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None) -> Diagnosis:
+             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None, pool=None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
     estimator and simulator settings (their sections; defaults when None). progress:
     optional tqdm-like bar (update(n)). cache: where the finished passes are kept
     (checkpoint.PassCache): a diagnosis run again with the same cache reads them back, so an
-    interrupted one resumes where it stopped."""
+    interrupted one resumes where it stopped. pool: a parallel.PassPool (`parallel.pass_pool`,
+    with the same cache) that runs the independent passes (sections, dig orders, candidates)
+    as parallel tasks first; the results are the same."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache)
+    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool)
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
     window, stride = est.window, est.stride
@@ -304,6 +318,13 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
           for e in catalogue.CATALOGUE.values()}
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
+    if pool is not None and ranked:        # every candidate's trial passes, then its refinements, as tasks
+        pool.share(pair, shared_of(base), base)
+        head = (est, sim, section_of(pair))
+        tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
+        pool.run("pass", [(*head, i, k, *tail) for i in ranked for k in trial_ks(catalogue.get(i))])
+        if cfg.refine_steps:
+            pool.run("refine", [(*head, i, None, *tail) for i in ranked])
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
