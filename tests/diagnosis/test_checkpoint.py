@@ -171,3 +171,25 @@ def test_a_diagnose_killed_with_sigkill_resumes_to_the_straight_run(tmp_path, sh
     assert "resuming:" in said.decode()
     assert (json.loads((tmp_path / "killed" / "diagnosis.json").read_text())
             == json.loads((tmp_path / "straight" / "diagnosis.json").read_text()))
+
+
+def test_the_per_visit_pass_is_kept_and_read_back(tmp_path, monkeypatch):
+    """On a pair with visit layers, the per-visit pass of the hardening test is kept with the
+    others: a diagnosis run again does not fit the visits again, and tests the same."""
+    from types import SimpleNamespace
+
+    from tests.test_visits import two_visit_pair
+    from torchsoil.diagnosis import run as run_module
+    from torchsoil.settings import Settings
+
+    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
+    st, calls = Settings(), []
+    original = run_module.run_visits
+    monkeypatch.setattr(run_module, "run_visits", lambda *a, **k: calls.append(1) or original(*a, **k))
+    base = SimpleNamespace(nuisance=None, index=None)
+    first = run_module._revisit(pair, st.diagnosis, st.estimator, st.sim, base, 2,
+                                cache=PassCache(tmp_path / "p", {"i": 1}))
+    again = run_module._revisit(pair, st.diagnosis, st.estimator, st.sim, base, 2,
+                                cache=PassCache(tmp_path / "p", {"i": 1}))
+    assert len(calls) == 1 and first[1] is not None
+    assert json.dumps(again, default=str) == json.dumps(first, default=str)

@@ -241,14 +241,20 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
 
 
 def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass, n_tracks: int,
-             progress=None) -> tuple[float, dict | None]:
+             progress=None, cache: PassCache | None = None) -> tuple[float, dict | None]:
     """Hardening on the same ground (revisits.hardening_across_visits) on a pair with visit
-    layers, at half the family-wise level. Returns (the level left to the catalogue's
-    candidates, the test's dict or None without visit layers)."""
+    layers, at half the family-wise level; its per-visit pass kept in and read back from
+    `cache`. Returns (the level left to the catalogue's candidates, the test's dict or None
+    without visit layers)."""
     if getattr(pair, "visit_front", None) is None:
         return cfg.alpha_accept, None
     alpha = cfg.alpha_accept / 2
-    vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
+    what = (section_of(pair), sim.dig_order)
+    vp = cache.load("visits", what) if cache is not None else None
+    if vp is None:
+        vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
+        if cache is not None:
+            cache.save("visits", what, vp)
     if progress is not None:
         progress.update(1)
     return alpha, hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
@@ -331,7 +337,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
-    alpha, revisit = _revisit(pair, cfg, est, sim, base, n_tracks, progress)
+    alpha, revisit = _revisit(pair, cfg, est, sim, base, n_tracks, progress, cache)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], alpha,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
