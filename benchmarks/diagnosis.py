@@ -2,7 +2,10 @@
 drive (10 m with quick=True) and what it found (fitted coefficient, held-out z, costs); the
 same diagnosis run again on its kept passes (`diagnosis.checkpoint`, an interrupted run's
 resume); and, without quick, the time per window of the base pass and of a hardening
-candidate's pass on out-and-back drives 20 and 100 m long (a diagnosis grows with the drive)."""
+candidate's pass on out-and-back drives 20 and 100 m long (a diagnosis grows with the drive),
+and `torchsoil diagnose` on 20 and 200 m speed drives: `diagnosis_peak_rss_mb_*`,
+`diagnosis_seconds_per_m_*` and `diagnosis_ms_per_window_pass_*`, in one process and, keys
+ending `_workers2`, with `--pass-workers 2` (peak: the largest process's)."""
 
 from __future__ import annotations
 
@@ -87,9 +90,11 @@ def _pass_times(length: float) -> dict[str, float]:
             "estimator_setup_seconds": t_setup}
 
 
-def _field_length(lengths: tuple[float, ...] = (20.0, 200.0)) -> dict[str, float]:
+def _field_length(lengths: tuple[float, ...] = (20.0, 200.0), workers: tuple[int, ...] = (1, 2)) -> dict[str, float]:
     """Peak resident memory [MB] and wall time per metre [s/m] of `torchsoil diagnose` on the
-    speed drive's stretches (5 m each at 1.0, 0.5, 1.5, 0.6, 1.4 m/s) repeated to each length."""
+    speed drive's stretches (5 m each at 1.0, 0.5, 1.5, 0.6, 1.4 m/s) repeated to each length,
+    in one process and (keys ending _workers2) with --pass-workers 2: its peak is the largest
+    process's (the main one or a worker), not their sum."""
     from benchmarks.online import peak_rss_mb
     from torchsoil.settings import merge
     from torchsoil.synth.scenario import load_scenario, make_terrain_pair
@@ -104,13 +109,15 @@ def _field_length(lengths: tuple[float, ...] = (20.0, 200.0)) -> dict[str, float
                                       {"trajectory": {"segments": segments}}))
             path = Path(tmp) / f"speed_{length:g}m.npz"
             TerrainPair.from_mapping(make_terrain_pair(scn, seed=0)).save(path)
-            t0 = time.perf_counter()
-            run = Path(tmp) / f"diag{length:g}"
-            out[f"diagnosis_peak_rss_mb_{length:g}m"] = peak_rss_mb(["diagnose", str(path), "--out", str(run),
-                                                                     "--no-tensorboard"])
-            wall = time.perf_counter() - t0
-            out[f"diagnosis_seconds_per_m_{length:g}m"] = wall / length
-            out[f"diagnosis_ms_per_window_pass_{length:g}m"] = 1e3 * wall / _window_passes(run / "passes")
+            for n in workers:
+                tag = f"{length:g}m" + ("" if n == 1 else f"_workers{n}")
+                t0 = time.perf_counter()
+                run = Path(tmp) / f"diag{tag}"
+                out[f"diagnosis_peak_rss_mb_{tag}"] = peak_rss_mb(["diagnose", str(path), "--out", str(run),
+                                                                   "--no-tensorboard", "--pass-workers", str(n)])
+                wall = time.perf_counter() - t0
+                out[f"diagnosis_seconds_per_m_{tag}"] = wall / length
+                out[f"diagnosis_ms_per_window_pass_{tag}"] = 1e3 * wall / _window_passes(run / "passes")
     return out
 
 

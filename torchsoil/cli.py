@@ -201,6 +201,9 @@ def parser() -> argparse.ArgumentParser:
     mode.add_argument("--foreign", type=Path, metavar="DIR", help="directory of foreign terrain pairs")
     p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
     p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
+    p.add_argument("--revisits", action="store_true",
+                   help="with --randomized: only its drives over their own ruts (out-and-back, loop, lane changes; "
+                        "hardening and null drives), with the visit layers of a pipeline that keeps every visit")
     p.add_argument("--redraws", type=int, default=0, metavar="R",
                    help="with --foreign: also fit R other draws of each pair's noise (its dropouts, streaks and "
                         "map offset moved), for the model error's spread over draws (default 0)")
@@ -512,10 +515,12 @@ def cmd_study(args) -> int:
     from contextlib import nullcontext
 
     from torchsoil.diagnosis.study import run_foreign, run_study
-    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases
+    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases, revisit_cases
     from torchsoil.fleet import make_engine
     from torchsoil.runner import torch_threads
 
+    if args.revisits and args.randomized is None:
+        raise ValueError("--revisits selects among --randomized N drives")
     if args.redraws < 0 or (args.redraws and args.foreign is None):
         raise ValueError(f"--redraws {args.redraws}: a count >= 0, and only with --foreign")
     on_engine = any(getattr(args, k) is not None for k in ("engine", "workers", "ray_address"))
@@ -528,6 +533,7 @@ def cmd_study(args) -> int:
                               redraws=args.redraws))
         elif args.randomized is not None:
             cases = randomized_cases(args.randomized, args.null, args.seed)
+            cases = revisit_cases(cases) if args.revisits else cases
             print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings, engine=eng))
         else:
             cases = STUDY_CASES[::3] if args.quick else STUDY_CASES

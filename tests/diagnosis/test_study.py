@@ -69,6 +69,16 @@ def test_hardening_drives_come_back_over_their_ruts(kind):
     assert back.sum() > 30      # 0.3 m at least
 
 
+def test_revisit_cases_keep_the_drives_over_their_own_ruts_only():
+    cases = sc.randomized_cases(21, 20, seed=0)
+    kept = sc.revisit_cases(cases)
+    hardening = [c for c in cases if c[4] == "multi_pass_hardening"]
+    assert hardening and all(c in kept for c in hardening)
+    assert any(c[3] == "adequate" for c in kept)                   # null drives of those shapes too
+    assert all(c[0].split()[-1] in sc.REVISITS for c in kept)
+    assert all(c in kept for c in cases if c[0].split()[-1] in sc.REVISITS)
+
+
 def test_error_rates_by_hand():
     def rec(want, want_id, verdict, eid):
         return {"case": f"{want}{want_id}{verdict}{eid}", "want": want, "want_id": want_id, "verdict": verdict,

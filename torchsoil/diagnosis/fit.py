@@ -376,6 +376,10 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     pred, held, res = (by_fold({k: getattr(passes[k], name) for k in ks}, k_fold, lab)
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
+    shown = min(passes, key=lambda q: abs(q - k_all))     # the report's cross-sections: this pass's profiles
+    for k in ks:                                          # the others' would grow with the drive, unused
+        if k != 0.0 and k != shown:
+            passes[k] = dataclasses.replace(passes[k], profiles=None)
     imp, se, held_z, own_z, z = term_test(base.held_out, held, base.residual, res)
     effects = {k: effect_size(ext, k, drive, pair.robot) for k in ks}
     return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z,

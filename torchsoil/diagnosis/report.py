@@ -227,10 +227,11 @@ def fig_residual_map(diag, pair, path: Path) -> Path:
     sidx = coarse(diag.s_index)[0]
     xs = extent[0] + (np.arange(r.shape[0]) + 0.5) * f * pair.dx
     ys = extent[2] + (np.arange(r.shape[1]) + 0.5) * f * pair.dx
-    for a, b in diag.summary["where"]["along_track"]:
-        mask = np.isfinite(sidx) & (sidx >= a) & (sidx < b)
-        if mask.any():
-            ax.contour(xs, ys, mask.T.astype(float), levels=[0.5], colors="k", linewidths=1.2)
+    located = np.zeros(sidx.shape, bool)                  # one outline for all spans: a contour each would
+    for a, b in diag.summary["where"]["along_track"]:     # keep a grid each, as many as the drive has spans
+        located |= np.isfinite(sidx) & (sidx >= a) & (sidx < b)
+    if located.any():
+        ax.contour(xs, ys, located.T.astype(np.float32), levels=[0.5], colors="k", linewidths=1.2)
     ax.plot(pair.poses[:, 1], pair.poses[:, 2], "k--", lw=0.5)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")

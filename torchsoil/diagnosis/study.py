@@ -146,12 +146,13 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
 
 
 def study_case(case: tuple, settings: Settings) -> dict:
-    """The record of one (name, scenario, seed, verdict, id) case: its drive made and
-    diagnosed (`_record`), with the world's effect law, the tyre and measurement draws and the
-    drive's length [m]."""
+    """The record of one (name, scenario, seed, verdict, id) case: its drive made (with visit
+    layers where it drives over its own ruts, as a pipeline keeping every visit writes them)
+    and diagnosed (`_record`), with the world's effect law, the tyre and measurement draws and
+    the drive's length [m]."""
     name, scn, seed, want_verdict, want_id = case
     t0 = time.perf_counter()
-    data = make_terrain_pair(scn, seed=seed)
+    data = make_terrain_pair(scn, seed=seed, visits=True)
     pair = TerrainPair.from_mapping(data)
     diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
     xy = pair.poses[:, 1:3]
