@@ -20,10 +20,10 @@ from torchsoil.diagnosis.fit import (
     fit_section,
     run_pass,
     section_candidates,
-    shared_of,
-    trial_ks,
     section_cost,
     section_of,
+    shared_of,
+    trial_ks,
     with_section,
 )
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
