@@ -59,7 +59,18 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
             "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
             "cost_before": s["cost_before"], "cost_after": s["cost_after"], "noise_floor": s.get("noise_floor"),
             "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds,
-            "tests": held_out_tests(diag), "series": held_out_series(diag), **extra}
+            "tests": held_out_tests(diag), "series": held_out_series(diag), "revisits": revisit_test(diag), **extra}
+
+
+def revisit_test(diag) -> dict | None:
+    """The hardening test on the ground driven again (`revisits.hardening_across_visits`) in
+    brief: accepted, its z against its level, the per-pass g on all later visits and by fold,
+    the reason it could not run; None on a drive without visit layers."""
+    rev = diag.evidence.get("revisits")
+    if rev is None:
+        return None
+    keys = ("accepted", "z_visible", "z_level", "g", "g_folds", "reason")
+    return {k: rev[k] for k in keys if k in rev}
 
 
 def held_out_tests(diag) -> list[dict]:
