@@ -137,3 +137,20 @@ def test_a_reference_model_drive_that_does_not_harden_names_nothing(out_and_back
     rev = hardening_across_visits(out_and_back_runs["none"], 0.025, 0.05, 2.4, 2)
     assert not rev["accepted"] and rev["z_visible"] < rev["z_level"]
     assert rev["sinkage_ratios"]["g"] == pytest.approx(1.0, abs=0.05)
+
+
+def test_visit_layers_over_the_wheels_reach_alone_still_give_a_noise_floor():
+    """A producer whose visit layers cover only the ground within reach of the wheels (not the
+    corridor between them, docs/formats.md section 3) leaves a visit no untouched ground to
+    measure its noise on: the window's noise floor on the first view and the last stands in,
+    and the hardening test still runs."""
+    data, _ = two_visit_pair(seed=5, d1=D0, length=6.0, once=5.0)
+    pair = TerrainPair.from_mapping(data)
+    y = pair.origin[1] + pair.dx * np.arange(pair.h_front.shape[1])
+    ruts = np.abs(np.abs(y)[None, :] - np.abs(pair.robot.wheels[:, 1]).max()) < pair.robot.wheel_width
+    narrow = {k: np.where(ruts[None], data[k], np.nan).astype(np.float32) for k in ("visit_front", "visit_back")}
+    s = load_settings()
+    vp = run_visits(TerrainPair.from_mapping({**data, **narrow}), s.estimator, s.sim)
+    floors = np.array([v["floor"] for v in vp.later.values()])
+    assert len(floors) >= 6 and np.all(np.isfinite(floors)) and np.all(floors > 0)
+    assert "reason" not in hardening_across_visits(vp, 0.025, 0.05, 2.4, 2)

@@ -174,6 +174,22 @@ class VisitPass:
     later: dict
 
 
+def window_floor(plain, wd) -> float:
+    """The noise floor [m] of the window of per-visit data wd on the drive's first view and
+    last (`plain`: an Estimator of the same pair without per_visit): the lidars' noise, measured
+    on the window's untouched ground, where a visit's own maps hold none (a producer whose visit
+    layers cover the wheels' reach alone, not the corridor of docs/formats.md section 3)."""
+    from torchsoil.cost import weighted_l1
+
+    k = wd.spec.index
+    if k >= len(plain.windows) or abs(plain.windows[k].centre - wd.spec.centre) > 1e-9:
+        return math.nan
+    pd = plain.data(k)
+    if pd is None or not bool(pd.floor.any()):
+        return math.nan
+    return float(weighted_l1(pd.h_measured, pd.h_back, pd.floor.to(pd.h_back.dtype)))
+
+
 def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> VisitPass:
     """Fit each visit of each window on its own maps (Estimator per_visit) and simulate every
     later visit with the first visit's parameters at sinkage factors `factors` (what the
@@ -186,7 +202,7 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
     e = Estimator(pair, est, sim, per_visit=True, nuisance=nuisance, index=index)
     dmask = torch.tensor([kind(n) == "d" for n in e.free_names], device=e.theta0.device)
     f = torch.tensor(factors, dtype=e.theta0.dtype, device=e.theta0.device)
-    rows, later, first, n0 = [], {}, None, 0.0
+    rows, later, first, n0, plain = [], {}, None, 0.0, None
     for o in e.run():
         rows.append(o.row)
         v = int(o.row["visit"])
@@ -203,10 +219,14 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
         cost = weighted_l1(h, wd.h_back, wd.weight).cpu().numpy()
         start = wd.h_measured.cpu().numpy()
         rut = np.array([float(np.mean((start - hb)[ruts])) for hb in h.cpu().numpy()])
+        floor = float(o.reference["floor"])
+        if not math.isfinite(floor):
+            plain = plain or Estimator(pair, est, sim, nuisance=e.nuisance, index=e.index)
+            floor = window_floor(plain, wd)
         later[(round(float(o.row["s"]), 6), v)] = {"factor": np.array(factors), "cost": cost, "rut": rut,
                                                    "rut_measured": float(o.row["rut_depth"]),
                                                    "passes": float(o.row["passes_before"]) - n0,
-                                                   "floor": float(o.reference["floor"])}
+                                                   "floor": floor}
     return VisitPass(rows, later)
 
 
