@@ -186,6 +186,13 @@ class Estimator:
         """(B, P_free) optimizer variables -> (B, P) simulator parameters."""
         return free[:, self.expand]
 
+    def forget_before(self, k: int) -> None:
+        """Let go of the prepared data of the windows before window k (`data`, `visit_data`):
+        windows are taken in order, and a long drive's would not fit in memory."""
+        for cache in (self._cache, self._visit_cache):
+            for old in [i for i in cache if i < k]:
+                del cache[old]
+
     def data(self, k: int) -> WindowData | None:
         if k not in self._cache:
             spec = self.windows[k]
@@ -246,15 +253,12 @@ class Estimator:
         for k in range(start, len(self.windows) if stop is None else min(stop, len(self.windows))):
             t0 = time.perf_counter()       # a window's seconds include preparing its data
             spec = self.windows[k]
+            self.forget_before(k)
             if self.per_visit:
                 visits = self.visit_data(k)
-                for old in [i for i in self._visit_cache if i < k]:
-                    del self._visit_cache[old]
                 ahead = self.visit_data(k + self.ahead) if self.ahead and k + self.ahead < len(self.windows) else {}
             else:
                 visits = {0: self.data(k)}
-                for old in [i for i in self._cache if i < k]:
-                    del self._cache[old]
                 ahead = {0: self._ahead_data(k)}
             for v, wd in (visits or {0: None}).items():
                 if (round(spec.centre + self.arc0, 6), v) in skip:

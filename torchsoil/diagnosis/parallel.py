@@ -36,10 +36,10 @@ def _load(files: tuple[str, ...]) -> tuple:
     return _LOADED[files]
 
 
-def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> str:
+def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
     """In a worker: one section score (`fit.section_cost`), one candidate pass
     (`fit.candidate_pass`) or one candidate's refinements (`fit.fit_extension`), kept in the
-    cache at cache_dir. Returns what it ran, for the log."""
+    cache at cache_dir."""
     from torchsoil.diagnosis import catalogue
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import candidate_pass, fit_extension, section_cost, with_section
@@ -50,7 +50,7 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
     if kind == "section":
         est, sim, sec, every, model = args
         section_cost(pair, est, sim, sec, every, model, shared, cache)
-        return f"section f={sec[0]:.2f} e={sec[1]:.2f} ({sim.dig_order})"
+        return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)
     base = dataclasses.replace(base, **shared, store=WindowStore())
@@ -58,9 +58,8 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
     ext = catalogue.get(ext_id)
     if kind == "pass":
         candidate_pass(pair, est, sim, ext, k, drive, base, None, offsets, sections, cache)
-        return f"{ext_id} k={k:+.3g}"
-    fit_extension(pair, est, sim, ext, drive, base, block_m, refine_steps, None, None, offsets, sections, cache)
-    return f"{ext_id} refined"
+    else:
+        fit_extension(pair, est, sim, ext, drive, base, block_m, refine_steps, None, None, offsets, sections, cache)
 
 
 class PassPool:
@@ -71,6 +70,7 @@ class PassPool:
     def __init__(self, engine, cache: PassCache, progress=None):
         self.engine, self.cache, self.progress = engine, cache, progress
         self.files: tuple[str, str] | None = None
+        self.shared = 0                   # states shared so far (each in files of its own)
         self.failed: list[str] = []
 
     def share(self, pair, shared: dict, base=None) -> None:
@@ -78,7 +78,7 @@ class PassPool:
         keywords: index, nuisance, view, surfaces; the store is each worker's own), and the
         base model's pass once it is done (checkpoint.portable, without its stitched map).
         Written to new files each time, so that workers do not keep an older state."""
-        n = 0 if self.files is None else int(Path(self.files[1]).stem.rsplit("-", 1)[1]) + 1
+        n, self.shared = self.shared, self.shared + 1
         state = ({k: v for k, v in shared.items() if k != "store"},
                  None if base is None else dataclasses.replace(portable(base), h_sim=None))
         files = (str(self.cache.dir / f"pool-pair-{n}.pool"), str(self.cache.dir / f"pool-state-{n}.pool"))

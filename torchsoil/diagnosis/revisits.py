@@ -184,6 +184,7 @@ def window_floor(plain, wd) -> float:
     k = wd.spec.index
     if k >= len(plain.windows) or abs(plain.windows[k].centre - wd.spec.centre) > 1e-9:
         return math.nan
+    plain.forget_before(k)                    # the later visits come window after window
     pd = plain.data(k)
     if pd is None or not bool(pd.floor.any()):
         return math.nan
