@@ -189,9 +189,9 @@ class Estimator:
     def forget_before(self, k: int) -> None:
         """Let go of the prepared data of the windows before window k (`data`, `visit_data`):
         windows are taken in order, and a long drive's would not fit in memory."""
-        for cache in (self._cache, self._visit_cache):
-            for old in [i for i in cache if i < k]:
-                del cache[old]
+        cache = self._visit_cache if self.per_visit else self._cache
+        for old in [i for i in cache if i < k]:
+            del cache[old]
 
     def data(self, k: int) -> WindowData | None:
         if k not in self._cache:
