@@ -108,11 +108,13 @@ D0, D1 = 0.03, 0.015          # sinkage of the first visit, and of the second in
 LENGTH, ONCE = 4.0, 2.5       # the drive goes out 4 m and back; beyond x = 2.5 m one visit per cell
 
 
-def two_visit_pair(seed=0, noise=0.0015, dx=0.02, d1=D1, length=LENGTH, once=ONCE):
+def two_visit_pair(seed=0, noise=0.0015, dx=0.02, d1=D1, length=LENGTH, once=ONCE, per_pass_g=None):
     """Out along +x for `length` m at 1 m/s and back in reverse on the same ruts, made by the
     reference model visit by visit: the first with d = D0 from the untouched ground, the
     second with d = d1 from the ground the first left, its reference over the whole footprint
-    on the first's ruts (a wheel spans a rut of its own width). Visit layers as FORMATS.md v1.1: cells
+    on the first's ruts (a wheel spans a rut of its own width). With per_pass_g the axles dig in
+    turn instead, each from the rut the ones before it left, the n-th wheel pass over a cell
+    sinking D0 per_pass_g^n (d1 unused). Visit layers as FORMATS.md v1.1: cells
     with x < `once` have two visits (out at t = x, back at t = 2 length - x); the others one
     (from the untouched ground to the end). Returns (pair dict, truth dict)."""
     rng = np.random.default_rng(seed)
@@ -123,11 +125,18 @@ def two_visit_pair(seed=0, noise=0.0015, dx=0.02, d1=D1, length=LENGTH, once=ONC
     poses = out_and_back(length, dt=0.05)
     out, back = poses[poses[:, 0] <= length], poses[poses[:, 0] >= length]
     beta = math.radians(30.0)
-    h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta)
-    ys = origin[1] + dx * np.arange(Y)
-    xx = origin[0] + dx * np.arange(X)
-    ruts = (np.abs(np.abs(ys) - 0.5) <= 0.07)[None] & ((xx >= -0.76) & (xx <= length + 0.76))[:, None]
-    h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (d1, d1), 0.5, beta, dug=ruts)
+    if per_pass_g is not None:
+        g = per_pass_g
+        h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta, dig="wheel",
+                                   axle_scale=(1.0, g))
+        h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (D0, D0), 0.5, beta, dig="wheel",
+                                   axle_scale=(g**2, g**3))
+    else:
+        h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta)
+        ys = origin[1] + dx * np.arange(Y)
+        xx = origin[0] + dx * np.arange(X)
+        ruts = (np.abs(np.abs(ys) - 0.5) <= 0.07)[None] & ((xx >= -0.76) & (xx <= length + 0.76))[:, None]
+        h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (d1, d1), 0.5, beta, dug=ruts)
 
     def measured(h):
         return (h + rng.normal(0, noise, h.shape)).astype(np.float32)

@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from torchsoil.cost import weighted_l1
 from torchsoil.memory import release
@@ -163,15 +164,26 @@ class Estimator:
             self._visit_setup()
 
     def _visit_setup(self) -> None:
-        """Per-visit maps over the whole grid: the surfaces each visit starts from (smoothed)
-        and ends on (net of the map offset), visits and wheel passes before each visit per cell."""
+        """Per-visit maps over the whole grid: the surfaces each visit starts from and ends on
+        (net of the map offset), visits and wheel passes before each visit per cell. A visit
+        starts from its H_f smoothed (estimator.front_smoothing) on fresh ground and as measured
+        within a wheel width of the cells earlier wheel passes went over: smoothing would fill
+        the ruts the robot made (a relief of the wheel's own width, with the walls and berms
+        beside it) and raise the ground the wheels dig from; nor do the ruts enter the smoothing
+        of the ground beyond."""
         pair, sigma = self.pair, float(self.est.front_smoothing)
         off = 0.0 if self.nuisance is None else self.nuisance.field
-        self.visit_start = [smooth_heightmap(np.asarray(h, np.float64), sigma) for h in pair.visit_front]
-        self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
         self.visits_per_cell = visit_counts(pair.visit_time)
         self.passes = wheel_passes(pair.poses, pair.wheels, pair.wheel_width, pair.grid, pair.visit_time)
         self.passes_before = passes_before(self.passes)
+        self.visit_start = []
+        r = int(math.ceil(pair.wheel_width / pair.dx))
+        near = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+        for dug, h in zip(self.passes_before > 0, pair.visit_front, strict=True):
+            h = np.asarray(h, np.float64)
+            dug = ndimage.binary_dilation(dug, near) if dug.any() else dug
+            self.visit_start.append(np.where(dug, h, smooth_heightmap(np.where(dug, np.nan, h), sigma)))
+        self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
         self._visit_cache: dict[int, dict[int, WindowData | None]] = {}
 
     def _free_name(self, name: str) -> str:

@@ -1,7 +1,8 @@
 """Hardening named on the same ground (torchsoil.diagnosis.revisits): pass laws by hand, the
 per-visit sinkage ratios, the cross-visit test on cost curves built by hand, and an
 out-and-back made by the independent reference model (tests/reference_model.py) with a known
-law on the way back, and without one."""
+law on the way back, and without one, and one whose every wheel pass sinks less than the one
+before (the sinkage pass by pass)."""
 
 import math
 
@@ -17,6 +18,7 @@ from torchsoil.diagnosis.revisits import (
     fit_law,
     hardening_across_visits,
     law_factor,
+    per_pass_fit,
     ratio_test,
     revisits,
     run_visits,
@@ -154,3 +156,21 @@ def test_visit_layers_over_the_wheels_reach_alone_still_give_a_noise_floor():
     floors = np.array([v["floor"] for v in vp.later.values()])
     assert len(floors) >= 6 and np.all(np.isfinite(floors)) and np.all(floors > 0)
     assert "reason" not in hardening_across_visits(vp, 0.025, 0.05, 2.4, 2)
+
+
+def test_sinkage_pass_by_pass_is_recovered_where_every_wheel_pass_sinks_less():
+    """An out-and-back of the reference model whose n-th wheel pass over a cell sinks D0 0.6^n,
+    each axle digging from the rut the ones before it left (the way back in reverse: the rear
+    axle first). Started from a g that is off, the fit pass by pass finds the law's g, the same
+    first-pass d at both visits, and each of the four passes' sinkage within 3 mm."""
+    data, _ = two_visit_pair(seed=6, length=6.0, once=5.0, per_pass_g=0.6)
+    s = load_settings(overrides=["estimator.init.d=0.02"])
+    pp = per_pass_fit(TerrainPair.from_mapping(data), s.estimator, s.sim, 0.8)
+    assert pp["g"] == pytest.approx(0.6, abs=0.04), pp["g_tried"]
+    main = {grp["visit"]: grp for grp in pp["visits"] if grp["passes_before"] == 2 * grp["visit"]}
+    assert set(main) == {0, 1} and min(grp["windows"] for grp in main.values()) >= 8
+    assert main[1]["d_first_pass"] == pytest.approx(main[0]["d_first_pass"], rel=0.1)
+    sinkage = {q["pass"]: q["sinkage"] for grp in main.values() for q in grp["passes"]}
+    assert sorted(sinkage) == [0, 1, 2, 3]
+    for n, d in sinkage.items():
+        assert d == pytest.approx(D0 * 0.6**n, abs=0.003), (n, d)

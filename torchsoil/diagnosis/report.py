@@ -141,7 +141,28 @@ def revisit_text(rev: dict, s: dict, span: str) -> str:
             f"{rev['g_folds'][1]:.3g}). Each pass sinks {100 * rev['effect']:.0f} % less than the one before. The "
             f"later visits dug ruts of {_mm(rut['measured'])}; the first visit's soil would dig "
             f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}. The mismatch "
-            f"lies on the rut floor and follows the passes; it matters at {span}.")
+            f"lies on the rut floor and follows the passes; it matters at {span}." + per_pass_text(rev.get("per_pass")))
+
+
+def _main_groups(pp: dict) -> list[dict]:
+    """The per-pass fit's largest group of windows at each visit (revisits.per_pass_fit)."""
+    best: dict[int, dict] = {}
+    for grp in pp["visits"]:
+        if grp["visit"] not in best or grp["windows"] > best[grp["visit"]]["windows"]:
+            best[grp["visit"]] = grp
+    return [best[v] for v in sorted(best)]
+
+
+def per_pass_text(pp: dict | None) -> str:
+    """One sentence on the sinkage pass by pass (revisits.per_pass_fit), or "" without it."""
+    if not pp or "g" not in pp:
+        return ""
+    groups = _main_groups(pp)
+    sinks = ", ".join(f"{1000 * q['sinkage']:.1f}" for grp in groups for q in grp["passes"])
+    return (f" Fitted pass by pass (each wheel digging in turn from the rut the passes before it left, sinking "
+            f"d g^n after n passes), every visit fits the same first-pass sinkage at g = {pp['g']:.3g} ("
+            + ", ".join(f"{_mm(grp['d_first_pass'])} at visit {grp['visit']}" for grp in groups)
+            + f"): the wheel passes sink {sinks} mm in turn.")
 
 
 def _explain(diag) -> str:
@@ -333,6 +354,19 @@ def revisit_markdown(rev: dict) -> str:
              "| law | coefficient | cross-visit cost |", "| --- | --- | --- |"]
     lines += [f"| {k}: {LAW_TEXT[k]} | {v['coefficient']:.3g} | {_mm(v['cost'])} |" for k, v in rev["laws"].items()]
     lines += ["", f"Shape: {rev['shape'] or 'not told apart on this drive'}."]
+    pp = rev.get("per_pass")
+    if pp and "g" in pp:
+        lines += ["", f"Sinkage pass by pass: each wheel digs in turn from the rut the passes before it left and "
+                      f"sinks d g^n after n earlier wheel passes; g = {pp['g']:.3g} makes the later visits fit the "
+                      f"first visit's d (tried: " + ", ".join(f"{g:.3g}" for g, _ in pp["g_tried"]) + ").", "",
+                  "| visit | wheel passes before | windows | first-pass d [mm] | each pass's sinkage [mm] |",
+                  "| --- | --- | --- | --- | --- |"]
+        lines += [f"| {grp['visit']} | {grp['passes_before']:.0f} | {grp['windows']} | "
+                  f"{1000 * grp['d_first_pass']:.1f} ± {1000 * grp['d_sd']:.1f} | "
+                  + ", ".join(f"{1000 * q['sinkage']:.1f} ± {1000 * q['sd']:.1f}" for q in grp["passes"]) + " |"
+                  for grp in pp["visits"]]
+    elif pp:
+        lines += ["", f"Sinkage pass by pass: not fitted ({pp.get('reason')})."]
     return "\n".join(lines)
 
 

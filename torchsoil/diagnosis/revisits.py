@@ -31,6 +31,7 @@ import numpy as np
 from scipy import interpolate, optimize, stats
 
 from torchsoil.diagnosis.locate import effective_n
+from torchsoil.sim.simulate import Modifiers
 
 LAWS = ("geometric", "hyperbolic", "power")
 PARAMETER = {"geometric": "g_pass", "hyperbolic": "a_pass", "power": "b_pass"}   # diagnosis.json names
@@ -333,3 +334,84 @@ def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, blo
             "coefficient": g if named == "geometric" else laws[named]["coefficient"],
             "s": [float(s) for s, _ in keys],
             "sinkage_ratios": ratio_test(revisits(vp.rows, n_tracks), alpha, materiality)}
+
+
+class PassLaw:
+    """sim.Modifiers of a per-pass law, for the Estimator's `modifiers`: every wheel sinks
+    d x law_factor(shape, c, n), n the wheel passes over the cell before that wheel's own (a
+    rear wheel in its front wheel's rut runs the cell's second pass; `catalogue.entry_passes`
+    with before and by_wheel). d is then the soil's first-pass sinkage, m, at every visit.
+    drive: `covariates.DriveSignals` of the pair; counts: a `catalogue.PassCounts` shared by
+    the laws of one drive (the counts do not depend on c)."""
+
+    def __init__(self, shape: str, c: float, drive, counts=None):
+        from torchsoil.diagnosis.catalogue import PassCounts
+
+        law_factor(shape, c, 0)                    # an unknown shape fails here, not window by window
+        self.shape, self.c, self.drive = shape, float(c), drive
+        self.counts = PassCounts() if counts is None else counts
+
+    def __call__(self, wd, theta, geom) -> Modifiers:
+        import torch
+
+        from torchsoil.diagnosis.catalogue import entry_passes
+
+        key = (wd.spec.s0, wd.spec.s1, wd.crop, int(geom.poses.shape[0]), float(geom.poses[0, 0]), True, True)
+        n = self.counts.get(key, lambda: entry_passes(self.drive, geom, wd.grid, True, True))
+        f = torch.as_tensor(law_factor(self.shape, self.c, n), dtype=theta.dtype, device=theta.device)
+        return Modifiers(depth_scale=f[None].expand(theta.shape[0], -1))
+
+
+def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int = 2) -> dict:
+    """Sinkage pass by pass under the geometric law: the per-visit fits again, with every wheel
+    digging in turn (sim.dig_order "wheel") from the rut the passes before it left (the
+    ref_radius disc, sim.revisit_ref "disc": a later visit's front wheel is the cell's third
+    pass as the rear wheel is its second) and sinking d g^n after n earlier wheel passes
+    (`PassLaw`). Where the law holds, every visit of a window fits the same first-pass d; g is
+    moved until the later visits' d agrees with the first's (`per_pass`: the windows' median
+    log ratio per pass, 0 at the fixed point; `steps` steps, the first by that log ratio, then
+    by secant), starting from the cross-visit cost's g.
+
+    Returns {g, g_tried: [[g, log ratio per pass], ...], windows, visits: [{visit,
+    passes_before, windows, d_first_pass, d_sd, passes: [{pass, sinkage, sd}]}]} (m; pass: the
+    cell's wheel passes before it, 0 the first ever; one entry per visit and wheel passes
+    before it, as the multi-pass table of summary.md), or {reason} with fewer than 4 windows."""
+    from torchsoil.diagnosis.catalogue import PassCounts
+    from torchsoil.diagnosis.covariates import DriveSignals
+    from torchsoil.estimator import Estimator
+
+    drive, counts = DriveSignals.from_poses(pair.poses, pair.robot), PassCounts()
+    sim = sim.replace(dig_order="wheel", revisit_ref="disc")
+    n_tracks = pair.robot.n_tracks
+    per_track = int(np.bincount(np.asarray(pair.robot.wheels[:, 2], np.int64)).max())
+    tried: list[list[float]] = []
+    for step in range(steps + 1):
+        e = Estimator(pair, est, sim, per_visit=True, nuisance=nuisance, index=index,
+                      modifiers=PassLaw("geometric", g, drive, counts))
+        rows = [o.row for o in e.run()]
+        wins = revisits(rows, n_tracks)
+        if len(wins) < 4:
+            return {"reason": f"{len(wins)} windows fitted at two visits or more (need 4)", "g_tried": tried}
+        lg = float(np.median(per_pass(wins)))
+        tried.append([g, lg])
+        if step == steps or abs(lg) < 1e-3:
+            break
+        if len(tried) == 1:
+            g_next = g * math.exp(lg)
+        else:
+            (g0, l0), (g1, l1) = tried[-2], tried[-1]
+            slope = (l1 - l0) / (math.log(g1) - math.log(g0)) if g1 != g0 else -1.0
+            g_next = g1 * math.exp(-l1 / slope) if slope < 0 else g1 * math.exp(l1)
+        g = float(np.clip(g_next, 0.05, 1.0))
+    groups: dict[tuple[int, float], list[float]] = {}
+    for w in wins:
+        for v, (n, d) in enumerate(zip(w.passes, w.d, strict=True)):
+            groups.setdefault((v, float(round(n))), []).append(float(d))
+    visits = []
+    for (v, n), ds in sorted(groups.items()):
+        d = np.array(ds)
+        visits.append({"visit": v, "passes_before": n, "windows": len(d), "d_first_pass": float(np.mean(d)),
+                       "d_sd": float(np.std(d)),
+                       "passes": [{"pass": n + j, "sinkage": float(np.mean(d * g ** (n + j))),
+                                   "sd": float(np.std(d * g ** (n + j)))} for j in range(per_track)]})
+    return {"g": g, "g_tried": tried, "windows": len(wins), "visits": visits}

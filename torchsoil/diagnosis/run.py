@@ -27,7 +27,7 @@ from torchsoil.diagnosis.fit import (
     with_section,
 )
 from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
-from torchsoil.diagnosis.revisits import hardening_across_visits, run_visits
+from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
 
@@ -243,7 +243,8 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
 def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass, n_tracks: int,
              progress=None, cache: PassCache | None = None) -> tuple[float, dict | None]:
     """Hardening on the same ground (revisits.hardening_across_visits) on a pair with visit
-    layers, at half the family-wise level; its per-visit pass kept in and read back from
+    layers, at half the family-wise level; where it names a law, the sinkage pass by pass under
+    it (revisits.per_pass_fit, the dict's `per_pass`). Its passes kept in and read back from
     `cache`. Returns (the level left to the catalogue's candidates, the test's dict or None
     without visit layers)."""
     if getattr(pair, "visit_front", None) is None:
@@ -257,7 +258,15 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
             cache.save("visits", what, vp)
     if progress is not None:
         progress.update(1)
-    return alpha, hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+    rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+    if rev["accepted"]:
+        what = (section_of(pair), rev["g"])
+        rev["per_pass"] = cache.load("per_pass", what) if cache is not None else None
+        if rev["per_pass"] is None:
+            rev["per_pass"] = per_pass_fit(pair, est, sim, rev["g"], nuisance=base.nuisance, index=base.index)
+            if cache is not None:
+                cache.save("per_pass", what, rev["per_pass"])
+    return alpha, rev
 
 
 def _named_on_visits(revisit: dict | None, best) -> bool:
@@ -269,10 +278,15 @@ def _named_on_visits(revisit: dict | None, best) -> bool:
 def _visit_costs(revisit: dict, residual: float) -> tuple[dict, dict, dict]:
     """cost_before, cost_after and extension_parameters of hardening named on the same
     ground: the cost of predicting the later visits from the first visit's soil without and
-    with the law [m] (the windows' mean residual [m] beside them), the law's coefficient."""
+    with the law [m] (the windows' mean residual [m] beside them), the law's coefficient: for
+    the geometric law, g of the fit pass by pass where there is one (every wheel's pass counted,
+    revisits.per_pass_fit), else the cross-visit cost's."""
     before = {"residual": residual, "prediction": revisit["cost_before"]}
     after = {"residual": residual, "prediction": revisit["cost_after"]}
-    return before, after, {revisit["parameter"]: round(revisit["coefficient"], 4)}
+    c, pp = revisit["coefficient"], revisit.get("per_pass") or {}
+    if revisit["parameter"] == "g_pass" and "g" in pp:
+        c = pp["g"]
+    return before, after, {revisit["parameter"]: round(c, 4)}
 
 
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
