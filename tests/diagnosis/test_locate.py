@@ -11,7 +11,9 @@ from torchsoil.diagnosis.locate import (
     Profiles,
     combined_z,
     correlation,
+    evidence_basis,
     gain_correlation,
+    lag1,
     paired_improvement,
     spectral_line,
     zone_of,
@@ -328,3 +330,34 @@ def test_each_rut_is_placed_along_its_own_track_on_a_turn():
     arcs = ((base, side_arc(poses, 0.5)), (base, side_arc(poses, -0.5)))
     line = strongest_line(prof.floor_series(by_side=True, arcs=arcs)[1], dx)
     assert line["ruts"] == "both" and line["wavelength"] == pytest.approx(lam, abs=0.001)
+
+
+def _gains(blocks_gain, block=4, stride=0.4):
+    """Base and extended costs [m] over windows `stride` m apart whose block-of-`block` gains
+    are blocks_gain [m] (every window of a block gains the same)."""
+    gain = np.repeat(np.asarray(blocks_gain, np.float64), block)
+    base = np.full(len(gain), 3e-3)
+    return base, base - gain, stride * np.arange(len(gain))
+
+
+def test_evidence_basis_names_the_blocks_that_carry_a_gain():
+    tiny = 1e-5 * (-1.0) ** np.arange(10)              # the other blocks: alternating, kept
+    g = tiny.copy()
+    g[2], g[7] = 2e-3, 1e-3
+    b = evidence_basis(*_gains(g))
+    assert b["windows"] == 40 and b["blocks"] == 10
+    assert b["n_eff"] == pytest.approx(10.0)              # lag-1 below 0: as many as the blocks
+    assert b["carrier_blocks"] == 1 and b["carriers"] == [[pytest.approx(3.2), pytest.approx(4.4)]]
+    b = evidence_basis(*_gains(g), share=0.9)
+    assert b["carriers"] == [[pytest.approx(3.2), pytest.approx(4.4)], [pytest.approx(11.2), pytest.approx(12.4)]]
+    g[3] = 2e-3                                           # touching blocks: one stretch
+    assert evidence_basis(*_gains(g))["carriers"] == [[pytest.approx(3.2), pytest.approx(6.0)]]
+
+
+def test_evidence_basis_counts_a_smooth_gain_as_few_blocks_and_leaves_out_the_untouched():
+    g = np.concatenate([np.linspace(1e-4, 1e-3, 12), np.zeros(4)])   # a slow trend, then nothing changed
+    b = evidence_basis(*_gains(g))
+    assert b["blocks"] == 12 and b["windows"] == 48
+    r = min(max(lag1(g[:12]), 0.0), 0.95)
+    assert b["n_eff"] == pytest.approx(12 * (1 - r) / (1 + r)) and b["n_eff"] < 3   # not floored at 3
+    assert evidence_basis(*_gains(np.zeros(6)))["carriers"] == []

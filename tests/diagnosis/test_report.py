@@ -3,7 +3,7 @@
 from types import SimpleNamespace
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.report import effect_text, explain, per_pass_text, revisit_markdown
+from torchsoil.diagnosis.report import basis_text, effect_text, explain, per_pass_text, revisit_markdown
 
 
 def _adequate(fits, z_accept):
@@ -131,3 +131,11 @@ def test_the_revisit_section_tables_the_sinkage_of_every_pass():
     assert "| 0 | 0 | 20 | 30.0 ± 2.0 | 30.0 ± 1.0, 15.0 ± 1.0 |" in md
     assert "tried: 0.667, 0.5" in md
     assert "not fitted (3 windows" in revisit_markdown({**rev, "per_pass": {"reason": "3 windows"}})
+
+
+def test_a_named_term_says_what_its_gain_rests_on():
+    basis = {"windows": 48, "blocks": 12, "n_eff": 2.5, "carrier_blocks": 2, "carriers": [[3.2, 6.0]]}
+    text = basis_text(basis)
+    assert "48 windows in 12 blocks" in text and "2.5 independent blocks" in text
+    assert "half of it comes from 2 of them (3.2-6.0 m)" in text
+    assert basis_text(None) == "" and basis_text({**basis, "blocks": 0}) == ""

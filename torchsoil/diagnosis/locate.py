@@ -45,12 +45,12 @@ def lag1(x: np.ndarray) -> float:
     return float((x[1:] * x[:-1]).sum() / den) if den > 0 else 0.0
 
 
-def effective_n(n: int, *series: np.ndarray) -> float:
+def effective_n(n: int, *series: np.ndarray, floor: float = 3.0) -> float:
     """Effective sample size of n autocorrelated values: n (1 - r) / (1 + r) with r the product
-    of the series' lag-1 autocorrelations (one series: its own), floored at 3."""
+    of the series' lag-1 autocorrelations (one series: its own), floored at `floor`."""
     r = float(np.prod([max(lag1(s), 0.0) for s in series])) if len(series) > 1 else max(lag1(series[0]), 0.0)
     r = min(r, 0.95)
-    return float(max(3.0, n * (1 - r) / (1 + r)))
+    return float(max(floor, n * (1 - r) / (1 + r)))
 
 
 @dataclass(frozen=True)
@@ -133,6 +133,38 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
         return m, 0.0, 0.0 if m == 0 else math.copysign(math.inf, m)
     p = float(stats.t.sf(m / se, max(n_eff - fitted, 1.0)))
     return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
+
+
+def evidence_basis(base, ext, s, block: int = 4, same: float = SAME, share: float = 0.5) -> dict:
+    """What a paired gain (`paired_improvement` of base - ext, (W,) costs on the windows centred
+    at arc lengths s (W,) [m]) rests on: the windows and blocks it counts (blocks where the two
+    agree on every window left out, as there), their effective number (`effective_n` of the
+    block means, not floored: the test floors it, a reader should not), and the fewest blocks
+    whose gains hold `share` of the summed positive gain, as spans of arc length [m] (touching
+    blocks merged). Returns {windows, blocks, n_eff, carrier_blocks, carriers: [[s0, s1], ...]}."""
+    b, e, s = (np.asarray(x, np.float64) for x in (base, ext, s))
+    ok = np.isfinite(b) & np.isfinite(e)
+    d, s = b[ok] - e[ok], s[ok]
+    nb = len(d) // max(1, block)
+    blocks, spans = d[: nb * block].reshape(nb, block), s[: nb * block].reshape(nb, block)
+    kept = np.abs(blocks).max(1) > same if nb else np.zeros(0, bool)
+    means, spans = blocks[kept].mean(1), spans[kept]
+    out = {"windows": int(kept.sum()) * block, "blocks": int(kept.sum()),
+           "n_eff": effective_n(len(means), means, floor=0.0) if len(means) else 0.0,
+           "carrier_blocks": 0, "carriers": []}
+    gain = np.maximum(means, 0.0)
+    if gain.sum() <= 0:
+        return out
+    order = np.argsort(-gain)
+    n = int(np.searchsorted(np.cumsum(gain[order]), share * gain.sum()) + 1)
+    carriers: list[list[float]] = []
+    for i in sorted(order[:n]):
+        lo, hi = float(spans[i].min()), float(spans[i].max())
+        if carriers and lo - carriers[-1][1] <= 1.5 * (hi - lo) / max(block - 1, 1):
+            carriers[-1][1] = hi
+        else:
+            carriers.append([lo, hi])
+    return {**out, "carrier_blocks": n, "carriers": carriers}
 
 
 def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float = SAME) -> float:

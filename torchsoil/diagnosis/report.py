@@ -165,6 +165,16 @@ def per_pass_text(pp: dict | None) -> str:
             + f"): the wheel passes sink {sinks} mm in turn.")
 
 
+def basis_text(basis: dict | None) -> str:
+    """What a named term's held-out gain rests on (locate.evidence_basis), or ""."""
+    if not basis or not basis["blocks"]:
+        return ""
+    spans = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in basis["carriers"])
+    half = (f"; half of it comes from {basis['carrier_blocks']} of them ({spans})" if basis["carriers"] else "")
+    return (f" The gain rests on {basis['windows']} windows in {basis['blocks']} blocks of neighbours, as much "
+            f"evidence as {basis['n_eff']:.1f} independent blocks{half}.")
+
+
 def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
@@ -181,7 +191,8 @@ def _explain(diag) -> str:
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
                 f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "
                 f"allowed by noise; coefficient chosen on other "
-                f"windows than those it is scored on).{effect_text(f)} The mismatch lies on the "
+                f"windows than those it is scored on).{effect_text(f)}{basis_text(ev.get('basis'))} The mismatch "
+                f"lies on the "
                 f"{where['cross_track'].replace('_', ' ')}"
                 f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "
                 f"Noise floor {_mm(s['noise_floor'])}.")

@@ -26,7 +26,7 @@ from torchsoil.diagnosis.fit import (
     trial_ks,
     with_section,
 )
-from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
+from torchsoil.diagnosis.locate import ZONES, correlation, evidence_basis, paired_improvement, spectral_line
 from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
@@ -426,6 +426,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "tyre_section": section,
                 "dig_order": dig,
                 "revisits": revisit,
+                "basis": evidence_basis(base.held_out, best.held_out, s) if best is not None else None,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
