@@ -155,7 +155,8 @@ def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, te
     params = CsvLog(out / "params.csv", param_columns(names), resume)
     reference = CsvLog(out / "reference.csv", REFERENCE, resume)
     n_done = min(len(params.rows), len(reference.rows))
-    params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
+    params.keep(n_done)                    # a window is written once both its rows are
+    reference.keep(n_done)
     sim_path = out / "simulated.npz"
     restored = None
     if resume and sim_path.exists() and n_done:
@@ -249,7 +250,8 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     params = CsvLog(out / "params.csv", param_columns(names), resume)
     reference = CsvLog(out / "reference.csv", REFERENCE, resume)
     n_done = min(len(params.rows), len(reference.rows))
-    params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
+    params.keep(n_done)                    # a window is written once both its rows are
+    reference.keep(n_done)
     live.resume(params.rows)
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
     sims = SimTiles(tiles / "sim" if e.online.spill else None)   # each window's simulated change, stitched
