@@ -64,13 +64,17 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
 
 def revisit_test(diag) -> dict | None:
     """The hardening test on the ground driven again (`revisits.hardening_across_visits`) in
-    brief: accepted, its z against its level, the per-pass g on all later visits and by fold,
-    the reason it could not run; None on a drive without visit layers."""
+    brief: accepted, the later visits it simulated (windows), its z against its level, the
+    per-pass g on all later visits and by fold, the g of the fit pass by pass where it ran
+    (g_per_pass), the reason it could not run; None on a drive without visit layers."""
     rev = diag.evidence.get("revisits")
     if rev is None:
         return None
-    keys = ("accepted", "z_visible", "z_level", "g", "g_folds", "reason")
-    return {k: rev[k] for k in keys if k in rev}
+    keys = ("accepted", "windows", "z_visible", "z_level", "g", "g_folds", "reason")
+    out = {k: rev[k] for k in keys if k in rev}
+    if "g" in (rev.get("per_pass") or {}):
+        out["g_per_pass"] = rev["per_pass"]["g"]
+    return out
 
 
 def held_out_tests(diag) -> list[dict]:
