@@ -91,3 +91,14 @@ def portable(p):
     """A `fit.Pass` without what a later run rebuilds from the pair (its path index, map
     nuisance, window store and surfaces), for `PassCache.save`."""
     return dataclasses.replace(p, index=None, nuisance=None, store=None, surfaces=None)
+
+
+def kept(cache: PassCache | None, label: str, what: tuple, compute):
+    """What `cache` keeps under (label, what), else compute(), then kept there (no cache:
+    compute() alone)."""
+    value = cache.load(label, what) if cache is not None else None
+    if value is None:
+        value = compute()
+        if cache is not None:
+            cache.save(label, what, value)
+    return value

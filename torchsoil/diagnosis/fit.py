@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts, effect_size
-from torchsoil.diagnosis.checkpoint import PassCache, portable
+from torchsoil.diagnosis.checkpoint import PassCache, kept, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, term_test
 from torchsoil.estimator import Estimator, Stitcher
@@ -261,14 +261,13 @@ def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: Section, every
     estimator = Estimator(with_section(pair, sec), est, sim, modifiers=model.modifiers if model is not None else None,
                           **{**(shared or {}), "store": None})
     what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
-    cost = cache.load("section", what) if cache is not None else None
-    if cost is None:
+
+    def score() -> float:
         estimator.windows = estimator.windows[::max(1, every)]
         res = [o.row["residual"] for o in estimator.run()]
-        cost = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
-        if cache is not None:
-            cache.save("section", what, cost)
-    return cost, shared_of(estimator)
+        return float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+
+    return kept(cache, "section", what, score), shared_of(estimator)
 
 
 def folds(n: int, block: int) -> np.ndarray:

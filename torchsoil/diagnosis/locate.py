@@ -112,14 +112,7 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
     say nothing about the noise of the difference; counted as samples of it, they would cap z
     near the square root of the number of blocks the term touches, however large and steady
     its gain there. Returns (mean over the blocks kept, se, z)."""
-    b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
-    if b.shape != e.shape:
-        raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
-    ok = np.isfinite(b) & np.isfinite(e)
-    d = b[ok] - e[ok]
-    nb = len(d) // max(1, block)
-    blocks = d[: nb * block].reshape(nb, block)
-    kept = np.abs(blocks).max(1) > same
+    d, blocks, kept, _ = _paired_blocks(base, ext, block, same)
     blocks, place = blocks[kept], np.flatnonzero(kept).astype(np.float64)
     nb = len(blocks)
     if nb < 3:
@@ -135,6 +128,22 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
     return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
 
 
+def _paired_blocks(base, ext, block: int, same: float, s=None):
+    """The differences base - ext over the windows where both are finite (D,); their blocks of
+    `block` consecutive ones (nb, block) and which blocks to keep (nb,) bool (those where the
+    two series differ by more than `same` somewhere); and s (W,) of the same windows in the
+    same blocks (nb, block), or None."""
+    b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
+    if b.shape != e.shape:
+        raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
+    ok = np.isfinite(b) & np.isfinite(e)
+    d = b[ok] - e[ok]
+    nb = len(d) // max(1, block)
+    blocks = d[: nb * block].reshape(nb, block)
+    at = None if s is None else np.asarray(s, np.float64)[ok][: nb * block].reshape(nb, block)
+    return d, blocks, np.abs(blocks).max(1) > same, at
+
+
 def evidence_basis(base, ext, s, block: int = 4, same: float = SAME, share: float = 0.5) -> dict:
     """What a paired gain (`paired_improvement` of base - ext, (W,) costs on the windows centred
     at arc lengths s (W,) [m]) rests on: the windows and blocks it counts (blocks where the two
@@ -142,12 +151,7 @@ def evidence_basis(base, ext, s, block: int = 4, same: float = SAME, share: floa
     block means, not floored: the test floors it, a reader should not), and the fewest blocks
     whose gains hold `share` of the summed positive gain, as spans of arc length [m] (touching
     blocks merged). Returns {windows, blocks, n_eff, carrier_blocks, carriers: [[s0, s1], ...]}."""
-    b, e, s = (np.asarray(x, np.float64) for x in (base, ext, s))
-    ok = np.isfinite(b) & np.isfinite(e)
-    d, s = b[ok] - e[ok], s[ok]
-    nb = len(d) // max(1, block)
-    blocks, spans = d[: nb * block].reshape(nb, block), s[: nb * block].reshape(nb, block)
-    kept = np.abs(blocks).max(1) > same if nb else np.zeros(0, bool)
+    _, blocks, kept, spans = _paired_blocks(base, ext, block, same, s)
     means, spans = blocks[kept].mean(1), spans[kept]
     out = {"windows": int(kept.sum()) * block, "blocks": int(kept.sum()),
            "n_eff": effective_n(len(means), means, floor=0.0) if len(means) else 0.0,

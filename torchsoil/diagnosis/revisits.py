@@ -354,10 +354,7 @@ class PassLaw:
     def __call__(self, wd, theta, geom) -> Modifiers:
         import torch
 
-        from torchsoil.diagnosis.catalogue import entry_passes
-
-        key = (wd.spec.s0, wd.spec.s1, wd.crop, int(geom.poses.shape[0]), float(geom.poses[0, 0]), True, True)
-        n = self.counts.get(key, lambda: entry_passes(self.drive, geom, wd.grid, True, True))
+        n = self.counts.of(self.drive, wd, geom, True, True)
         f = torch.as_tensor(law_factor(self.shape, self.c, n), dtype=theta.dtype, device=theta.device)
         return Modifiers(depth_scale=f[None].expand(theta.shape[0], -1))
 
@@ -383,7 +380,7 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     drive, counts = DriveSignals.from_poses(pair.poses, pair.robot), PassCounts()
     sim = sim.replace(dig_order="wheel", revisit_ref="disc")
     n_tracks = pair.robot.n_tracks
-    per_track = int(np.bincount(np.asarray(pair.robot.wheels[:, 2], np.int64)).max())
+    per_track = int(np.bincount(pair.robot.track).max())
     tried: list[list[float]] = []
     for step in range(steps + 1):
         e = Estimator(pair, est, sim, per_visit=True, nuisance=nuisance, index=index,

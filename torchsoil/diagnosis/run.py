@@ -10,7 +10,7 @@ import numpy as np
 from scipy import stats
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.checkpoint import PassCache
+from torchsoil.diagnosis.checkpoint import PassCache, kept
 from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, side_arc, window_signals
 from torchsoil.diagnosis.fit import (
     CandidateFit,
@@ -250,22 +250,14 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
     if getattr(pair, "visit_front", None) is None:
         return cfg.alpha_accept, None
     alpha = cfg.alpha_accept / 2
-    what = (section_of(pair), sim.dig_order)
-    vp = cache.load("visits", what) if cache is not None else None
-    if vp is None:
-        vp = run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index)
-        if cache is not None:
-            cache.save("visits", what, vp)
+    kw = dict(nuisance=base.nuisance, index=base.index)
+    vp = kept(cache, "visits", (section_of(pair), sim.dig_order), lambda: run_visits(pair, est, sim, **kw))
     if progress is not None:
         progress.update(1)
     rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
     if rev["accepted"]:
-        what = (section_of(pair), rev["g"])
-        rev["per_pass"] = cache.load("per_pass", what) if cache is not None else None
-        if rev["per_pass"] is None:
-            rev["per_pass"] = per_pass_fit(pair, est, sim, rev["g"], nuisance=base.nuisance, index=base.index)
-            if cache is not None:
-                cache.save("per_pass", what, rev["per_pass"])
+        rev["per_pass"] = kept(cache, "per_pass", (section_of(pair), rev["g"]),
+                               lambda: per_pass_fit(pair, est, sim, rev["g"], **kw))
     return alpha, rev
 
 
