@@ -269,6 +269,52 @@ def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengt
     return {"ratio": best[0], "wavelength": float(best[1]), "amplitude": float(best[3]), "p": float(min(1.0, p))}
 
 
+def line_zone(series: np.ndarray, dx: float, wavelength: float, segment: float = 2.0,
+              alpha: float = 0.01) -> np.ndarray:
+    """Where along a series a spectral line stands (complex demodulation): each row of series
+    ((S,) or (M, S), spaced dx [m] apart on one arc-length grid, NaN gaps filled) is shifted
+    by the line's frequency 1 / wavelength [m] and averaged over a Hann segment of `segment`
+    m centred on each sample; the line's power there (summed over rows) is compared with the
+    same at eight off-line frequencies 2 to 5 segment bins either side, the local background.
+    A sample is flagged where that ratio exceeds the F(2 M, 16 M) quantile at alpha over the
+    number of independent segments (2 S dx / segment), a line-free series staying quiet.
+
+    Returns (S,) bool: the centres of the segments that hold the line (a tread pressed only
+    on part of the drive, by soft ground or a lug pattern worn flat)."""
+    rows = np.atleast_2d(np.asarray(series, np.float64))
+    S = rows.shape[1]
+    n = max(3, int(round(segment / dx)) | 1)
+    if S < 2 * n or not np.isfinite(wavelength) or wavelength <= 0:
+        return np.zeros(S, bool)
+    s = np.arange(S) * dx
+    f0, step = 1.0 / wavelength, 1.0 / (n * dx)
+    offs = [k * step for k in (-5, -4, -3, -2, 2, 3, 4, 5) if 0 < f0 + k * step < 0.5 / dx]
+    win = np.hanning(n + 2)[1:-1]
+    win /= win.sum()
+    line, back, m = np.zeros(S), np.zeros(S), 0
+    for y in rows:
+        ok = np.isfinite(y)
+        if ok.sum() < 2 * n:
+            continue
+        y = np.interp(np.arange(S), np.flatnonzero(ok), y[ok])
+        y = y - np.convolve(y, np.ones(n) / n, "same")        # the rut's slow changes out
+        line += _demodulated_power(y, s, f0, win)
+        back += sum(_demodulated_power(y, s, f0 + o, win) for o in offs) / len(offs)
+        m += 1
+    if m == 0 or not offs:
+        return np.zeros(S, bool)
+    crit = stats.f.isf(alpha / max(1.0, 2 * S * dx / segment), 2 * m, 2 * m * len(offs))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flagged = line / back > crit
+    flagged[: n // 2] = flagged[S - n // 2:] = False          # segments that run off the series
+    return flagged
+
+
+def _demodulated_power(y: np.ndarray, s: np.ndarray, f: float, win: np.ndarray) -> np.ndarray:
+    """|local amplitude|^2 of frequency f [1/m] in y sampled at s [m], averaged by window win."""
+    return np.abs(np.convolve(y * np.exp(-2j * np.pi * f * s), win, "same")) ** 2
+
+
 # ------------------------------------------------------------------ profiles
 @dataclass
 class Profiles:
@@ -291,6 +337,7 @@ class Profiles:
     floor_s: list = field(default_factory=list)
     floor_r: list = field(default_factory=list)
     floor_side: list = field(default_factory=list)
+    floor_lat: list = field(default_factory=list)
     floor: bool = True
 
     @classmethod
@@ -344,10 +391,11 @@ class Profiles:
             getattr(self, k).append(acc[k])
         if not self.floor:
             return
-        fl = (zone_of(lat, self.radius, self.dx) == 0) & (w_side == 1)
+        fl = (np.abs(lat) <= self.radius + self.dx / 2) & (w_side == 1)
         self.floor_s.append(s[fl])
         self.floor_r.append((hs - hb)[fl])
         self.floor_side.append(side[fl])
+        self.floor_lat.append(lat[fl])
 
     # -------------------------------------------------------------- summaries
     def _stack(self, name: str) -> np.ndarray:
@@ -439,7 +487,8 @@ class Profiles:
         m = float(d[ok].mean())
         return {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "series": d}
 
-    def floor_series(self, by_side: bool = False, arcs: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def floor_series(self, by_side: bool = False, arcs: tuple | None = None, band: float | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
         """Rut-floor residual per arc-length cell: (S,) arc length [m] and mean residual [m],
         (S,) over both sides, or (2, S) left and right wheels' ruts with by_side (a tread's
         marks need not line up from one side to the other). arcs: optional per side (left,
@@ -448,8 +497,10 @@ class Profiles:
         where a tread's wavelength holds on a turn."""
         if not self.floor_s:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
-        s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
-        side = np.concatenate(self.floor_side) if by_side else np.zeros(len(s), int)
+        lat = np.abs(np.concatenate(self.floor_lat))
+        keep = lat < self.radius / 2 if band is None else lat <= band
+        s, r = np.concatenate(self.floor_s)[keep], np.concatenate(self.floor_r)[keep]
+        side = np.concatenate(self.floor_side)[keep] if by_side else np.zeros(len(s), int)
         if len(s) == 0:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         if by_side and arcs is not None:

@@ -7,7 +7,7 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import ndimage, stats
 
 from torchsoil.diagnosis import catalogue
 from torchsoil.diagnosis.checkpoint import PassCache, kept
@@ -26,7 +26,7 @@ from torchsoil.diagnosis.fit import (
     trial_ks,
     with_section,
 )
-from torchsoil.diagnosis.locate import ZONES, correlation, evidence_basis, paired_improvement, spectral_line
+from torchsoil.diagnosis.locate import ZONES, correlation, evidence_basis, line_zone, paired_improvement, spectral_line
 from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
@@ -127,6 +127,29 @@ def strongest_line(by_side: np.ndarray, dx: float) -> dict:
     lines = {k: spectral_line(v, dx) for k, v in looks.items()}
     ruts, best = min(lines.items(), key=lambda kv: kv[1]["p"])
     return {**best, "p": min(1.0, len(lines) * best["p"]), "ruts": ruts}
+
+
+def line_spans(by_side: np.ndarray, grid: np.ndarray, arcs: tuple, line: dict, dx: float,
+               shortest: float = 2.0) -> list[list[float]]:
+    """Where along the drive the strongest line (`strongest_line`) stands, as base_link arc
+    intervals [m]: `locate.line_zone` on the ruts that carry it ((2, S) on the own-track arc
+    grid (S,) [m]; arcs as for Profiles.floor_series), gaps under half a segment bridged.
+    The segment is as long as a line of the drive-wide strength (its ratio to the background
+    over the whole series) needs to stand out alone, `shortest` m at least: a weak line is
+    placed coarsely rather than in the fragments where noise happened to add to it."""
+    rows = {"left": by_side[:1], "right": by_side[1:], "both": by_side}[line.get("ruts", "both")]
+    total = rows.shape[1] * dx
+    segment = shortest
+    for _ in range(3):             # its own level depends on how many segments the drive holds
+        crit = stats.f.isf(0.01 / max(1.0, 2 * total / segment), 2 * len(rows), 16 * len(rows))
+        segment = float(np.clip(total * crit / max(line["ratio"] - 1.0, 1e-9), shortest, total / 2))
+    on = line_zone(rows, dx, line["wavelength"], segment)
+    if not on.any():
+        return []
+    on = ndimage.binary_closing(on, np.ones(max(1, int(segment / 2 / dx)), bool), border_value=0)
+    s = np.mean([np.interp(grid, own, base) for base, own in arcs], 0)
+    edges = np.flatnonzero(np.diff(np.r_[0, on.astype(np.int8), 0])).reshape(-1, 2)   # runs [a, b)
+    return [[round(float(s[a]) - dx / 2, 2), round(float(s[b - 1]) + dx / 2, 2)] for a, b in edges]
 
 
 def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float]]:
@@ -318,7 +341,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     arcs = tuple((base_arc, side_arc(pair.poses, float(y.mean()))) if len(y) else (base_arc, base_arc)
                  for y in sides)
     fs = prof.floor_series()[0]                                # base_link arc length, m
-    fr = prof.floor_series(by_side=True, arcs=arcs)[1]        # each rut along its own wheels' track
+    # each rut along its own wheels' track, across the tyre's contact width (its lugs print there)
+    fgrid, fr = prof.floor_series(by_side=True, arcs=arcs, band=prof.radius)
     line = strongest_line(fr, pair.dx)
     n_tracks = robot.n_tracks
 
@@ -376,7 +400,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         verdict = "unexplained"
         if sig_line:
             cross = "rut_floor"
-            spans = [[round(float(fs[0]), 2), round(float(fs[-1]), 2)]] if len(fs) else []
+            spans = line_spans(fr, fgrid, arcs, line, pair.dx) or (
+                [[round(float(fs[0]), 2), round(float(fs[-1]), 2)]] if len(fs) else [])
             covariate = "arc_length"
         else:
             if sig_zones:

@@ -147,7 +147,7 @@ REVISITS = ("out_and_back", "loop", "lane_changes")
 def random_law(rng: np.random.Generator, eid: str) -> dict:
     """An effect law of a random form (effects.FORMS) and magnitude for effect `eid`."""
     if eid == "tread":
-        return {"amp": float(rng.uniform(0.004, 0.008)), "wavelength": float(rng.uniform(0.12, 0.3))}
+        return {"amp": float(rng.uniform(0.004, 0.008)), "wavelength": float(rng.uniform(0.06, 0.3))}
     x0, k_range = LAWS[eid]
     form = str(rng.choice(fx.FORMS))
     law = {"form": form, "p": float(rng.uniform(0.5, 2.0)) if form == "power" else 1.0,
