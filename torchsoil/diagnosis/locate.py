@@ -497,9 +497,11 @@ class Profiles:
         where a tread's wavelength holds on a turn."""
         if not self.floor_s:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
-        lat = np.abs(np.concatenate(self.floor_lat))
+        s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
+        lats = getattr(self, "floor_lat", None)          # absent from passes kept by older versions
+        lat = np.abs(np.concatenate(lats)) if lats and sum(map(len, lats)) == len(s) else np.zeros(len(s))
         keep = lat < self.radius / 2 if band is None else lat <= band
-        s, r = np.concatenate(self.floor_s)[keep], np.concatenate(self.floor_r)[keep]
+        s, r = s[keep], r[keep]
         side = np.concatenate(self.floor_side)[keep] if by_side else np.zeros(len(s), int)
         if len(s) == 0:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
