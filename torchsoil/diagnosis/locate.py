@@ -494,7 +494,9 @@ class Profiles:
         marks need not line up from one side to the other). arcs: optional per side (left,
         right) a pair ((N,) base_link arc, (N,) that side's track arc) [m], increasing: each
         side's cells are then placed by the distance its own wheels travelled (`side_arc`),
-        where a tread's wavelength holds on a turn."""
+        where a tread's wavelength holds on a turn. band: the cells up to this offset [m] from
+        the wheel centre line (the footprint radius at most: a tyre prints its lugs across
+        its contact width); None: the rut floor, |offset| < radius / 2."""
         if not self.floor_s:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
