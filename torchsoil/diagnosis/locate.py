@@ -303,11 +303,29 @@ def line_zone(series: np.ndarray, dx: float, wavelength: float, segment: float =
         m += 1
     if m == 0 or not offs:
         return np.zeros(S, bool)
-    crit = stats.f.isf(alpha / max(1.0, 2 * S * dx / segment), 2 * m, 2 * m * len(offs))
+    crit = _zone_level(m, len(offs), S * dx, segment, alpha)
     with np.errstate(invalid="ignore", divide="ignore"):
         flagged = line / back > crit
     flagged[: n // 2] = flagged[S - n // 2:] = False          # segments that run off the series
     return flagged
+
+
+def _zone_level(rows: int, off_line: int, length: float, segment: float, alpha: float) -> float:
+    """`line_zone`'s critical power ratio: the F(2 rows, 2 rows off_line) quantile at alpha
+    over the independent segments of `segment` m in `length` m."""
+    return float(stats.f.isf(alpha / max(1.0, 2 * length / segment), 2 * rows, 2 * rows * off_line))
+
+
+def zone_segment(ratio: float, rows: int, length: float, shortest: float = 2.0, alpha: float = 0.01) -> float:
+    """The `line_zone` segment [m] in which a line of the strength it has over a whole series of
+    `length` m (ratio to its background, `spectral_line`) would stand out alone, `shortest` at
+    least and half the series at most: a weak line is placed coarsely rather than in the
+    fragments where noise happened to add to it."""
+    segment = shortest
+    for _ in range(3):             # the level depends on how many segments the series holds
+        crit = _zone_level(rows, 8, length, segment, alpha)
+        segment = float(np.clip(length * crit / max(ratio - 1.0, 1e-9), shortest, length / 2))
+    return segment
 
 
 def _demodulated_power(y: np.ndarray, s: np.ndarray, f: float, win: np.ndarray) -> np.ndarray:
@@ -391,7 +409,7 @@ class Profiles:
             getattr(self, k).append(acc[k])
         if not self.floor:
             return
-        fl = (np.abs(lat) <= self.radius + self.dx / 2) & (w_side == 1)
+        fl = (np.abs(lat) <= self.radius) & (w_side == 1)
         self.floor_s.append(s[fl])
         self.floor_r.append((hs - hb)[fl])
         self.floor_side.append(side[fl])

@@ -26,7 +26,15 @@ from torchsoil.diagnosis.fit import (
     trial_ks,
     with_section,
 )
-from torchsoil.diagnosis.locate import ZONES, correlation, evidence_basis, line_zone, paired_improvement, spectral_line
+from torchsoil.diagnosis.locate import (
+    ZONES,
+    correlation,
+    evidence_basis,
+    line_zone,
+    paired_improvement,
+    spectral_line,
+    zone_segment,
+)
 from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
@@ -129,20 +137,13 @@ def strongest_line(by_side: np.ndarray, dx: float) -> dict:
     return {**best, "p": min(1.0, len(lines) * best["p"]), "ruts": ruts}
 
 
-def line_spans(by_side: np.ndarray, grid: np.ndarray, arcs: tuple, line: dict, dx: float,
-               shortest: float = 2.0) -> list[list[float]]:
+def line_spans(by_side: np.ndarray, grid: np.ndarray, arcs: tuple, line: dict, dx: float) -> list[list[float]]:
     """Where along the drive the strongest line (`strongest_line`) stands, as base_link arc
     intervals [m]: `locate.line_zone` on the ruts that carry it ((2, S) on the own-track arc
-    grid (S,) [m]; arcs as for Profiles.floor_series), gaps under half a segment bridged.
-    The segment is as long as a line of the drive-wide strength (its ratio to the background
-    over the whole series) needs to stand out alone, `shortest` m at least: a weak line is
-    placed coarsely rather than in the fragments where noise happened to add to it."""
+    grid (S,) [m]; arcs as for Profiles.floor_series), over the segment its drive-wide
+    strength needs (`locate.zone_segment`), gaps under half a segment bridged."""
     rows = {"left": by_side[:1], "right": by_side[1:], "both": by_side}[line.get("ruts", "both")]
-    total = rows.shape[1] * dx
-    segment = shortest
-    for _ in range(3):             # its own level depends on how many segments the drive holds
-        crit = stats.f.isf(0.01 / max(1.0, 2 * total / segment), 2 * len(rows), 16 * len(rows))
-        segment = float(np.clip(total * crit / max(line["ratio"] - 1.0, 1e-9), shortest, total / 2))
+    segment = zone_segment(line["ratio"], len(rows), rows.shape[1] * dx)
     on = line_zone(rows, dx, line["wavelength"], segment)
     if not on.any():
         return []
