@@ -24,10 +24,11 @@ reference of step 2 is instead the mean of the surface before the robot over the
 footprint (the cells within r): a wheel spans a rut of its own width and rests on its walls.
 
 With dig="wheel" the axles take turns instead (the leading axle first: the front one on a
-drive forward, the rear one in reverse): each digs the whole drive in step 3 from a reference
-height taken anew from the surface the axles before it left (deposits included), so the
-trailing wheel digs again in the leading one's rut; `axle_scale` scales each axle's d in that
-order (a soil whose every wheel pass sinks less than the one before).
+drive forward, the rear one in reverse): each digs the whole drive in step 3 from the surface
+the axles before it left (deposits included), so the trailing wheel digs again in the
+leading one's rut; on the cells their footprints covered its reference is the mean of that
+surface over its whole footprint, as on ground earlier wheels dug; `axle_scale` scales each
+axle's d in that order (a soil whose every wheel pass sinks less than the one before).
 
 Then, once every pose is done, Exner relaxation over the whole grid: forward-difference
 gradients g = [h(i+1,j) - h(i,j), h(i,j+1) - h(i,j)] / dx (0 across the grid's outer
@@ -140,18 +141,20 @@ def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.nd
     axles = [wheels] if dig == "robot" else [wheels[wheels[:, 0] == a]
                                              for a in sorted(set(wheels[:, 0]), reverse=forward)]
     scale = np.ones(len(axles)) if axle_scale is None else np.asarray(axle_scale, np.float64)
+    covered = np.zeros(h.shape, bool)
     for n, axle in enumerate(axles):
-        if n > 0:
-            h_ref = disc_mean(h, ref_radius * r, dx)       # the next axle's turn: the surface as left
+        if n > 0:      # the next axle's turn: it rests on the surface the axles before left
+            h_ref = np.where(covered, disc_mean(h, r, dx), h_ref)
         for x, y, yaw in dense:
-            _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, axle, np.asarray(d) * scale[n], chi, flat, totals)
+            _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, axle, np.asarray(d) * scale[n], chi, flat, totals,
+                 covered)
     h, iterations = relax(h, dx, beta, tau)
     return h, {"removed": totals[0], "deposited": totals[1], "iterations": iterations}
 
 
-def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat, totals):
+def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat, totals, covered):
     """Steps 1, 3 and 4 for the given wheels at one pose, in place on h; totals: [removed,
-    deposited] volumes, m^3, added to."""
+    deposited] volumes, m^3, added to; covered: (X, Y) bool, the footprint cells set."""
     X, Y = h.shape
     c, s = math.cos(yaw), math.sin(yaw)
     for wx, wy, track in wheels:
@@ -162,6 +165,7 @@ def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat
         along = ex * c + ey * s
         lat = -ex * s + ey * c
         foot = along**2 + lat**2 <= r**2
+        covered[win] |= foot
         hw = h[win]
         target = h_ref[win] - taper(lat / r, flat) * d[int(track)]
         new = np.where(foot, np.minimum(hw, target), hw)

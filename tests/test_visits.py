@@ -113,7 +113,8 @@ def two_visit_pair(seed=0, noise=0.0015, dx=0.02, d1=D1, length=LENGTH, once=ONC
     reference model visit by visit: the first with d = D0 from the untouched ground, the
     second with d = d1 from the ground the first left, its reference over the whole footprint
     on the first's ruts (a wheel spans a rut of its own width). With per_pass_g the axles dig in
-    turn instead, each from the rut the ones before it left, the n-th wheel pass over a cell
+    turn instead, each from the rut the ones before it left (resting on it as on the first
+    visit's ruts), the n-th wheel pass over a cell
     sinking D0 per_pass_g^n (d1 unused). Visit layers as FORMATS.md v1.1: cells
     with x < `once` have two visits (out at t = x, back at t = 2 length - x); the others one
     (from the untouched ground to the end). Returns (pair dict, truth dict)."""
@@ -125,17 +126,17 @@ def two_visit_pair(seed=0, noise=0.0015, dx=0.02, d1=D1, length=LENGTH, once=ONC
     poses = out_and_back(length, dt=0.05)
     out, back = poses[poses[:, 0] <= length], poses[poses[:, 0] >= length]
     beta = math.radians(30.0)
+    ys = origin[1] + dx * np.arange(Y)
+    xx = origin[0] + dx * np.arange(X)
+    ruts = (np.abs(np.abs(ys) - 0.5) <= 0.07)[None] & ((xx >= -0.76) & (xx <= length + 0.76))[:, None]
     if per_pass_g is not None:
         g = per_pass_g
         h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta, dig="wheel",
                                    axle_scale=(1.0, g))
         h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (D0, D0), 0.5, beta, dig="wheel",
-                                   axle_scale=(g**2, g**3))
+                                   axle_scale=(g**2, g**3), dug=ruts)
     else:
         h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta)
-        ys = origin[1] + dx * np.arange(Y)
-        xx = origin[0] + dx * np.arange(X)
-        ruts = (np.abs(np.abs(ys) - 0.5) <= 0.07)[None] & ((xx >= -0.76) & (xx <= length + 0.76))[:, None]
         h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (d1, d1), 0.5, beta, dug=ruts)
 
     def measured(h):
@@ -328,3 +329,21 @@ def test_a_rut_driven_again_by_a_soil_that_does_not_harden_fits_the_same_d():
     assert ratio["disc"] < ratio["footprint"] - 0.05
     first = [[r[k] for k in ("d1", "d2", "chi", "beta", "residual")] for r in fits["footprint"] if r["visit"] == 0]
     assert first == [[r[k] for k in ("d1", "d2", "chi", "beta", "residual")] for r in fits["disc"] if r["visit"] == 0]
+
+
+def test_track_heading_is_that_of_the_last_pass_over_the_cell():
+    """Out along +x (yaw 0) until t = 10 s, back along -x (yaw pi) from t = 20 s: a cell the
+    way back passed takes pi, one only the way out passed takes 0, one neither passed the
+    heading of the nearest cell that was passed."""
+    from torchsoil.visits import track_heading
+
+    t = np.array([0.0, 10.0, 20.0, 30.0])
+    yaw = np.array([0.0, 0.0, np.pi, np.pi])
+    times = np.full((2, 3, 4), np.nan)
+    times[0, :, :2] = 5.0               # the way out, columns 0-1
+    times[1, :, 0] = 25.0               # the way back, column 0
+    got = track_heading(times, t, yaw)
+    assert got[:, 0] == pytest.approx(np.pi)
+    assert got[:, 1] == pytest.approx(0.0)
+    assert got[:, 2] == pytest.approx(0.0) and got[:, 3] == pytest.approx(0.0)
+    assert np.isnan(track_heading(times[:0], t, yaw)).all()

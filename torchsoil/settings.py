@@ -50,9 +50,9 @@ class SimConfig(Section):
     ref_radius: float = Field(0.5, ge=0, description="reference-height disc radius, fraction of half the "
                                                      "wheel width")
     revisit_ref: Literal["footprint", "disc"] = Field(
-        "footprint", description="reference height of a visit after the first, fitted on its own maps, on the "
-                                 "cells earlier wheel passes went over: footprint: the mean over the wheel's "
-                                 "whole footprint, the level a wheel that spans the rut rests on "
+        "footprint", description="reference height on the cells earlier wheel passes went over (a visit after "
+                                 "the first; a trailing wheel under dig_order wheel): footprint: the mean over "
+                                 "the wheel's whole footprint, the level a wheel that spans the rut rests on "
                                  "(docs/visits.md); disc: the ref_radius disc of fresh ground")
     band_width: float = Field(1.0, gt=0, description="deposition band beside the rut, cells")
     relax_margin: float = Field(2.0, ge=0, description="relaxation domain: rut plus this many wheel widths "
@@ -64,7 +64,7 @@ class SimConfig(Section):
     dig_order: Literal["robot", "wheel"] = Field(
         "robot", description="robot: every wheel digs from the surface before the robot (the paper); wheel: "
                              "the axles dig in the order they meet the ground, each trailing wheel again "
-                             "from the rut the wheels before it left")
+                             "from the surface the wheels before it left, their spoil included")
 
 
 # ---------------------------------------------------------------------------- estimator

@@ -295,6 +295,30 @@ def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
         return np.where(valid, num / den, np.nan)
 
 
+def smooth_along(h: np.ndarray, yaw: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of an (X, Y) heightmap [m] along a direction per cell only: yaw
+    (X, Y) [rad, world frame; i runs along x, j along y], sigma in cells, NaN cells ignored
+    (normalised) and kept NaN; cells with a NaN yaw are left as they are. Relief that runs
+    along the direction (a rut along the track that dug it) keeps its cross-section while the
+    noise averages out. sigma = 0 returns h unchanged."""
+    if sigma <= 0:
+        return h
+    valid = np.isfinite(h)
+    vals, w = np.where(valid, h, 0.0).astype(np.float64), valid.astype(np.float64)
+    ii, jj = np.indices(h.shape, dtype=np.float64)
+    c, s = np.cos(np.nan_to_num(yaw)), np.sin(np.nan_to_num(yaw))
+    num = np.zeros(h.shape)
+    den = np.zeros(h.shape)
+    for k in range(-int(math.ceil(3 * sigma)), int(math.ceil(3 * sigma)) + 1):
+        g = math.exp(-0.5 * (k / sigma) ** 2)
+        at = [ii + k * c, jj + k * s]
+        num += g * ndimage.map_coordinates(vals, at, order=1, mode="nearest")
+        den += g * ndimage.map_coordinates(w, at, order=1, mode="nearest")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(valid & (den > 0), num / den, np.nan)
+    return np.where(np.isfinite(yaw), out, h)
+
+
 def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:
     """The robot moved slower than `speed` [m/s] for more than `duration` [s] in these poses."""
     if len(poses) < 2:

@@ -361,24 +361,26 @@ class PassLaw:
 
 def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int = 2) -> dict:
     """Sinkage pass by pass under the geometric law: the per-visit fits again, with every wheel
-    digging in turn (sim.dig_order "wheel") from the rut the passes before it left (the
-    ref_radius disc, sim.revisit_ref "disc": a later visit's front wheel is the cell's third
-    pass as the rear wheel is its second) and sinking d g^n after n earlier wheel passes
+    digging in turn (sim.dig_order "wheel") from the surface the passes before it left (resting
+    on it as sim.revisit_ref says: a later visit's front wheel is the cell's third pass as the
+    rear wheel is its second) and sinking d g^n after n earlier wheel passes
     (`PassLaw`). Where the law holds, every visit of a window fits the same first-pass d; g is
     moved until the later visits' d agrees with the first's (`per_pass`: the windows' median
     log ratio per pass, 0 at the fixed point; `steps` steps, the first by that log ratio, then
     by secant), starting from the cross-visit cost's g.
 
     Returns {g, g_tried: [[g, log ratio per pass], ...], windows, visits: [{visit,
-    passes_before, windows, d_first_pass, d_sd, passes: [{pass, sinkage, sd}]}]} (m; pass: the
-    cell's wheel passes before it, 0 the first ever; one entry per visit and wheel passes
-    before it, as the multi-pass table of summary.md), or {reason} with fewer than 4 windows."""
+    passes_before, windows, d_first_pass, d_sd, passes: [{pass, sinkage, sd}]}]} (m, the
+    windows' median and standard deviation: a window at a turn mixes ground of other
+    histories; pass: the cell's wheel passes before it, 0 the first ever; one entry per visit
+    and wheel passes before it, as the multi-pass table of summary.md), or {reason} with
+    fewer than 4 windows."""
     from torchsoil.diagnosis.catalogue import PassCounts
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.estimator import Estimator
 
     drive, counts = DriveSignals.from_poses(pair.poses, pair.robot), PassCounts()
-    sim = sim.replace(dig_order="wheel", revisit_ref="disc")
+    sim = sim.replace(dig_order="wheel")
     n_tracks = pair.robot.n_tracks
     per_track = int(np.bincount(pair.robot.track).max())
     tried: list[list[float]] = []
@@ -407,8 +409,8 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     visits = []
     for (v, n), ds in sorted(groups.items()):
         d = np.array(ds)
-        visits.append({"visit": v, "passes_before": n, "windows": len(d), "d_first_pass": float(np.mean(d)),
+        visits.append({"visit": v, "passes_before": n, "windows": len(d), "d_first_pass": float(np.median(d)),
                        "d_sd": float(np.std(d)),
-                       "passes": [{"pass": n + j, "sinkage": float(np.mean(d * g ** (n + j))),
+                       "passes": [{"pass": n + j, "sinkage": float(np.median(d * g ** (n + j))),
                                    "sd": float(np.std(d * g ** (n + j)))} for j in range(per_track)]})
     return {"g": g, "g_tried": tried, "windows": len(wins), "visits": visits}

@@ -97,29 +97,3 @@ def sink(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torc
     floor = floor.scatter_reduce(1, cell.expand(B, -1), target, "amin")
     h_dug = torch.minimum(h, floor.reshape(h.shape))
     return h_dug, h - h_dug
-
-
-def sink_in_turn(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torch.Tensor,
-                 s: torch.Tensor, depth: torch.Tensor, order: torch.Tensor, radius: float,
-                 dx: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Dig the footprints axle by axle in the order the wheels meet the ground: a trailing
-    wheel digs again from the surface the wheels before it left, its reference height that
-    surface smoothed over a disc of `radius` [m] where they dug (h_ref elsewhere).
-
-    Shapes as in `sink`, plus order: (E,) int64 turn of each entry (0 first; WheelGeometry.order).
-    With one turn this is `sink`. Returns h_dug (B, X, Y) and removed h - h_dug >= 0, m."""
-    B = max(h.shape[0], depth.shape[0])
-    h0 = h.expand(B, -1, -1)
-    out, dug = h0, None
-    for r in range(int(order.max()) + 1 if order.numel() else 0):
-        m = order == r
-        if not bool(m.any()):
-            continue
-        ref = h_ref if dug is None else torch.where(dug.reshape(dug.shape[0], *h.shape[1:]),
-                                                    reference_height(out, radius, dx), h_ref)
-        out, _ = sink(out, ref, cell[m], covered[:, m], s[:, m], depth[:, m])
-        c = covered[:, m].to(out.dtype)
-        now = torch.zeros(c.shape[0], h[0].numel(), dtype=out.dtype, device=out.device)
-        now = now.scatter_reduce(1, cell[m].expand(c.shape[0], -1), c, "amax") > 0
-        dug = now if dug is None else dug | now
-    return out, h0 - out
