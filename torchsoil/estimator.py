@@ -168,14 +168,15 @@ class Estimator:
         """Per-visit maps over the whole grid: the surfaces each visit starts from and ends on
         (net of the map offset), visits and wheel passes before each visit per cell. A visit
         starts from its H_f smoothed (estimator.front_smoothing) on fresh ground. Within a wheel
-        width of the cells earlier wheel passes went over it is smoothed only along the track
-        that dug them (`smooth_along`, the heading of base_link when it last passed the cell),
-        as much as fresh ground is smoothed: isotropic smoothing would fill the ruts the robot
-        made (a relief of the wheel's own width, with the walls and berms beside it) and raise
-        the ground the wheels dig from, and left noisy, the start biases the fit (a wheel's cut
-        replaces noise by its own floor, so digging deeper always looks closer to the next map:
-        a noise of 3.5 mm made the second visit's d 1.4 times the first's where the law gives
-        the same). Nor do the ruts enter the smoothing of the ground beyond."""
+        width of the cells earlier wheel passes went over, where H_f shows the ground the visit
+        before left, that ground is the mean of its two views (H_f of the visit and H_b of the
+        one before, net of the map offset), smoothed as much but only along the track that dug
+        it (`smooth_along`, the heading of base_link when it last passed the cell): round
+        smoothing would fill the ruts the robot made (a relief of the wheel's own width, with
+        the walls and berms beside it) and raise the ground the wheels dig from, and left
+        noisy, the start biases the fit (a wheel's cut replaces noise by its own floor, so
+        digging deeper always looks closer to the next map). Nor do the ruts enter the
+        smoothing of the ground beyond."""
         pair, sigma = self.pair, float(self.est.front_smoothing)
         off = 0.0 if self.nuisance is None else self.nuisance.field
         self.visits_per_cell = visit_counts(pair.visit_time)
@@ -190,9 +191,12 @@ class Estimator:
             dug = ndimage.binary_dilation(dug, near) if dug.any() else dug
             start = np.where(dug, h, smooth_heightmap(np.where(dug, np.nan, h), sigma))
             if dug.any():
-                # the same noise left on fresh ground: a 1-D Gaussian of 2 sqrt(pi) sigma^2 cells
+                seen = h
+                if v > 0:       # the ground between the visits, seen again as the last one ended
+                    before = np.asarray(pair.visit_back[v - 1], np.float64) - off
+                    seen = np.where(np.isfinite(h) & np.isfinite(before), (h + before) / 2, np.fmax(h, before))
                 heading = track_heading(pair.visit_time[:v], pair.poses[:, 0], yaw)
-                along = smooth_along(np.where(dug, h, np.nan), heading, 2.0 * math.sqrt(math.pi) * sigma**2)
+                along = smooth_along(np.where(dug, seen, np.nan), heading, sigma)
                 start = np.where(dug, along, start)
             self.visit_start.append(start)
         self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]

@@ -367,7 +367,7 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     (`PassLaw`). Where the law holds, every visit of a window fits the same first-pass d; g is
     moved until the later visits' d agrees with the first's (`per_pass`: the windows' median
     log ratio per pass, 0 at the fixed point; `steps` steps, the first by that log ratio, then
-    by secant), starting from the cross-visit cost's g.
+    by secant, each no longer than the step before), starting from the cross-visit cost's g.
 
     Returns {g, g_tried: [[g, log ratio per pass], ...], windows, visits: [{visit,
     passes_before, windows, d_first_pass, d_sd, passes: [{pass, sinkage, sd}]}]} (m, the
@@ -401,6 +401,9 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
             (g0, l0), (g1, l1) = tried[-2], tried[-1]
             slope = (l1 - l0) / (math.log(g1) - math.log(g0)) if g1 != g0 else -1.0
             g_next = g1 * math.exp(-l1 / slope) if slope < 0 else g1 * math.exp(l1)
+            # no further than the step before: the windows' ratios scatter, and a flat secant jumps
+            reach = abs(math.log(g1 / g0)) if g1 != g0 else abs(l1)
+            g_next = float(np.clip(g_next, g1 * math.exp(-reach), g1 * math.exp(reach)))
         g = float(np.clip(g_next, 0.05, 1.0))
     groups: dict[tuple[int, float], list[float]] = {}
     for w in wins:
