@@ -212,8 +212,8 @@ def with_section(pair, section: Section):
 
 
 def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int = 3, progress=None,
-                model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
-                ) -> tuple[Section, dict[Section, float], dict]:
+                model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None,
+                z: float = 1.96) -> tuple[Section, dict[Section, float], dict]:
     """The tyre section as a nuisance: the footprint taper (flat fraction f, exponent e;
     sim.sinkage.taper) that fits the drive best.
 
@@ -223,7 +223,11 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     that reads as unexplained structure. The estimator runs on every `every`-th window (with
     the default 0.8 m window and 0.4 m stride, every 3rd: ground that does not overlap) once
     per candidate (f, e), the robot's own and `sections`; two numbers for the whole drive
-    against hundreds of cells per window, so the windows' own residual (m) decides. model: an
+    against hundreds of cells per window, so the windows' own residual (m) decides. The
+    robot's own section stays unless another fits those windows better at a paired z of
+    `z` (`paired_z`): on noisy maps sections that fit alike are told apart by the noise
+    alone, and a section taken on noise moves d (a crowned tyre for the flat one of a
+    recording made elsewhere fitted its first-pass d 4 mm deep). model: an
     extension with a fixed coefficient to fit the section under (a wider footprint and a
     fuller section both widen the rut: a footprint term must beat the base model at its
     best section, with the section it needs itself). shared: run_pass's index, nuisance and
@@ -235,12 +239,15 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     costs: dict[Section, float] = {}
     shared = dict(shared or {})
     shared.setdefault("store", WindowStore())
+    windows = {}
     for sec in candidates:
-        costs[sec], found = section_cost(pair, est, sim, sec, every, model, shared, cache)
+        costs[sec], found, windows[sec] = section_cost(pair, est, sim, sec, every, model, shared, cache)
         shared = {**found, "store": shared["store"]}
         if progress is not None:
             progress.set_postfix_str(f"tyre section f={sec[0]:.2f} e={sec[1]:.2f}")
     best = min(candidates, key=lambda c: (costs[c], c != own))
+    if best != own and paired_z(windows[own], windows[best]) < z:
+        best = own
     if progress is not None:
         progress.update(1)
     return best, costs, shared
@@ -253,21 +260,36 @@ def section_candidates(pair, sections) -> list[Section]:
 
 def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: Section, every: int = 3,
                  model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
-                 ) -> tuple[float, dict]:
+                 ) -> tuple[float, dict, np.ndarray]:
     """One tyre section's score for `fit_section`: the mean window residual [m] of every
-    `every`-th window with the section (f, e) (math.inf when none was fitted), read back from
-    or kept in `cache`; and run_pass's keywords (index, nuisance, view, surfaces) of its
-    estimator. Its windows are prepared for this pass only, not stored."""
+    `every`-th window with the section (f, e) (math.inf when none was fitted); run_pass's
+    keywords (index, nuisance, view, surfaces) of its estimator; and those windows' residuals
+    (W,) [m], read back from or kept in `cache` (a score kept by an older version reads back as
+    its mean alone). Its windows are prepared for this pass only, not stored."""
     estimator = Estimator(with_section(pair, sec), est, sim, modifiers=model.modifiers if model is not None else None,
                           **{**(shared or {}), "store": None})
     what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
 
-    def score() -> float:
+    def score() -> list[float]:
         estimator.windows = estimator.windows[::max(1, every)]
-        res = [o.row["residual"] for o in estimator.run()]
-        return float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+        return [float(o.row["residual"]) for o in estimator.run()]
 
-    return kept(cache, "section", what, score), shared_of(estimator)
+    res = np.atleast_1d(np.asarray(kept(cache, "section", what, score), np.float64))
+    return (float(np.nanmean(res)) if np.isfinite(res).any() else math.inf), shared_of(estimator), res
+
+
+def paired_z(base: np.ndarray, other: np.ndarray) -> float:
+    """How much better `other` fits than `base` (W,) window by window [m]: the mean of base -
+    other over the windows both fitted, over its standard error (windows that do not overlap
+    taken as independent). With fewer than 3 such windows (or a score kept by an older
+    version) the means decide: +-inf."""
+    base, other = np.asarray(base, np.float64), np.asarray(other, np.float64)
+    both = np.isfinite(base) & np.isfinite(other) if base.shape == other.shape else np.zeros(0, bool)
+    diff = (base - other)[both] if both.any() else np.zeros(0)
+    sd = float(np.std(diff, ddof=1)) if len(diff) >= 3 else 0.0
+    if sd == 0.0:
+        return math.inf if np.nanmean(other) < np.nanmean(base) else -math.inf
+    return float(diff.mean() / (sd / math.sqrt(len(diff))))
 
 
 def folds(n: int, block: int) -> np.ndarray:
