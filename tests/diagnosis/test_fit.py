@@ -181,7 +181,7 @@ def test_tyre_section_is_fitted_as_a_nuisance(section, want):
     pair = _straight_pair(section)
     assert (pair.wheel_flat_fraction, pair.wheel_section_exponent) == (0.0, 1.0)
     tried = ((0.0, 1.0), (0.4, 1.0), (0.85, 1.0), (0.0, 0.25))
-    best, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
+    best, costs, shared, _ = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
     assert best == want and set(costs) == set(tried)
     assert costs[want] < min(c for k, c in costs.items() if k != want)
     assert set(shared) == {"index", "nuisance", "view", "store", "surfaces"}
@@ -219,6 +219,23 @@ XX
     pair = _straight_pair("taper")
     assert fit_mod.fit_section(pair, None, None, [noisy])[0] == own
     assert fit_mod.fit_section(pair, None, None, [noisy, clear])[0] == clear
+
+
+def test_the_robots_own_section_under_another_dig_order_is_kept_when_it_fits_as_well():
+    """Window residuals [mm] by hand: under "robot" a crowned section fits best on average,
+    standing in for the other order; under "wheel" the robot's own section fits within the
+XX with the robot's section. Where the
+    robot's section under "wheel" is worse on every window (z 15.5), the best pair stays."""
+    from torchsoil.diagnosis.run import plainest
+
+    own, crowned = (0.5, 1.0), (0.0, 0.5)
+    best = np.array([2.90, 3.00, 2.80, 2.95, 2.85])
+    fits = {("robot", crowned): best, ("robot", own): best + 0.05,
+            ("wheel", own): best + [0.1, -0.08, 0.05, -0.05, 0.02]}
+    assert plainest(fits, ("robot", crowned), own) == "wheel"
+    fits[("wheel", own)] = best + [0.06, 0.05, 0.07, 0.05, 0.06]
+    assert plainest(fits, ("robot", crowned), own) == "robot"
+    assert plainest(fits, ("robot", own), own) == "robot"
 
 
 @pytest.mark.parametrize("dig", ["robot", "wheel"])

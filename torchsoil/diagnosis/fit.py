@@ -213,7 +213,7 @@ def with_section(pair, section: Section):
 
 def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int = 3, progress=None,
                 model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None,
-                z: float = 1.96) -> tuple[Section, dict[Section, float], dict]:
+                z: float = 1.96) -> tuple[Section, dict[Section, float], dict, dict[Section, np.ndarray]]:
     """The tyre section as a nuisance: the footprint taper (flat fraction f, exponent e;
     sim.sinkage.taper) that fits the drive best.
 
@@ -233,7 +233,8 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     best section, with the section it needs itself). shared: run_pass's index, nuisance and
     view (and store), when already known. cache: where each section's score is kept and read
     back (checkpoint.PassCache). Returns (best (f, e), {(f, e): mean residual, m},
-    {index, nuisance, view, store}: run_pass's keywords for later passes)."""
+    {index, nuisance, view, store}: run_pass's keywords for later passes, {(f, e): the
+    windows' residuals (W,), m})."""
     own = section_of(pair)
     candidates = section_candidates(pair, sections)
     costs: dict[Section, float] = {}
@@ -250,7 +251,7 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
         best = own
     if progress is not None:
         progress.update(1)
-    return best, costs, shared
+    return best, costs, shared, windows
 
 
 def section_candidates(pair, sections) -> list[Section]:

@@ -18,6 +18,7 @@ from torchsoil.diagnosis.fit import (
     accept,
     fit_extension,
     fit_section,
+    paired_z,
     run_pass,
     section_candidates,
     section_cost,
@@ -223,11 +224,27 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
                                                    f"held-out cost vs change r = {c2.r:+.2f} (n_eff {c2.n_eff:.1f})"}
 
 
+def plainest(fits: dict, best: tuple, declared, z: float = 1.96) -> str:
+    """The dig order to keep: `best` (order, section)'s, unless the robot's own section under
+    another order fits the windows as well (`fit.paired_z` of best over it below z): then
+    that order, the robot's section kept. Noise tells apart pairs that fit alike, and a
+    section taken to stand in for the other order moves d (a crowned tyre digging all at once
+    for a flat one digging axle by axle, on a recording made elsewhere). fits: {(order,
+    section): the windows' residuals (W,), m}."""
+    if best[1] == declared:
+        return best[0]
+    for (order, sec), w in fits.items():
+        if sec == declared and order != best[0] and paired_z(w, fits[best]) < z:
+            return order
+    return best[0]
+
+
 def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None,
                        cache: PassCache | None = None, pool=None):
     """The tyre section and the dig order as nuisances (`fit_section`; SimConfig.dig_order):
     the section searched over cfg.sections under sim's order, then each other order of
-    cfg.dig_orders at the best few sections; the lowest mean window residual wins.
+    cfg.dig_orders at the best few sections; the lowest mean window residual wins, unless the
+    robot's own section fits as well under one order (`plainest`).
 
     Returns (the pair with that section, sim with that order, section evidence, dig-order
     evidence (None when only one order was tried), run_pass keywords, the sections a footprint
@@ -245,17 +262,24 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
         shared = section_cost(pair, est, sim, declared, cache=cache)[1]
         pool.share(pair, shared)
         pool.run("section", [(est, sim, sec, 3, None) for sec in section_candidates(pair, cfg.sections)[1:]])
-    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache, shared=shared)
-    orders, tried = {sim.dig_order: costs[best]}, best_few(costs)
+    best, costs, shared, windows = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache,
+                                               shared=shared)
+    orders, tried, by_order = {sim.dig_order: costs[best]}, best_few(costs), {sim.dig_order: costs}
+    fits = {(sim.dig_order, best): windows[best], (sim.dig_order, declared): windows[declared]}
     others = list(dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order))
     if pool is not None:
         pool.run("section", [(est, sim.replace(dig_order=o), sec, 3, None) for o in others for sec in tried])
     for order in others:
         alt = sim.replace(dig_order=order)
-        b, c, shared = fit_section(pair, est, alt, tried, shared=shared, cache=cache)
-        orders[order] = c[b]
+        b, c, shared, w = fit_section(pair, est, alt, tried, shared=shared, cache=cache)
+        orders[order], by_order[order] = c[b], c
+        fits.update({(order, b): w[b], (order, declared): w[declared]})
         if c[b] < costs[best]:
             sim, best, costs = alt, b, c
+    order = plainest(fits, (sim.dig_order, best), declared)
+    if order != sim.dig_order:
+        sim, best, costs = sim.replace(dig_order=order), declared, by_order[order]
+        orders[order] = costs[declared]
     if len(orders) > 1:
         dig = {"declared": next(iter(orders)), "fitted": sim.dig_order, "residual": orders}
     if cfg.sections:
