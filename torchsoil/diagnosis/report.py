@@ -162,7 +162,14 @@ def per_pass_text(pp: dict | None) -> str:
     return (f" Fitted pass by pass (each wheel digging in turn from the rut the passes before it left, sinking "
             f"d g^n after n passes), every visit fits the same first-pass sinkage at g = {pp['g']:.3g} ("
             + ", ".join(f"{_mm(grp['d_first_pass'])} at visit {grp['visit']}" for grp in groups)
-            + f"): the wheel passes sink {sinks} mm in turn.")
+            + f"): the wheel passes sink {sinks} mm in turn" + _rut_text(pp.get("rut")) + ".")
+
+
+def _rut_text(rut: dict | None) -> str:
+    if not rut or not np.isfinite([rut["measured"], rut["simulated"]]).all():
+        return ""
+    return (f", and the later visits' ruts are {_mm(rut['simulated'])} simulated under the law, "
+            f"{_mm(rut['measured'])} measured")
 
 
 def basis_text(basis: dict | None) -> str:

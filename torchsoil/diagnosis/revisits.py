@@ -369,8 +369,10 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     log ratio per pass, 0 at the fixed point; `steps` steps, the first by that log ratio, then
     by secant, each no longer than the step before), starting from the cross-visit cost's g.
 
-    Returns {g, g_tried: [[g, log ratio per pass], ...], windows, visits: [{visit,
-    passes_before, windows, d_first_pass, d_sd, passes: [{pass, sinkage, sd}]}]} (m, the
+    Returns {g, g_tried: [[g, log ratio per pass], ...], windows, rut: {measured, simulated}
+    (the later visits' mean rut, m, measured and dug at their fits under the law: where g is
+    right those fits sink the first visit's d), visits: [{visit, passes_before, windows,
+    d_first_pass, d_sd, passes: [{pass, sinkage, sd}]}]} (m, the
     windows' median and standard deviation: a window at a turn mixes ground of other
     histories; pass: the cell's wheel passes before it, 0 the first ever; one entry per visit
     and wheel passes before it, as the multi-pass table of summary.md), or {reason} with
@@ -387,10 +389,12 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     for step in range(steps + 1):
         e = Estimator(pair, est, sim, per_visit=True, nuisance=nuisance, index=index,
                       modifiers=PassLaw("geometric", g, drive, counts))
-        rows = [o.row for o in e.run()]
+        outs = list(e.run())
+        rows = [o.row for o in outs]
         wins = revisits(rows, n_tracks)
         if len(wins) < 4:
             return {"reason": f"{len(wins)} windows fitted at two visits or more (need 4)", "g_tried": tried}
+        ruts = np.array([[o.row["rut_depth"], simulated_rut(e, o)] for o in outs if o.row["visit"] > 0])
         lg = float(np.median(per_pass(wins)))
         tried.append([g, lg])
         if step == steps or abs(lg) < 1e-3:
@@ -416,4 +420,22 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
                        "d_sd": float(np.std(d)),
                        "passes": [{"pass": n + j, "sinkage": float(np.median(d * g ** (n + j))),
                                    "sd": float(np.std(d * g ** (n + j)))} for j in range(per_track)]})
-    return {"g": g, "g_tried": tried, "windows": len(wins), "visits": visits}
+    rut = ruts[np.isfinite(ruts).all(1)] if len(ruts) else np.zeros((0, 2))
+    return {"g": g, "g_tried": tried, "windows": len(wins), "visits": visits,
+            "rut": {"measured": float(rut[:, 0].mean()) if len(rut) else math.nan,
+                    "simulated": float(rut[:, 1].mean()) if len(rut) else math.nan}}
+
+
+def simulated_rut(e, o) -> float:
+    """The rut [m] an estimator output `o` of Estimator `e` digs at its fit: the mean of its
+    start minus its simulated end over the rut cells (`Estimator._ruts`), as the measured
+    `rut_depth`; NaN where it has no fit or no rut cells."""
+    import torch
+
+    wd = o.data
+    ruts = e._ruts(wd) if wd is not None else None
+    if ruts is None or o.fit is None:
+        return math.nan
+    with torch.no_grad():
+        h = e.simulate(o.fit.theta[None], wd).h[0].cpu().numpy()
+    return float(np.mean((wd.h_measured.cpu().numpy() - h)[ruts]))
