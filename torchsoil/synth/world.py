@@ -106,7 +106,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     near a cell starts a new visit (default: twice the wheelbase plus a wheel width); section,
     width_scale: the tyre (`section_profile`; footprint width / the robot's). With
     config.dig_order "wheel" the axles dig in turn, each trailing wheel again from the rut
-    ahead of it, its reference height smoothed from that surface where it was dug.
+    ahead of it with the spoil of the wheels ahead beside it, resting where they dug on that
+    surface's mean over its footprint (config.revisit_ref "footprint", as a wheel on the ruts
+    of an earlier visit).
     """
     config = config or WorldConfig()
     soil = as_world_soil(soil)
