@@ -219,7 +219,8 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
         with torch.no_grad():
             h = e.simulate(free, wd).h
         cost = weighted_l1(h, wd.h_back, wd.weight).cpu().numpy()
-        rut = np.array([dug_depth(wd, ruts, hb) for hb in h.cpu().numpy()])
+        start = wd.h_measured.cpu().numpy()
+        rut = np.array([float(np.mean((start - hb)[ruts])) for hb in h.cpu().numpy()])
         floor = float(o.reference["floor"])
         if not math.isfinite(floor):
             plain = plain or Estimator(pair, est, sim, nuisance=e.nuisance, index=e.index)
@@ -393,6 +394,7 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
         wins = revisits(rows, n_tracks)
         if len(wins) < 4:
             return {"reason": f"{len(wins)} windows fitted at two visits or more (need 4)", "g_tried": tried}
+        ruts = np.array([[o.row["rut_depth"], simulated_rut(e, o)] for o in outs if o.row["visit"] > 0])
         lg = float(np.median(per_pass(wins)))
         tried.append([g, lg])
         if step == steps or abs(lg) < 1e-3:
@@ -418,8 +420,7 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
                        "d_sd": float(np.std(d)),
                        "passes": [{"pass": n + j, "sinkage": float(np.median(d * g ** (n + j))),
                                    "sd": float(np.std(d * g ** (n + j)))} for j in range(per_track)]})
-    ruts = np.array([[o.row["rut_depth"], simulated_rut(e, o)] for o in outs if o.row["visit"] > 0]).reshape(-1, 2)
-    rut = ruts[np.isfinite(ruts).all(1)]
+    rut = ruts[np.isfinite(ruts).all(1)] if len(ruts) else np.zeros((0, 2))
     return {"g": g, "g_tried": tried, "windows": len(wins), "visits": visits,
             "rut": {"measured": float(rut[:, 0].mean()) if len(rut) else math.nan,
                     "simulated": float(rut[:, 1].mean()) if len(rut) else math.nan}}
@@ -436,10 +437,5 @@ def simulated_rut(e, o) -> float:
     if ruts is None or o.fit is None:
         return math.nan
     with torch.no_grad():
-        return dug_depth(wd, ruts, e.simulate(o.fit.theta[None], wd).h[0].cpu().numpy())
-
-
-def dug_depth(wd, ruts: np.ndarray, h: np.ndarray) -> float:
-    """Mean depth [m] a simulated end h (X, Y) lies below window wd's measured start on its
-    (X, Y) bool rut cells, as the measured `rut_depth`."""
+        h = e.simulate(o.fit.theta[None], wd).h[0].cpu().numpy()
     return float(np.mean((wd.h_measured.cpu().numpy() - h)[ruts]))

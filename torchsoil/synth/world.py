@@ -346,7 +346,7 @@ def _lead_deposits(lead: list, lead_held: list, deposits: list, turn: np.ndarray
 def _forget(lead_held: list, settled: np.ndarray, dug: np.ndarray) -> None:
     """Drop from each turn's held deposits those whose band reaches the settled cells."""
     for lh in lead_held:
-        lh.lay(None, settled, dug)
+        lh.lay(np.zeros(settled.shape), settled, dug)
 
 
 def _pass_index(dug_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndarray,
@@ -388,9 +388,9 @@ class HeldDeposits:
                 for b, part in zip(ub.tolist(), np.split(flat[order], start[1:]), strict=True):
                     self.cells.setdefault((k, b), []).append(part)
 
-    def lay(self, h: np.ndarray | None, settled: np.ndarray, dug: np.ndarray) -> None:
-        """Add to h (X, Y) [m], in place (h None: drop them), the deposits whose band reaches the
-        (X, Y) bool `settled` cells, on their band cells outside the (X, Y) bool `dug` ones (on all their
+    def lay(self, h: np.ndarray, settled: np.ndarray, dug: np.ndarray) -> None:
+        """Add to h (X, Y) [m], in place, the deposits whose band reaches the (X, Y) bool
+        `settled` cells, on their band cells outside the (X, Y) bool `dug` ones (on all their
         band cells where a wheel dug each). A bin with a volume but no band cell of its own
         gives it to the nearest bin of the same wheel that has some."""
         settled_f = settled.reshape(-1)
@@ -402,8 +402,8 @@ class HeldDeposits:
         the chunk under way} (all of a wheel not in it)."""
         self._lay(h, lambda key, c: key[1] < active.get(key[0], np.inf) - 1, dug)
 
-    def _lay(self, h: np.ndarray | None, ready, dug: np.ndarray) -> None:
-        dug_f = dug.reshape(-1)
+    def _lay(self, h: np.ndarray, ready, dug: np.ndarray) -> None:
+        flat, dug_f = h.reshape(-1), dug.reshape(-1)
         cells = {key: np.unique(np.concatenate(parts)) for key, parts in self.cells.items()}
         for key in [key for key in self.volume if key not in cells]:
             near = [c for c in cells if c[0] == key[0]]
@@ -412,10 +412,8 @@ class HeldDeposits:
                 self.volume[to] = self.volume.get(to, 0.0) + self.volume.pop(key)
         for key in [key for key, c in cells.items() if ready(key, c)]:
             c = cells[key]
-            volume = self.volume.pop(key, 0.0)
-            if h is not None:
-                use = c[~dug_f[c]] if (~dug_f[c]).any() else c
-                h.reshape(-1)[use] += volume / len(use)
+            use = c[~dug_f[c]] if (~dug_f[c]).any() else c
+            flat[use] += self.volume.pop(key, 0.0) / len(use)
             del self.cells[key]
 
 
