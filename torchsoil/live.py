@@ -61,6 +61,7 @@ class LiveEstimator:
         self.rec = rec if rec is not None else Recording([], [])
         self.pipeline = OnlinePipeline(robot, settings.pipeline, self.rec, spill_dir)
         self.next = 0                      # next window index
+        self.skip = 0                      # windows before this one were written by an interrupted run
         self.polled = -np.inf              # pipeline.ground_stamp at the last poll
         self.ready_at: dict[int, float] = {}
         self.edges: dict[str, tuple] = {}
@@ -166,12 +167,18 @@ class LiveEstimator:
         if not take:
             return None
         self.next = max(self.next, take[-1] + 1)
-        return pair, arc0, index, take[0], take[-1], {k: self.ready_at.pop(k, now) for k in take}, self.last_row
+        ready = {k: self.ready_at.pop(k, now) for k in take}
+        take = [k for k in take if k >= self.skip]
+        if not take:
+            return None
+        return pair, arc0, index, take[0], take[-1], {k: ready[k] for k in take}, self.last_row
 
     def resume(self, rows: list[dict]) -> None:
         """Continue after the windows of `rows` (params.csv rows of an interrupted run, in order):
-        they are not fitted again, and the last fitted one warm-starts the next."""
-        self.next = len(rows)
+        they are not fitted again, and the last fitted one warm-starts the next. The stretches are
+        cut where the interrupted run cut them (a window's H_b and map offset depend on the stretch
+        it comes with: the back lidar keeps filling its ground in), those written skipped."""
+        self.skip = len(rows)
         fitted = [r for r in rows if not math.isnan(float(r["d1"]))]
         self.last_row = fitted[-1] if fitted else None
 
