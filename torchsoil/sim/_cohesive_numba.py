@@ -65,7 +65,7 @@ def _fluxes(gx, gy, fi, fe, r, qx, qy, out):
                 out[i, j] -= qy[i, j]
 
 
-def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, loose_tol, n_iter, fixed, done, iters, hh, hl,
+def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hh, hl,
                 counts, store):
     B, X, Y = h.shape
     for b in prange(B):
@@ -75,15 +75,15 @@ def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, loose_tol, n_iter, fixe
         gx, gy, nn, fi, fe, O, r, qx, qy, out = w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7], w[8], w[9]
         for it in range(n_iter):
             _stencil(h[b], tl[b], ti[b], fx, fy, inv_dx, gx, gy, nn, fi, fe)
+            _limit(L[b], gx, gy, fe, coef, O, r)
             active = False
             for i in range(X):
                 for j in range(Y):
                     a, c = gx[i, j], gy[i, j]
-                    lx = L[b, i + 1, j] if a > 0 else L[b, i, j]
-                    ly = L[b, i, j + 1] if c > 0 else L[b, i, j]
-                    face = max(abs(a) if lx > loose_tol else 0.0, abs(c) if ly > loose_tol else 0.0)
+                    rx = r[i + 1, j] if a > 0 else r[i, j]
+                    ry = r[i, j + 1] if c > 0 else r[i, j]
                     n = nn[i, j]
-                    if n - ti[b, i, j] >= tau or (n - tl[b, i, j]) * face / n >= tau:
+                    if n - ti[b, i, j] >= tau or (n - tl[b, i, j]) * max(abs(a) * rx, abs(c) * ry) / n >= tau:
                         active = True
             if not fixed and not active:
                 done[b] = 1
@@ -91,7 +91,6 @@ def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, loose_tol, n_iter, fixe
             if store:
                 hh[b, it] = h[b]
                 hl[b, it] = L[b]
-            _limit(L[b], gx, gy, fe, coef, O, r)
             _fluxes(gx, gy, fi, fe, r, qx, qy, out)
             for i in range(X):
                 for j in range(Y):
@@ -210,7 +209,7 @@ def _sum_to(g: np.ndarray, shape) -> torch.Tensor:
 
 class _TwoAngle(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, h, loose, tl, ti, fx, fy, dx, tau, max_iter, fixed_iter, eps_scale, loose_tol):
+    def forward(ctx, h, loose, tl, ti, fx, fy, dx, tau, max_iter, fixed_iter, eps_scale):
         store = any(ctx.needs_input_grad[:4])
         hn = h.detach().cpu().numpy().copy()
         ln = np.array(np.broadcast_to(loose.detach().cpu().numpy(), hn.shape), order="C")
@@ -221,7 +220,7 @@ class _TwoAngle(torch.autograd.Function):
         total = max_iter if fixed_iter is None else fixed_iter
         chunks, chunk, ran = [], 32, 0
         dummy = np.zeros((1, 1, 1, 1), hn.dtype)
-        args = (tln, tin, fxn, fyn, 1.0 / dx, dx / eps_scale, tau, loose_tol)
+        args = (tln, tin, fxn, fyn, 1.0 / dx, dx / eps_scale, tau)
         while ran < total and not done.all():
             n = min(chunk, total - ran)
             hh, hl = ((np.empty((B, n, *hn.shape[1:]), hn.dtype) for _ in range(2)) if store else (dummy, dummy))
@@ -252,13 +251,13 @@ class _TwoAngle(torch.autograd.Function):
             _backward(hh, hl, counts, lam, lam_l, tlbar, tibar, tln, tin, fxn, fyn, 1.0 / dx, dx / eps_scale)
         dev = grad_h.device
         return (torch.from_numpy(lam).to(dev), _sum_to(lam_l, l_shape).to(dev), _sum_to(tlbar, tl_shape).to(dev),
-                _sum_to(tibar, ti_shape).to(dev), None, None, None, None, None, None, None, None)
+                _sum_to(tibar, ti_shape).to(dev), None, None, None, None, None, None, None)
 
 
-def relax_two_angle(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_scale, loose_tol):
+def relax_two_angle(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_scale):
     """Numba two-angle relaxation with autograd; arguments as `cohesive.relax_two_angle` (tl, ti
     (B, 1|X, 1|Y))."""
     fx, fy = face_masks(domain, h.shape[1:], h.device)
     tl, ti = (t.to(h.dtype).expand(h.shape[0], -1, -1) if t.shape[0] == 1 else t.to(h.dtype) for t in (tl, ti))
     return _TwoAngle.apply(h, loose.to(h.dtype), tl, ti, fx, fy, float(dx), float(tau), int(max_iter), fixed_iter,
-                           float(eps_scale), float(loose_tol))
+                           float(eps_scale))

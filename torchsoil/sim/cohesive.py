@@ -14,8 +14,8 @@ where each face's donor is its upslope cell and r = min(1, L / loose outflow) ke
 from shedding more loose soil than it carries. Everything that leaves a cell takes its loose
 soil first and arrives loose: L <- max(L - out, 0) + in. Heights change by the divergence
 of q as in `relaxation` (volume conserved). Each batch element iterates until no slope
-exceeds its angle by tau, the loose angle counting along faces whose donor carries more than
-`loose_tol` of loose soil (`_terms`); with tan(beta_i) = tan(beta_l) this is `relaxation.relax_torch`.
+exceeds its angle by tau, the loose angle counting along faces as far as their donors carry
+loose soil (`_terms`); with tan(beta_i) = tan(beta_l) this is `relaxation.relax_torch`.
 
 Torch ops only (CPU and CUDA); autograd through the loop gives gradients with respect to the
 heights, the loose thickness and both angles.
@@ -64,10 +64,11 @@ def _donor(a: torch.Tensor, g: torch.Tensor, dim: int) -> torch.Tensor:
     return torch.where(g > 0, _up(a, dim), a)
 
 
-def _terms(h, loose, tan_l, tan_i, fxs, fys, coef, loose_tol):
+def _terms(h, loose, tan_l, tan_i, fxs, fys, coef):
     """Face fluxes qx, qy (B, X, Y) of one update and the (B,) largest slope excess: over the
-    intact angle, or over the loose one along a face whose donor carries loose soil (times the
-    face's share |g_face| / |grad h| of the slope, the part of the flow that face carries)."""
+    intact angle, or over the loose one along each face, times the face's share |g_face| /
+    |grad h| of the slope and the share r of its loose flow the donor can give (a film of loose
+    soil trickling down an intact face is not an excess: it moves less than tau would)."""
     gx = _up(h, 1).sub(h) * fxs
     gy = _up(h, 2).sub(h) * fys
     n = torch.sqrt(gx * gx + gy * gy + _EPS2)
@@ -78,7 +79,7 @@ def _terms(h, loose, tan_l, tan_i, fxs, fys, coef, loose_tol):
     r = torch.where(out_l > loose, loose / out_l.clamp_min(1e-300), torch.ones_like(loose))
     qx = fi * gx + lx * _donor(r, gx, 1)
     qy = fi * gy + ly * _donor(r, gy, 2)
-    face = torch.maximum(gx.abs() * (_donor(loose, gx, 1) > loose_tol), gy.abs() * (_donor(loose, gy, 2) > loose_tol))
+    face = torch.maximum(gx.abs() * _donor(r, gx, 1), gy.abs() * _donor(r, gy, 2))
     excess = torch.maximum(n - tan_i, (n - tan_l) * face / n)
     return qx, qy, excess.flatten(1).amax(1)
 
@@ -86,7 +87,7 @@ def _terms(h, loose, tan_l, tan_i, fxs, fys, coef, loose_tol):
 def relax_two_angle(h: torch.Tensor, loose: torch.Tensor, tan_beta_loose: torch.Tensor,
                     tan_beta_intact: torch.Tensor, dx: float, domain: torch.Tensor | None = None,
                     tau: float = 0.01, max_iter: int = 2000, fixed_iter: int | None = None,
-                    eps_scale: float = 4.0, loose_tol: float = 1e-7, backend: str = "auto") -> TwoAngleResult:
+                    eps_scale: float = 4.0, backend: str = "auto") -> TwoAngleResult:
     """Relax a batch of surfaces of two-angle (cohesive) soil (module docstring).
 
     Args:
@@ -101,7 +102,6 @@ def relax_two_angle(h: torch.Tensor, loose: torch.Tensor, tan_beta_loose: torch.
         max_iter: iteration cap; elements that hit it are flagged `capped`.
         fixed_iter: run exactly this many iterations.
         eps_scale: epsilon = eps_scale / dx^2 (as `relaxation.relax`).
-        loose_tol: loose thickness [m] below which a cell counts as bare for convergence.
         backend: "numba" (CPU, fused kernels with a hand-written adjoint), "torch" (reference,
             CPU or CUDA), or "auto" (numba on CPU when available).
 
@@ -122,13 +122,13 @@ def relax_two_angle(h: torch.Tensor, loose: torch.Tensor, tan_beta_loose: torch.
         from torchsoil.sim import _cohesive_numba
 
         return TwoAngleResult(*_cohesive_numba.relax_two_angle(h, loose, tl, ti, dx, domain, tau, max_iter,
-                                                               fixed_iter, eps_scale, loose_tol))
+                                                               fixed_iter, eps_scale))
     if backend != "torch":
         raise ValueError(f"unknown relaxation backend {backend!r}; use auto, numba or torch")
-    return _relax_torch(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_scale, loose_tol)
+    return _relax_torch(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_scale)
 
 
-def _relax_torch(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_scale, loose_tol, check_every=8):
+def _relax_torch(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_scale, check_every=8):
     """The reference update in torch ops; arguments as `relax_two_angle`."""
     fx, fy = face_masks(domain, h.shape[1:], h.device)
     fxs, fys = fx.to(h.dtype) / dx, fy.to(h.dtype) / dx
@@ -138,7 +138,7 @@ def _relax_torch(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_sc
     active = torch.ones(B, dtype=torch.bool, device=h.device)
     n_max = max_iter if fixed_iter is None else fixed_iter
     for it in range(n_max):
-        qx, qy, excess = _terms(h, loose, tl, ti, fxs, fys, coef, loose_tol)
+        qx, qy, excess = _terms(h, loose, tl, ti, fxs, fys, coef)
         if fixed_iter is None:
             active = excess >= tau
         out, inn = _out_in(qx, qy)
@@ -151,6 +151,6 @@ def _relax_torch(h, loose, tl, ti, dx, domain, tau, max_iter, fixed_iter, eps_sc
             break
     else:
         if fixed_iter is None:
-            active = _terms(h, loose, tl, ti, fxs, fys, coef, loose_tol)[2] >= tau
+            active = _terms(h, loose, tl, ti, fxs, fys, coef)[2] >= tau
     capped = active if fixed_iter is None else torch.zeros_like(active)
     return TwoAngleResult(h, loose, iters, capped)
