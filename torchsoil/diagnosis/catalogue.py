@@ -11,7 +11,7 @@ saturation): the diagnosis must still name the term.
 | speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)), v_mean over the ground driven | k [-] |
 | slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
 | lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
-| cohesive_walls | two-angle soil: intact ground stands to tan(beta) * (1 + k), moved soil settles at beta | k >= 0 [-]: tan(beta_intact) / tan(beta) - 1 |
+| cohesive_walls | intact ground stands to tan(beta) * (1 + k), moved soil settles at beta | k >= 0 [-] |
 | footprint_width | footprint radius x (1 + k) | k [-] |
 
 The per-window base parameters (d_1..d_T, chi, beta) are still fitted; the sinkage factors
@@ -93,6 +93,17 @@ def intact_angle(beta_deg: float, k_wall: float) -> float:
     if k_wall < 0 or not 0 < beta_deg < 90:
         raise ValueError(f"need k_wall >= 0 and 0 < beta < 90 deg, got k_wall {k_wall}, beta {beta_deg} deg")
     return math.degrees(math.atan(min(math.tan(math.radians(beta_deg)) * (1.0 + k_wall), MAX_TAN)))
+
+
+def reported_parameters(ext: Extension, k: float, rows: list[dict]) -> dict[str, float]:
+    """diagnosis.json's `extension_parameters` of a term at coefficient k: the coefficient,
+    and for cohesive_walls both angles [deg], the loose one (the median of the windows' fitted
+    beta, `rows` of the pass at k, beta in deg) and the intact one (`intact_angle`)."""
+    out = {ext.parameter: round(float(k), 4)}
+    if ext.id == "cohesive_walls":
+        loose = float(np.nanmedian([r["beta"] for r in rows]))
+        out |= {"beta_loose_deg": round(loose, 2), "beta_intact_deg": round(intact_angle(loose, k), 2)}
+    return out
 
 
 def signs(ext: Extension) -> int:

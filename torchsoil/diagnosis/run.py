@@ -353,7 +353,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         "cost_before": before,
         "cost_after": after,
         "noise_floor": float(np.nanmean(base.floor)),
-        "extension_parameters": {best.ext.parameter: round(best.k, 4)} if best is not None else {},
+        "extension_parameters": ({} if best is None else
+                                 catalogue.reported_parameters(best.ext, best.k, best.passes[best.k].rows)),
         "candidates": [{"id": f.ext.id, "prediction": float(np.nanmean(f.prediction)), "accepted": bool(f.accepted)}
                        for f in fits],
     }

@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.settings import SECTIONS, WorldConfig, WorldSoil
+from torchsoil.sim.cohesive import relax_two_angle
 from torchsoil.sim.geometry import dig_order as wheel_turns
 from torchsoil.sim.relaxation import relax
 from torchsoil.sim.sinkage import reference_height, taper
@@ -123,7 +124,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     if track_scale.shape != (robot.n_tracks,):
         raise ValueError(f"soil.track_scale must have {robot.n_tracks} entries, got {track_scale.tolist()}")
     tan_beta = np.tan(sf["beta"])
-    tan_wall = fx.wall_tan_beta(eff, tan_beta, sf["moisture"])
+    tan_intact = fx.intact_tan_beta(eff, tan_beta, sf["moisture"])
+    cohesive = "cohesive_walls" in eff
+    loose = np.zeros(grid.shape)        # cohesive soil: thickness of moved soil on the intact ground, m
     track_width = float(np.ptp(robot.wheels[:, 1])) or 1.0
     gap = revisit_gap if revisit_gap is not None else 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
 
@@ -156,13 +159,19 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         sel = pending if which is None else pending & which
         if not sel.any():
             return
+        before = h.copy() if cohesive else None
         held.lay(h, sel, dug)
         ii, jj = np.nonzero(sel)
         box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
-        tb = np.where(dug[box], tan_wall[box], tan_beta[box])
-        rr = relax(torch.from_numpy(h[box].copy())[None], torch.from_numpy(tb)[None], dx,
-                   torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None,
-                   config.eps_scale, config.backend)
+        args = (dx, torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None, config.eps_scale)
+        hb = torch.from_numpy(h[box].copy())[None]
+        if cohesive:                    # deposits are loose; cut and native ground intact
+            loose[:] += h - before
+            rr = relax_two_angle(hb, torch.from_numpy(loose[box].copy())[None], torch.from_numpy(tan_beta[box])[None],
+                                 torch.from_numpy(tan_intact[box])[None], *args, backend=config.backend)
+            loose[box] = rr.loose[0].numpy()
+        else:
+            rr = relax(hb, torch.from_numpy(tan_beta[box])[None], *args, config.backend)
         h[box] = rr.h[0].numpy()
         done = sel.copy()
         pending[done] = False
@@ -244,6 +253,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
                                                            final=idx[-1] == len(traj.poses) - 1)
         _advance_turns(lead, win, turn, targets, turn_dug, covered)
         held.add(deposits, (i0, j0), grid.shape)
+        loose[win][covered.any(0)] = 0.0               # a wheel's cut (or pressed) ground is intact
         pending[win] |= domain
         dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
