@@ -106,7 +106,7 @@ def test_backends_agree_values_and_gradients():
         r = relax_two_angle(*x, DX, domain, backend=backend)
         ((r.h * w).sum() + 0.3 * (r.loose * w).sum()).backward()
         out[backend] = [r.h, r.loose, *(t.grad for t in x)]
-        assert not r.capped.any() and (r.iterations > 20).all()
+        assert not r.capped.any() and (r.iterations > 5).all()
     for a, b in zip(out["torch"], out["numba"], strict=True):
         assert torch.allclose(a, b, atol=1e-12, rtol=1e-10)
 

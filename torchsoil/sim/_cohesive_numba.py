@@ -83,7 +83,8 @@ def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, it
                     rx = r[i + 1, j] if a > 0 else r[i, j]
                     ry = r[i, j + 1] if c > 0 else r[i, j]
                     n = nn[i, j]
-                    if n - ti[b, i, j] >= tau or (n - tl[b, i, j]) * max(abs(a) * rx, abs(c) * ry) / n >= tau:
+                    t = tl[b, i, j]
+                    if n - ti[b, i, j] >= tau or max((abs(a) - t) * rx, (abs(c) - t) * ry) >= tau:
                         active = True
             if not fixed and not active:
                 done[b] = 1

@@ -65,10 +65,11 @@ def _donor(a: torch.Tensor, g: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 def _terms(h, loose, tan_l, tan_i, fxs, fys, coef):
-    """Face fluxes qx, qy (B, X, Y) of one update and the (B,) largest slope excess: over the
-    intact angle, or over the loose one along each face, times the face's share |g_face| /
-    |grad h| of the slope and the share r of its loose flow the donor can give (a film of loose
-    soil trickling down an intact face is not an excess: it moves less than tau would)."""
+    """Face fluxes qx, qy (B, X, Y) of one update and the (B,) largest slope excess: of the
+    stencil over the intact angle, or of a face's own slope over the loose one, times the share
+    r of its loose flow the face's donor can give (a film of loose soil trickling down an intact
+    face is not an excess: it moves less than tau would; nor is loose soil on a gentle face
+    beside an intact wall, which flows only through the stencil's slope across the wall)."""
     gx = _up(h, 1).sub(h) * fxs
     gy = _up(h, 2).sub(h) * fys
     n = torch.sqrt(gx * gx + gy * gy + _EPS2)
@@ -79,8 +80,8 @@ def _terms(h, loose, tan_l, tan_i, fxs, fys, coef):
     r = torch.where(out_l > loose, loose / out_l.clamp_min(1e-300), torch.ones_like(loose))
     qx = fi * gx + lx * _donor(r, gx, 1)
     qy = fi * gy + ly * _donor(r, gy, 2)
-    face = torch.maximum(gx.abs() * _donor(r, gx, 1), gy.abs() * _donor(r, gy, 2))
-    excess = torch.maximum(n - tan_i, (n - tan_l) * face / n)
+    face = torch.maximum((gx.abs() - tan_l) * _donor(r, gx, 1), (gy.abs() - tan_l) * _donor(r, gy, 2))
+    excess = torch.maximum(n - tan_i, face)
     return qx, qy, excess.flatten(1).amax(1)
 
 
