@@ -2,12 +2,16 @@
 drive (10 m with quick=True) and what it found (fitted coefficient, held-out z, costs); the
 same diagnosis run again on its kept passes (`diagnosis.checkpoint`, an interrupted run's
 resume); and, without quick, the time per window of the base pass and of a hardening
-candidate's pass on out-and-back drives 20 and 100 m long (a diagnosis grows with the drive)."""
+candidate's pass on out-and-back drives 20 and 100 m long (a diagnosis grows with the drive),
+and `torchsoil diagnose` on 20 and 200 m speed drives: `diagnosis_peak_rss_mb_*`,
+`diagnosis_seconds_per_m_*` and `diagnosis_ms_per_window_pass_*`, in one process and, keys
+ending `_workers2`, with `--pass-workers 2` (peak: the largest process's)."""
 
 from __future__ import annotations
 
 import tempfile
 import time
+from pathlib import Path
 
 
 def run(quick: bool = False) -> dict[str, float]:
@@ -35,6 +39,8 @@ def run(quick: bool = False) -> dict[str, float]:
     s = diag.summary
     scaling = {} if quick else {f"diagnosis_{name}_{length}m": v
                                 for length in (20, 100) for name, v in _pass_times(length).items()}
+    if not quick:
+        scaling.update(_field_length())
     return {
         **scaling,
         "diagnosis_resume_seconds": resume,
@@ -82,3 +88,47 @@ def _pass_times(length: float) -> dict[str, float]:
     n = len(base.rows)
     return {"base_pass_ms_per_window": 1e3 * t_base / n, "hardening_pass_ms_per_window": 1e3 * t_hard / n,
             "estimator_setup_seconds": t_setup}
+
+
+def _field_length(lengths: tuple[float, ...] = (20.0, 200.0), workers: tuple[int, ...] = (1, 2)) -> dict[str, float]:
+    """Peak resident memory [MB] and wall time per metre [s/m] of `torchsoil diagnose` on the
+    speed drive's stretches (5 m each at 1.0, 0.5, 1.5, 0.6, 1.4 m/s) repeated to each length,
+    in one process and (keys ending _workers2) with --pass-workers 2: its peak is the largest
+    process's (the main one or a worker), not their sum."""
+    from benchmarks.online import peak_rss_mb
+    from torchsoil.settings import merge
+    from torchsoil.synth.scenario import load_scenario, make_terrain_pair
+    from torchsoil.terrain import TerrainPair
+
+    out: dict[str, float] = {}
+    speeds = (1.0, 0.5, 1.5, 0.6, 1.4)
+    with tempfile.TemporaryDirectory() as tmp:
+        for length in lengths:
+            segments = [{"straight": 5.0, "speed": speeds[i % 5]} for i in range(int(round(length / 5.0)))]
+            scn = load_scenario(merge(load_scenario("speed_dependent_sinkage").model_dump(),
+                                      {"trajectory": {"segments": segments}}))
+            path = Path(tmp) / f"speed_{length:g}m.npz"
+            TerrainPair.from_mapping(make_terrain_pair(scn, seed=0)).save(path)
+            for n in workers:
+                tag = f"{length:g}m" + ("" if n == 1 else f"_workers{n}")
+                t0 = time.perf_counter()
+                run = Path(tmp) / f"diag{tag}"
+                out[f"diagnosis_peak_rss_mb_{tag}"] = peak_rss_mb(["diagnose", str(path), "--out", str(run),
+                                                                   "--no-tensorboard", "--pass-workers", str(n)])
+                wall = time.perf_counter() - t0
+                out[f"diagnosis_seconds_per_m_{tag}"] = wall / length
+                out[f"diagnosis_ms_per_window_pass_{tag}"] = 1e3 * wall / _window_passes(run / "passes")
+    return out
+
+
+def _window_passes(kept: Path) -> float:
+    """Windows fitted by a diagnosis, from its kept passes (checkpoint.PassCache): each full pass
+    fits every window of the base pass, each tyre-section score every third. A longer drive may
+    put more candidates to the test (more passes), so time per metre alone overstates its cost."""
+    import pickle
+
+    with next(kept.glob("base-*.pkl")).open("rb") as fh:
+        windows = len(pickle.load(fh)[1].rows)
+    files = [f.name for f in kept.glob("*.pkl")]
+    sections = sum(f.startswith("section-") for f in files)
+    return windows * (len(files) - sections + sections / 3)

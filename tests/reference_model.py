@@ -19,9 +19,16 @@ For every pose and every wheel:
    over the one-cell-wide band beside the wheel: the cells with r < |lateral| <= r + dx
    and |longitudinal| <= r, left and right of the footprint.
 
-With dig="wheel" the axles take turns instead (front first; the drives made here go forward):
-each digs the whole drive in step 3 from a reference height taken anew from the surface the
-axles before it left (deposits included), so the rear wheel digs again in the front one's rut.
+On ground earlier wheels dug (`dug`: a visit after the first, in the first's ruts), the
+reference of step 2 is instead the mean of the surface before the robot over the whole
+footprint (the cells within r): a wheel spans a rut of its own width and rests on its walls.
+
+With dig="wheel" the axles take turns instead (the leading axle first: the front one on a
+drive forward, the rear one in reverse): each digs the whole drive in step 3 from the surface
+the axles before it left (deposits included), so the trailing wheel digs again in the
+leading one's rut; on the cells their footprints covered its reference is the mean of that
+surface over its whole footprint, as on ground earlier wheels dug; `axle_scale` scales each
+axle's d in that order (a soil whose every wheel pass sinks less than the one before).
 
 Then, once every pose is done, Exner relaxation over the whole grid: forward-difference
 gradients g = [h(i+1,j) - h(i,j), h(i,j+1) - h(i,j)] / dx (0 across the grid's outer
@@ -109,9 +116,12 @@ def relax(h: np.ndarray, dx: float, beta: float, tau: float = 0.01, eps_scale: f
 
 def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.ndarray, wheel_width: float,
              d: tuple[float, ...], chi: float, beta: float, ref_radius: float = 0.5, flat: float = 0.0,
-             tau: float = 0.01, dig: str = "robot") -> tuple[np.ndarray, dict]:
+             tau: float = 0.01, dig: str = "robot", dug: np.ndarray | None = None,
+             axle_scale: tuple[float, ...] | None = None) -> tuple[np.ndarray, dict]:
     """Algorithm 1 on the surface h0 (X, Y) [m]; d: sinkage per track [m]; beta [rad]; dig:
-    "robot" (every wheel from the surface before the robot) or "wheel" (axle after axle).
+    "robot" (every wheel from the surface before the robot) or "wheel" (axle after axle);
+    dug: (X, Y) bool cells earlier wheels dug (reference over the whole footprint there);
+    axle_scale: with dig "wheel", a factor on d per axle in the order they dig.
 
     Returns the surface after the drive and {"removed": total removed volume m^3,
     "deposited": total deposited volume m^3, "iterations": relaxation iterations}."""
@@ -119,24 +129,32 @@ def simulate(h0: np.ndarray, dx: float, origin, poses: np.ndarray, wheels: np.nd
     h = h0.copy()
     r = wheel_width / 2
     h_ref = disc_mean(h0, ref_radius * r, dx)
+    if dug is not None:
+        h_ref = np.where(dug, disc_mean(h0, r, dx), h_ref)
     xs = origin[0] + dx * np.arange(h.shape[0])
     ys = origin[1] + dx * np.arange(h.shape[1])
     reach = int(math.ceil((r + 2 * dx) / dx))
     totals = [0.0, 0.0]
     dense = dense_poses(poses, wheels[:, :2], dx / 2)
-    axles = [wheels] if dig == "robot" else [wheels[wheels[:, 0] == a] for a in sorted(set(wheels[:, 0]), reverse=True)]
+    step = np.diff(dense[:, :2], axis=0)
+    forward = float(np.sum(step[:, 0] * np.cos(dense[:-1, 2]) + step[:, 1] * np.sin(dense[:-1, 2]))) >= 0
+    axles = [wheels] if dig == "robot" else [wheels[wheels[:, 0] == a]
+                                             for a in sorted(set(wheels[:, 0]), reverse=forward)]
+    scale = np.ones(len(axles)) if axle_scale is None else np.asarray(axle_scale, np.float64)
+    covered = np.zeros(h.shape, bool)
     for n, axle in enumerate(axles):
-        if n > 0:
-            h_ref = disc_mean(h, ref_radius * r, dx)       # the next axle's turn: the surface as left
+        if n > 0:      # the next axle's turn: it rests on the surface the axles before left
+            h_ref = np.where(covered, disc_mean(h, r, dx), h_ref)
         for x, y, yaw in dense:
-            _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, axle, d, chi, flat, totals)
+            _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, axle, np.asarray(d) * scale[n], chi, flat, totals,
+                 covered)
     h, iterations = relax(h, dx, beta, tau)
     return h, {"removed": totals[0], "deposited": totals[1], "iterations": iterations}
 
 
-def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat, totals):
+def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat, totals, covered):
     """Steps 1, 3 and 4 for the given wheels at one pose, in place on h; totals: [removed,
-    deposited] volumes, m^3, added to."""
+    deposited] volumes, m^3, added to; covered: (X, Y) bool, the footprint cells set."""
     X, Y = h.shape
     c, s = math.cos(yaw), math.sin(yaw)
     for wx, wy, track in wheels:
@@ -147,6 +165,7 @@ def _dig(h, h_ref, xs, ys, origin, dx, r, reach, x, y, yaw, wheels, d, chi, flat
         along = ex * c + ey * s
         lat = -ex * s + ey * c
         foot = along**2 + lat**2 <= r**2
+        covered[win] |= foot
         hw = h[win]
         target = h_ref[win] - taper(lat / r, flat) * d[int(track)]
         new = np.where(foot, np.minimum(hw, target), hw)

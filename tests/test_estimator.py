@@ -93,15 +93,18 @@ def test_run_writes_outputs_and_resumes(tmp_path, pair_truth):
     assert "Removed from H_b before estimation: offset" in (out / "summary.md").read_text()
     # the stitched simulation is close to the noise-free truth near the wheel paths
     assert simulated_error(out, truth_hb, pair) < 1.5e-3
-    # interrupt after 3 windows, then resume: the same windows, the same parameters
+    # interrupt after 3 windows, killed between the third's two rows (its reference row never
+    # written), then resume: the same windows once each, the same parameters
     lines = (out / "params.csv").read_text().splitlines()
     (out / "params.csv").write_text("\n".join(lines[:4]) + "\n")
     ref = (out / "reference.csv").read_text().splitlines()
-    (out / "reference.csv").write_text("\n".join(ref[:4]) + "\n")
+    (out / "reference.csv").write_text("\n".join(ref[:3]) + "\n")
     estimate(src, out, cfg, resume=True, tensorboard=False, progress=False)
     with (out / "params.csv").open() as f:
         resumed = list(csv.DictReader(f))
-    assert len(resumed) == len(full)
+    assert [r["s"] for r in resumed] == [r["s"] for r in full]
+    with (out / "reference.csv").open() as f:
+        assert [r["s"] for r in csv.DictReader(f)] == [r["s"] for r in full]
     for a, b in zip(full, resumed, strict=True):
         assert float(a["d1"]) == pytest.approx(float(b["d1"]), abs=3e-4)
     with pytest.raises(ValueError, match=r"settings differ \(estimator.window\)"):

@@ -70,3 +70,71 @@ def test_a_full_disk_stops_with_a_clear_error_and_keeps_the_rows(tmp_path, monke
     assert cli.main(["estimate", "x.npz"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: no space left on the device writing") and len(err.splitlines()) == 1
+
+
+def test_a_long_map_is_drawn_from_block_means():
+    """figures.coarse on a 5 x 3 map with at most 2 cells a side: 3 x 3 blocks (f 3), NaN cells
+    left out, a block of NaN only stays NaN; coarse_extent covers the padded blocks."""
+    from torchsoil.figures import coarse, coarse_extent
+
+    img = np.array([[1, 2, 3], [4, 5, 6], [7, 8, np.nan], [10, 11, 12], [np.nan, np.nan, np.nan]], np.float32)
+    out, f = coarse(img, max_cells=2)
+    assert f == 3 and out.shape == (2, 1)
+    assert out[0, 0] == (1 + 2 + 3 + 4 + 5 + 6 + 7 + 8) / 8 and out[1, 0] == (10 + 11 + 12) / 3
+    assert coarse(img, max_cells=5) == (img, 1)
+    assert np.isnan(coarse(np.full((4, 4), np.nan), max_cells=2)[0]).all()
+    assert coarse_extent((1.0, -2.0), 0.1, (5, 3), 3) == (0.95, 0.95 + 6 * 0.1, -2.05, -2.05 + 3 * 0.1)
+
+
+def test_a_window_store_over_its_memory_budget_reads_windows_back_from_disk():
+    """With room for two 1 kB windows in memory, the third goes to disk: asked again, the same
+    tensors come back without preparing it anew, and memory holds the first two only."""
+    import torch
+
+    from torchsoil.windows import WindowStore
+
+    store, made = WindowStore(max_bytes=2048), []
+
+    def window(key):
+        made.append(key)
+        return torch.full((64,), float(key), dtype=torch.float64), (torch.arange(128, dtype=torch.int32) + key,)
+
+    for key in (1, 2, 3, 3, 1):
+        got = store.get(key, lambda k=key: window(k))
+        assert torch.equal(got[0], torch.full((64,), float(key), dtype=torch.float64))
+        assert torch.equal(got[1][0], torch.arange(128, dtype=torch.int32) + key)
+    assert made == [1, 2, 3] and len(store) == 3 and store.nbytes == 2048 and store.spilled_bytes == 1024
+
+
+_HEAP = """
+import sys
+import numpy as np
+from torchsoil.memory import release
+def rss():
+    return next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmRSS")) / 1024
+np.ones(2 << 20)                                   # a 16 MB block, mmapped and freed
+keep, gone = [], []
+for k in range(12):                                # 16 MB maps with small live objects between them
+    (gone if k % 2 else keep).append(np.ones(2 << 20))
+    keep.append(np.ones(100))
+before = rss()
+gone.clear()
+if sys.argv[1] == "release":
+    assert release()
+print(before - rss())
+"""
+
+
+def test_whole_drive_arrays_are_given_back_once_released(tmp_path):
+    """Six of twelve 16 MB arrays freed, after one of that size had been (glibc then serves that
+    size from the heap, between live blocks): memory.release gives the 96 MB back; without it
+    they stay resident."""
+    import subprocess
+    import sys
+
+    script = tmp_path / "heap.py"
+    script.write_text(_HEAP)
+    freed = {mode: float(subprocess.run([sys.executable, str(script), mode], capture_output=True, text=True,
+                                        check=True).stdout) for mode in ("release", "default")}
+    assert freed["release"] > 80, freed
+    assert freed["default"] < 40, freed           # what it is for (glibc's own behaviour)

@@ -108,33 +108,47 @@ D0, D1 = 0.03, 0.015          # sinkage of the first visit, and of the second in
 LENGTH, ONCE = 4.0, 2.5       # the drive goes out 4 m and back; beyond x = 2.5 m one visit per cell
 
 
-def two_visit_pair(seed=0, noise=0.0015, dx=0.02):
-    """Out along +x for LENGTH m at 1 m/s and back in reverse on the same ruts, made by the
+def two_visit_pair(seed=0, noise=0.0015, dx=0.02, d1=D1, length=LENGTH, once=ONCE, per_pass_g=None):
+    """Out along +x for `length` m at 1 m/s and back in reverse on the same ruts, made by the
     reference model visit by visit: the first with d = D0 from the untouched ground, the
-    second with d = D1 from the ground the first left. Visit layers as FORMATS.md v1.1: cells
-    with x < ONCE have two visits (out at t = x, back at t = 2 LENGTH - x); the others one
+    second with d = d1 from the ground the first left, its reference over the whole footprint
+    on the first's ruts (a wheel spans a rut of its own width). With per_pass_g the axles dig in
+    turn instead, each from the rut the ones before it left (resting on it as on the first
+    visit's ruts), the n-th wheel pass over a cell
+    sinking D0 per_pass_g^n (d1 unused). Visit layers as FORMATS.md v1.1: cells
+    with x < `once` have two visits (out at t = x, back at t = 2 length - x); the others one
     (from the untouched ground to the end). Returns (pair dict, truth dict)."""
     rng = np.random.default_rng(seed)
     origin = np.array([-1.2, -1.6])
-    X, Y = int(round((LENGTH + 2.4) / dx)) + 1, int(round(3.2 / dx)) + 1
+    X, Y = int(round((length + 2.4) / dx)) + 1, int(round(3.2 / dx)) + 1
     smooth = ndimage.gaussian_filter(rng.normal(size=(X, Y)), 3.0)
     h0 = 0.004 * smooth / smooth.std() + 0.001 * rng.normal(size=(X, Y))
-    poses = out_and_back(LENGTH, dt=0.05)
-    out, back = poses[poses[:, 0] <= LENGTH], poses[poses[:, 0] >= LENGTH]
+    poses = out_and_back(length, dt=0.05)
+    out, back = poses[poses[:, 0] <= length], poses[poses[:, 0] >= length]
     beta = math.radians(30.0)
-    h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta)
-    h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (D1, D1), 0.5, beta)
+    ys = origin[1] + dx * np.arange(Y)
+    xx = origin[0] + dx * np.arange(X)
+    ruts = (np.abs(np.abs(ys) - 0.5) <= 0.07)[None] & ((xx >= -0.76) & (xx <= length + 0.76))[:, None]
+    if per_pass_g is not None:
+        g = per_pass_g
+        h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta, dig="wheel",
+                                   axle_scale=(1.0, g))
+        h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (D0, D0), 0.5, beta, dig="wheel",
+                                   axle_scale=(g**2, g**3), dug=ruts)
+    else:
+        h1, _ = reference_simulate(h0, dx, origin, out, PLATFORM, 0.14, (D0, D0), 0.5, beta)
+        h2, _ = reference_simulate(h1, dx, origin, back, PLATFORM, 0.14, (d1, d1), 0.5, beta, dug=ruts)
 
     def measured(h):
         return (h + rng.normal(0, noise, h.shape)).astype(np.float32)
 
     x = np.broadcast_to((origin[0] + dx * np.arange(X))[:, None], (X, Y))
-    twice = x < ONCE
+    twice = x < once
     nan = np.full((X, Y), np.nan, np.float32)
     f0, b0, f1, b1, once_back = measured(h0), measured(h1), measured(h1), measured(h2), measured(h2)
     visit_front = np.stack([f0, np.where(twice, f1, nan)])
     visit_back = np.stack([np.where(twice, b0, once_back), np.where(twice, b1, nan)])
-    visit_time = np.stack([np.clip(x, 0, LENGTH), np.where(twice, 2 * LENGTH - np.clip(x, 0, LENGTH), np.nan)])
+    visit_time = np.stack([np.clip(x, 0, length), np.where(twice, 2 * length - np.clip(x, 0, length), np.nan)])
     pair = {"dx": np.float64(dx), "origin": origin, "h_front": f0, "h_back": np.where(twice, b1, once_back),
             "poses": poses, "wheels": PLATFORM.astype(np.float64), "wheel_width": np.float64(0.14),
             "visit_front": visit_front, "visit_back": visit_back, "visit_time": visit_time.astype(np.float32)}
@@ -290,3 +304,46 @@ def test_visit_offsets_on_a_pair_made_elsewhere():
     (bad,) = visit_offsets(pair)
     assert bad["shift_m"] == pytest.approx([0.08, 0.0] if along_y else [0.0, 0.08])
     assert bad["rms_m"] < 1.2 * off["rms_m"]
+
+
+def test_a_rut_driven_again_by_a_soil_that_does_not_harden_fits_the_same_d():
+    """The second visit of a soil that does not harden (the same d, each visit digging from
+    the surface it finds, its reference over the whole footprint on the first's ruts) fits
+    the first visit's d; with the paper's small reference disc on the ruts (the reference on
+    the rut floor) the wheel would dig d below the floor, and the fit reads the same soil as
+    one that hardened. The first visit's rows do not depend on it."""
+    pair = TerrainPair.from_mapping(two_visit_pair(seed=3, d1=D0)[0])
+    fits = {}
+    for how in ("footprint", "disc"):
+        s = load_settings(overrides=["estimator.init.d=0.02", f"sim.revisit_ref={how}"])
+        est = Estimator(pair, s.estimator, s.sim, per_visit=True)
+        ks = return_windows(est)
+        fits[how] = [o.row for o in est.run(start=ks[0], stop=ks[-1] + 1)]
+    ratio = {}
+    for how, rows in fits.items():
+        d = {v: np.mean([(r["d1"] + r["d2"]) / 2 for r in rows if r["visit"] == v]) for v in (0, 1)}
+        assert d[0] == pytest.approx(D0, abs=0.003)
+        ratio[how] = d[1] / d[0]
+    print(ratio)
+    assert ratio["footprint"] == pytest.approx(1.0, abs=0.05)
+    assert ratio["disc"] < ratio["footprint"] - 0.05
+    first = [[r[k] for k in ("d1", "d2", "chi", "beta", "residual")] for r in fits["footprint"] if r["visit"] == 0]
+    assert first == [[r[k] for k in ("d1", "d2", "chi", "beta", "residual")] for r in fits["disc"] if r["visit"] == 0]
+
+
+def test_track_heading_is_that_of_the_last_pass_over_the_cell():
+    """Out along +x (yaw 0) until t = 10 s, back along -x (yaw pi) from t = 20 s: a cell the
+    way back passed takes pi, one only the way out passed takes 0, one neither passed the
+    heading of the nearest cell that was passed."""
+    from torchsoil.visits import track_heading
+
+    t = np.array([0.0, 10.0, 20.0, 30.0])
+    yaw = np.array([0.0, 0.0, np.pi, np.pi])
+    times = np.full((2, 3, 4), np.nan)
+    times[0, :, :2] = 5.0               # the way out, columns 0-1
+    times[1, :, 0] = 25.0               # the way back, column 0
+    got = track_heading(times, t, yaw)
+    assert got[:, 0] == pytest.approx(np.pi)
+    assert got[:, 1] == pytest.approx(0.0)
+    assert got[:, 2] == pytest.approx(0.0) and got[:, 3] == pytest.approx(0.0)
+    assert np.isnan(track_heading(times[:0], t, yaw)).all()

@@ -124,6 +124,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     _bag_options(p)
     p.add_argument("--no-reregister", action="store_true", help="ablation: rasterize with T_ref")
+    p.add_argument("--resume", action="store_true", help="continue the run in --out that was interrupted: from "
+                                                         "its last checkpoint (OUT/checkpoint, every "
+                                                         "pipeline.checkpoint_s)")
 
     p = sub.add_parser("diagnose", help="locate model mismatch, name the missing physics, show the fit improve")
     p.add_argument("input", nargs="*", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag); "
@@ -132,6 +135,15 @@ def parser() -> argparse.ArgumentParser:
     _robot_option(p, extra=" (needed for a recording; default for a pair: its own wheels)")
     _bag_options(p)
     p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
+    p.add_argument("--resume", action="store_true", help="continue the interrupted diagnosis in --out: its finished "
+                                                         "passes (OUT/passes) are read back, not run again")
+    p.add_argument("--pass-workers", type=int, default=1, metavar="N",
+                   help="one recording: run its independent passes (tyre sections, dig orders, candidates) as N "
+                        "tasks at once on a local process pool (same results; each worker holds the drive's "
+                        "maps too); with --pass-engine ray, on RAY_ADDRESS's cluster or a local Ray instance")
+    p.add_argument("--pass-engine", choices=["local", "ray"], default="local",
+                   help="where --pass-workers' tasks run (default local; ray needs pip install 'torchsoil[fleet]' "
+                        "and a folder --out that every node reads and writes)")
     _job_options(p)
     _fleet_options(p)
 
@@ -189,6 +201,9 @@ def parser() -> argparse.ArgumentParser:
     mode.add_argument("--foreign", type=Path, metavar="DIR", help="directory of foreign terrain pairs")
     p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
     p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
+    p.add_argument("--revisits", action="store_true",
+                   help="with --randomized: only its drives over their own ruts (out-and-back, loop, lane changes; "
+                        "hardening and null drives), with the visit layers of a pipeline that keeps every visit")
     p.add_argument("--redraws", type=int, default=0, metavar="R",
                    help="with --foreign: also fit R other draws of each pair's noise (its dropouts, streaks and "
                         "map offset moved), for the model error's spread over draws (default 0)")
@@ -341,16 +356,40 @@ def cmd_estimate(args) -> int:
 
 
 def cmd_process_bag(args) -> int:
+    import shutil
+
+    from torchsoil.pipeline.resume import Checkpoints
     from torchsoil.pipeline.run import process_bag, write_outputs
     from torchsoil.runner import pipeline_settings
 
     extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
     settings, given = _bag_settings(args, extra)
     cfg = pipeline_settings(settings, _robot_yaml(args.robot), given)
-    result = process_bag(args.bag, _robot(args.robot), cfg, progress=True)
+    out = Path(args.out)
+    key = (str(Path(args.bag).resolve()), cfg.replace(checkpoint_s=0).model_dump_json(), repr(_robot(args.robot)))
+    checkpoints = Checkpoints(out / "checkpoint", out / "tiles", cfg.checkpoint_s, key)
+    if not args.resume:
+        checkpoints.clear()
+        shutil.rmtree(out / "tiles", ignore_errors=True)
+    fresh = not out.exists()
+    try:
+        result = process_bag(args.bag, _robot(args.robot), cfg, progress=True, spill_dir=out / "tiles",
+                             checkpoints=checkpoints)
+    except Exception:          # an unusable recording: nothing left behind (an interrupt keeps the checkpoint)
+        checkpoints.clear()
+        shutil.rmtree(out / "tiles", ignore_errors=True)
+        if fresh and out.exists() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     for p in result.problems:
         print(f"warning: {p}", file=sys.stderr)
+    if args.resume:
+        print(f"resumed from the checkpoint taken after {checkpoints.resumed} of the recording's messages"
+              if checkpoints.resumed is not None else f"note: {out} held no checkpoint of this recording and "
+              "settings to resume from: processed from the start", file=sys.stderr)
     paths = write_outputs(result, args.out)
+    checkpoints.clear()
+    shutil.rmtree(out / "tiles", ignore_errors=True)
     t = sum(result.timings.values())
     print(f"processed {result.duration:.1f} s of recording in {t:.1f} s "
           f"({t / max(result.duration, 1e-9):.2f} x real time); wrote " + ", ".join(str(p) for p in paths.values()))
@@ -371,7 +410,8 @@ def cmd_diagnose(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     summary = diagnose_input(source, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
                              overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads or 1,
-                             extrinsics=given)
+                             extrinsics=given, resume=args.resume, workers=args.pass_workers,
+                             engine=args.pass_engine)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
 
@@ -475,10 +515,12 @@ def cmd_study(args) -> int:
     from contextlib import nullcontext
 
     from torchsoil.diagnosis.study import run_foreign, run_study
-    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases
+    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases, revisit_cases
     from torchsoil.fleet import make_engine
     from torchsoil.runner import torch_threads
 
+    if args.revisits and args.randomized is None:
+        raise ValueError("--revisits selects among --randomized N drives")
     if args.redraws < 0 or (args.redraws and args.foreign is None):
         raise ValueError(f"--redraws {args.redraws}: a count >= 0, and only with --foreign")
     on_engine = any(getattr(args, k) is not None for k in ("engine", "workers", "ray_address"))
@@ -491,6 +533,7 @@ def cmd_study(args) -> int:
                               redraws=args.redraws))
         elif args.randomized is not None:
             cases = randomized_cases(args.randomized, args.null, args.seed)
+            cases = revisit_cases(cases) if args.revisits else cases
             print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings, engine=eng))
         else:
             cases = STUDY_CASES[::3] if args.quick else STUDY_CASES

@@ -15,14 +15,16 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from torchsoil.cost import weighted_l1
+from torchsoil.memory import release
 from torchsoil.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.optimizer import FitResult, fit
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.sim import ParamSpec, simulate
-from torchsoil.sim.sinkage import reference_height
-from torchsoil.visits import passes_before, rut_depth, visit_counts, visit_poses, wheel_passes
+from torchsoil.sim.sinkage import revisit_reference
+from torchsoil.visits import passes_before, rut_depth, track_heading, visit_counts, visit_poses, wheel_passes
 from torchsoil.windows import (
     WindowData,
     WindowSpec,
@@ -32,6 +34,7 @@ from torchsoil.windows import (
     path_index,
     prepare_window,
     sim_reach,
+    smooth_along,
     smooth_heightmap,
     window_cells,
 )
@@ -85,6 +88,9 @@ class Estimator:
             told (default: est.front_view, "auto" told from the maps by `windows.front_view`).
         store: a `windows.WindowStore` that keeps prepared windows for later runs over the same
             pair and map nuisance (a diagnosis's passes share one); None: prepared per run.
+        surfaces: (h_start, h_back) (X, Y) float64 [m] of an earlier estimator over the same pair,
+            map nuisance and settings (`self.surfaces`), so that the passes of a diagnosis share
+            them rather than each holding its own (default: made here).
         per_visit: on a pair with visit layers (docs/formats.md v1.1), fit each visit of a window's
             ground on its own before and after maps (`visit_front[v]` -> `visit_back[v]`) with
             the wheels of that visit, one row per visit (`visit`, `passes_before`); without
@@ -102,6 +108,7 @@ class Estimator:
     def __init__(self, pair, est: EstimatorConfig | None = None, sim: SimConfig | None = None, device=None,
                  dtype=torch.float64, modifiers=None, index=None, nuisance: MapNuisance | None = None,
                  arc0: float = 0.0, view: str | None = None, store: WindowStore | None = None,
+                 surfaces: tuple[np.ndarray, np.ndarray] | None = None,
                  per_visit: bool = False):
         self.pair = pair
         self.modifiers = modifiers
@@ -123,9 +130,13 @@ class Estimator:
         self.per_visit = per_visit and getattr(pair, "visit_front", None) is not None
         view = "last_visit" if self.per_visit else view or est.front_view   # per visit: each from its own H_f
         self.view, self.view_info = (front_view(pair, self.index) if view == "auto" else (view, {}))
-        self.h_back = np.asarray(pair.h_back, np.float64)
-        if self.nuisance is not None:
-            self.h_back = self.h_back - self.nuisance.field
+        if surfaces is None:
+            h_back = np.asarray(pair.h_back, np.float64)
+            h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
+            surfaces = (h_start, h_back - self.nuisance.field if self.nuisance is not None else h_back)
+            release()                  # the whole-grid temporaries of the index, nuisance and smoothing
+        self.surfaces = surfaces
+        self.h_start, self.h_back = surfaces
         self.arc0 = arc0
         self.store = store
         # what a prepared window depends on besides its span, the pair and the map nuisance
@@ -150,20 +161,45 @@ class Estimator:
         init = {"d": est.init.d, "chi": est.init.chi, "beta": math.radians(est.init.beta_deg)}
         self.theta0 = torch.tensor([init[k] for k in kinds], **kw)
         self._cache: dict[int, WindowData | None] = {}
-        self.h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
         if self.per_visit:
             self._visit_setup()
 
     def _visit_setup(self) -> None:
-        """Per-visit maps over the whole grid: the surfaces each visit starts from (smoothed)
-        and ends on (net of the map offset), visits and wheel passes before each visit per cell."""
+        """Per-visit maps over the whole grid: the surfaces each visit starts from and ends on
+        (net of the map offset), visits and wheel passes before each visit per cell. A visit
+        starts from its H_f smoothed (estimator.front_smoothing) on fresh ground. Within a wheel
+        width of the cells earlier wheel passes went over, where H_f shows the ground the visit
+        before left, that ground is the mean of its two views (H_f of the visit and H_b of the
+        one before, net of the map offset), smoothed as much but only along the track that dug
+        it (`smooth_along`, the heading of base_link when it last passed the cell): round
+        smoothing would fill the ruts the robot made (a relief of the wheel's own width, with
+        the walls and berms beside it) and raise the ground the wheels dig from, and left
+        noisy, the start biases the fit (a wheel's cut replaces noise by its own floor, so
+        digging deeper always looks closer to the next map). Nor do the ruts enter the
+        smoothing of the ground beyond."""
         pair, sigma = self.pair, float(self.est.front_smoothing)
         off = 0.0 if self.nuisance is None else self.nuisance.field
-        self.visit_start = [smooth_heightmap(np.asarray(h, np.float64), sigma) for h in pair.visit_front]
-        self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
         self.visits_per_cell = visit_counts(pair.visit_time)
         self.passes = wheel_passes(pair.poses, pair.wheels, pair.wheel_width, pair.grid, pair.visit_time)
         self.passes_before = passes_before(self.passes)
+        self.visit_start = []
+        r = int(math.ceil(pair.wheel_width / pair.dx))
+        near = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+        yaw = np.unwrap(pair.poses[:, 6])
+        for v, (dug, h) in enumerate(zip(self.passes_before > 0, pair.visit_front, strict=True)):
+            h = np.asarray(h, np.float64)
+            dug = ndimage.binary_dilation(dug, near) if dug.any() else dug
+            start = np.where(dug, h, smooth_heightmap(np.where(dug, np.nan, h), sigma))
+            if dug.any():
+                seen = h
+                if v > 0:       # the ground between the visits, seen again as the last one ended
+                    before = np.asarray(pair.visit_back[v - 1], np.float64) - off
+                    seen = np.where(np.isfinite(h) & np.isfinite(before), (h + before) / 2, np.fmax(h, before))
+                heading = track_heading(pair.visit_time[:v], pair.poses[:, 0], yaw)
+                along = smooth_along(np.where(dug, seen, np.nan), heading, sigma)
+                start = np.where(dug, along, start)
+            self.visit_start.append(start)
+        self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
         self._visit_cache: dict[int, dict[int, WindowData | None]] = {}
 
     def _free_name(self, name: str) -> str:
@@ -177,6 +213,13 @@ class Estimator:
     def full_theta(self, free: torch.Tensor) -> torch.Tensor:
         """(B, P_free) optimizer variables -> (B, P) simulator parameters."""
         return free[:, self.expand]
+
+    def forget_before(self, k: int) -> None:
+        """Let go of the prepared data of the windows before window k (`data`, `visit_data`):
+        windows are taken in order, and a long drive's would not fit in memory."""
+        cache = self._visit_cache if self.per_visit else self._cache
+        for old in [i for i in cache if i < k]:
+            del cache[old]
 
     def data(self, k: int) -> WindowData | None:
         if k not in self._cache:
@@ -193,7 +236,7 @@ class Estimator:
         for g in wd.earlier:
             h = simulate(h, g, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, g), h_ref=h_ref).h
             again = g.domain if again is None else again | g.domain
-            h_ref = torch.where(again, reference_height(h, self.sim.ref_radius * g.radius, g.dx), wd.h_ref)
+            h_ref = revisit_reference(h, wd.h_ref, again, self.sim.revisit_ref, self.sim.ref_radius, g.radius, g.dx)
         return simulate(h, wd.geom, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, wd.geom),
                         h_ref=h_ref)
 
@@ -225,25 +268,24 @@ class Estimator:
         as it is done; per visit, each visit of a window in turn (visit 0 first).
 
         theta: warm start (P_free,) (default: config estimator.init), or one per visit
-        {visit: (P_free,)} (each visit's fits warm-start from the same visit's previous window).
+        {visit: (P_free,)} (each visit's fits warm-start from the same visit's previous window;
+        key None: the warm start of the visits without one, default config estimator.init).
         skip: (s, visit) keys (s rounded to 1e-6 m) of rows not to fit again (a resumed run).
         """
-        thetas = theta if isinstance(theta, dict) else {}
-        theta0 = self.theta0.clone() if theta is None or isinstance(theta, dict) else theta.to(self.theta0)
+        thetas = dict(theta) if isinstance(theta, dict) else {None: theta}
+        first = thetas.pop(None, None)
+        theta0 = self.theta0.clone() if first is None else first.to(self.theta0)
         thetas = {v: t.to(self.theta0) for v, t in thetas.items()}
         skip = skip or set()
         for k in range(start, len(self.windows) if stop is None else min(stop, len(self.windows))):
             t0 = time.perf_counter()       # a window's seconds include preparing its data
             spec = self.windows[k]
+            self.forget_before(k)
             if self.per_visit:
                 visits = self.visit_data(k)
-                for old in [i for i in self._visit_cache if i < k]:
-                    del self._visit_cache[old]
                 ahead = self.visit_data(k + self.ahead) if self.ahead and k + self.ahead < len(self.windows) else {}
             else:
                 visits = {0: self.data(k)}
-                for old in [i for i in self._cache if i < k]:
-                    del self._cache[old]
                 ahead = {0: self._ahead_data(k)}
             for v, wd in (visits or {0: None}).items():
                 if (round(spec.centre + self.arc0, 6), v) in skip:
@@ -310,9 +352,22 @@ class Estimator:
                                     extra_flags=self._registration_flags(spec), h_start=self.visit_start[v],
                                     h_back=self.visit_back[v], h_measured=pair.visit_front[v], poses=poses,
                                     keep=keep)
+                if wd is not None:
+                    wd = self._dug_reference(wd, v)
                 out[v] = wd if wd is None or v == own else wd._replace(t=t_med[v])
         self._visit_cache[k] = out
         return out
+
+    def _dug_reference(self, wd: WindowData, visit: int) -> WindowData:
+        """wd with its reference height on the cells earlier wheel passes went over before visit
+        `visit` (`passes_before`) taken as a wheel coming back finds it (sim.revisit_ref)."""
+        i0, i1, j0, j1 = wd.crop
+        dug = torch.as_tensor(self.passes_before[visit, i0:i1, j0:j1] > 0, device=wd.h_ref.device)
+        if not bool(dug.any()):
+            return wd
+        ref = revisit_reference(wd.h_front, wd.h_ref, dug, self.sim.revisit_ref, self.sim.ref_radius,
+                                wd.geom.radius, wd.geom.dx)
+        return wd._replace(h_ref=ref)
 
     def _passes_before(self, wd: WindowData | None, visit: int) -> float:
         """Wheel passes the window's ruts (its ground within a quarter wheel width of a wheel

@@ -13,6 +13,34 @@ from scipy import ndimage
 CMAP = "PiYG"  # pink: excavation, green: deposition (as in the paper)
 
 
+def coarse(img: np.ndarray, max_cells: int = 2000) -> tuple[np.ndarray, int]:
+    """An (X, Y) map averaged over blocks of f x f cells (NaN cells left out; NaN where a block
+    has none), f the least factor that leaves at most `max_cells` along each side; returns
+    (the coarse map, f). A figure cannot show more cells than its pixels, and drawing every
+    cell of a long drive's map takes memory in proportion to the drive (a 2000-pixel-wide
+    figure of a 10-minute drive: 30,000 cells along)."""
+    f = max(1, math.ceil(max(img.shape) / max_cells))
+    if f == 1:
+        return img, 1
+    X, Y = img.shape
+    pad = np.full((-(-X // f) * f, -(-Y // f) * f), np.nan, np.float32)
+    pad[:X, :Y] = img
+    blocks = pad.reshape(pad.shape[0] // f, f, pad.shape[1] // f, f)
+    ok = np.isfinite(blocks)
+    n = ok.sum(axis=(1, 3))
+    blocks[~ok] = 0.0                                    # in place: the padded copy is ours
+    total = blocks.sum(axis=(1, 3), dtype=np.float64)
+    return np.where(n > 0, total / np.maximum(n, 1), np.nan).astype(np.float32), f
+
+
+def coarse_extent(origin, dx: float, shape: tuple[int, int], f: int) -> tuple[float, float, float, float]:
+    """imshow extent (x0, x1, y0, y1) [m] of a map of `shape` cells averaged over f x f blocks
+    (`coarse`), its first cell's centre at `origin` [m] on the fine grid of cell edge dx [m]."""
+    x0, y0 = origin
+    X, Y = (-(-n // f) for n in shape)
+    return (x0 - dx / 2, x0 - dx / 2 + X * f * dx, y0 - dx / 2, y0 - dx / 2 + Y * f * dx)
+
+
 def _col(rows, key):
     return np.array([r[key] for r in rows], dtype=float)
 
@@ -85,16 +113,17 @@ def difference_maps(pair, h_start: np.ndarray, h_sim: np.ndarray, rows: list[dic
         clean = clean[1:-1]  # the first and last windows often see only part of the ground
     picks = [clean[int(i)] for i in np.linspace(0, len(clean) - 1, min(n_insets, len(clean)))] if clean else []
     x0, y0 = pair.origin
-    X, Y = measured.shape
-    extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)
     lim = float(np.nanpercentile(np.abs(measured), 99)) if np.isfinite(measured).any() else 0.05
     seen = np.flatnonzero(np.isfinite(measured).any(axis=1) | np.isfinite(simulated).any(axis=1))
+    extent = coarse_extent(pair.origin, pair.dx, measured.shape, 1)
     xlim = (x0 + (seen[0] - 1) * pair.dx, x0 + (seen[-1] + 1) * pair.dx) if len(seen) else extent[:2]
     fig = Figure(figsize=(12, 8))
     gs = fig.add_gridspec(3, max(len(picks), 1), height_ratios=[1, 1, 1.1])
     for row_i, (title, img) in enumerate([("measured $H_\\Delta$", measured), ("simulated $H_\\Delta$", simulated)]):
         ax = fig.add_subplot(gs[row_i, :])
-        im = ax.imshow(img.T, origin="lower", extent=extent, cmap=CMAP, vmin=-lim, vmax=lim, aspect="equal")
+        img, f = coarse(img)
+        im = ax.imshow(img.T, origin="lower", extent=coarse_extent(pair.origin, pair.dx, measured.shape, f), cmap=CMAP,
+                       vmin=-lim, vmax=lim, aspect="equal")
         ax.plot(pair.poses[:, 1], pair.poses[:, 2], color="k", lw=0.5, alpha=0.5)
         for letter, r in zip("ABCDEFGH", picks, strict=False):
             ax.annotate(letter, (r["x"], r["y"]), color="k", fontsize=10, weight="bold", ha="center")
@@ -213,17 +242,15 @@ def multipass(table: list[dict], path: Path) -> Path:
 
 def pass_maps(pair, layers: dict, path: Path) -> Path:
     """Wheel passes per cell and the cumulative rut depth (mm) over the drive (passes.npz layers)."""
-    x0, y0 = pair.origin
-    X, Y = layers["passes"].shape
-    extent = (x0 - pair.dx / 2, x0 + (X - 0.5) * pair.dx, y0 - pair.dx / 2, y0 + (Y - 0.5) * pair.dx)
     fig = Figure(figsize=(12, 5))
     ax = fig.subplots(1, 2)
-    passes = np.where(layers["visits"] > 0, layers["passes"], np.nan)
+    passes, f = coarse(np.where(layers["visits"] > 0, layers["passes"], np.nan))
+    extent = coarse_extent(pair.origin, pair.dx, layers["passes"].shape, f)
     top = max(int(np.nanmax(passes)) if np.isfinite(passes).any() else 1, 1)
     im = ax[0].imshow(passes.T, origin="lower", extent=extent, cmap="viridis", vmin=0, vmax=top,
                       interpolation="nearest")
     fig.colorbar(im, ax=ax[0], label="wheel passes", fraction=0.03, ticks=range(top + 1))
-    rut = 1e3 * layers["rut_depth"]
+    rut = coarse(1e3 * layers["rut_depth"])[0]
     lim = float(np.nanpercentile(np.abs(rut), 99)) if np.isfinite(rut).any() else 50.0
     im = ax[1].imshow(-rut.T, origin="lower", extent=extent, cmap=CMAP, vmin=-lim, vmax=lim)
     fig.colorbar(im, ax=ax[1], label="height change over all visits [mm]", fraction=0.03)

@@ -464,8 +464,8 @@ def default_workers(fleet, n_tasks: int | None = None) -> int:
 class LocalEngine:
     """Tasks on this machine: `workers` single-worker process pools (spawn start method, so
     each worker imports torch afresh and a killed worker breaks only its own pool). A worker
-    is kept for the next task; one that died is replaced, its task recorded as failed (or
-    started again, fleet.retries times)."""
+    is kept for the next task (within `with`, for the next imap too); one that died is
+    replaced, its task recorded as failed (or started again, fleet.retries times)."""
 
     name = "local"
 
@@ -474,11 +474,16 @@ class LocalEngine:
 
         self.fleet = fleet or FleetConfig()
         self.workers = workers
+        self._kept: list | None = None     # within `with`: idle workers kept for the next imap
 
     def __enter__(self):
+        self._kept = []
         return self
 
     def __exit__(self, *exc):
+        kept, self._kept = self._kept or [], None
+        for pool in kept:
+            pool.shutdown(wait=True)
         return False
 
     def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None) -> Iterator[tuple[int, Outcome]]:
@@ -491,7 +496,8 @@ class LocalEngine:
         requests = requests or [self.fleet] * len(calls)
         n = min(self.workers or default_workers(self.fleet, len(calls)), max(1, len(calls)))
         ctx = mp.get_context("spawn")
-        todo, idle, running, tries = deque(range(len(calls))), [], {}, [0] * len(calls)
+        idle = self._kept if self._kept is not None else []
+        todo, running, tries = deque(range(len(calls))), {}, [0] * len(calls)
         try:
             while todo or running:
                 while todo and len(running) < n:
@@ -520,7 +526,7 @@ class LocalEngine:
             for _, pool in running.values():
                 for p in list(getattr(pool, "_processes", {}).values()):
                     p.terminate()
-            for pool in [*idle, *(p for _, p in running.values())]:
+            for pool in [*(idle if self._kept is None else []), *(p for _, p in running.values())]:
                 pool.shutdown(wait=True, cancel_futures=True)
 
 

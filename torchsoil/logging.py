@@ -30,6 +30,21 @@ class CsvLog:
             with self.path.open("w", newline="") as f:
                 csv.DictWriter(f, columns).writeheader()
 
+    def keep(self, n: int) -> None:
+        """Keep only the first n rows, in memory and in the file (the lines as written): a run
+        killed between writing a window's rows to two logs leaves one row too many in one."""
+        if n >= len(self.rows):
+            return
+        with self.path.open(newline="") as f:
+            lines = f.read().splitlines(keepends=True)
+        tmp = self.path.with_suffix(self.path.suffix + ".tmp")
+        with tmp.open("w", newline="") as f:
+            f.writelines(lines[: n + 1])               # the header, then n rows
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+        self.rows = self.rows[:n]
+
     def append(self, row: dict) -> None:
         """Write `row` (flushed to disk). A full disk raises DiskFull and leaves the file as it was
         before the row (no partial line): what was written stays readable and `--resume` continues."""

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from torchsoil import figures, provenance
 from torchsoil.estimator import Estimator, Stitcher
 from torchsoil.logging import CsvLog, TensorBoardLog
+from torchsoil.memory import release
 from torchsoil.robot import Robot
 from torchsoil.settings import PipelineConfig, Settings
 from torchsoil.terrain import TerrainPair
@@ -147,14 +148,22 @@ def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | N
     return out
 
 
+def _window_logs(out: Path, names: list[str], resume: bool) -> tuple[CsvLog, CsvLog, int]:
+    """params.csv and reference.csv in out, and the windows both hold (a window is written once
+    both its rows are: a run killed between the two leaves a row too many, dropped here)."""
+    params = CsvLog(out / "params.csv", param_columns(names), resume)
+    reference = CsvLog(out / "reference.csv", REFERENCE, resume)
+    n_done = min(len(params.rows), len(reference.rows))
+    params.keep(n_done)
+    reference.keep(n_done)
+    return params, reference, n_done
+
+
 def _estimate(pair: TerrainPair, out: Path, settings: Settings, resume: bool, tensorboard: bool,
               progress: bool, name: str) -> None:
     est = Estimator(pair, settings.estimator, settings.sim, per_visit=True)
     names = list(est.names)
-    params = CsvLog(out / "params.csv", param_columns(names), resume)
-    reference = CsvLog(out / "reference.csv", REFERENCE, resume)
-    n_done = min(len(params.rows), len(reference.rows))
-    params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
+    params, reference, n_done = _window_logs(out, names, resume)
     sim_path = out / "simulated.npz"
     restored = None
     if resume and sim_path.exists() and n_done:
@@ -245,10 +254,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
         shutil.rmtree(tiles)
     live = LiveEstimator(robot, settings, spill_dir=str(tiles) if e.online.spill else None)
     names = _param_names(robot)
-    params = CsvLog(out / "params.csv", param_columns(names), resume)
-    reference = CsvLog(out / "reference.csv", REFERENCE, resume)
-    n_done = min(len(params.rows), len(reference.rows))
-    params.rows, reference.rows = params.rows[:n_done], reference.rows[:n_done]
+    params, reference, n_done = _window_logs(out, names, resume)
     live.resume(params.rows)
     tb = TensorBoardLog(out / "tensorboard", tensorboard)
     sims = SimTiles(tiles / "sim" if e.online.spill else None)   # each window's simulated change, stitched
@@ -309,6 +315,7 @@ def _finish_whole(live, bag: Path, out: Path, settings: Settings, sims: SimTiles
     from torchsoil.pipeline.run import finish_result, write_outputs
 
     result = finish_result(live.pipeline, live.rec, bag, wall)
+    release()
     for problem in result.problems:
         print(f"warning: {problem}")
     write_outputs(result, out / "pipeline")

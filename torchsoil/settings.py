@@ -49,6 +49,11 @@ class SimConfig(Section):
                                                            "(capped relaxation); null: until tau")
     ref_radius: float = Field(0.5, ge=0, description="reference-height disc radius, fraction of half the "
                                                      "wheel width")
+    revisit_ref: Literal["footprint", "disc"] = Field(
+        "footprint", description="reference height on the cells earlier wheel passes went over (a visit after "
+                                 "the first; a trailing wheel under dig_order wheel): footprint: the mean over "
+                                 "the wheel's whole footprint, the level a wheel that spans the rut rests on "
+                                 "(docs/visits.md); disc: the ref_radius disc of fresh ground")
     band_width: float = Field(1.0, gt=0, description="deposition band beside the rut, cells")
     relax_margin: float = Field(2.0, ge=0, description="relaxation domain: rut plus this many wheel widths "
                                                        "each side")
@@ -59,7 +64,7 @@ class SimConfig(Section):
     dig_order: Literal["robot", "wheel"] = Field(
         "robot", description="robot: every wheel digs from the surface before the robot (the paper); wheel: "
                              "the axles dig in the order they meet the ground, each trailing wheel again "
-                             "from the rut the wheels before it left")
+                             "from the surface the wheels before it left, their spoil included")
 
 
 # ---------------------------------------------------------------------------- estimator
@@ -306,6 +311,9 @@ class PipelineConfig(Section):
     level: LevelConfig = LevelConfig()
     reregister: ReregisterConfig = ReregisterConfig()
     raster: RasterConfig = RasterConfig()
+    checkpoint_s: float = Field(30.0, ge=0, description="process-bag: seconds between two checkpoints of the "
+                                                        "pipeline's state (OUT/checkpoint; --resume goes on from "
+                                                        "the last one)")
 
 
 # ---------------------------------------------------------------------------- diagnosis
@@ -335,6 +343,9 @@ class DiagnosisConfig(Section):
                                                    "(a term that predicts neighbouring ground better but fits its "
                                                    "own worse stands in for soil that changes along the drive)")
     block_m: float = Field(2.4, gt=0, description="cross-validation block length, m")
+    checkpoint_s: float = Field(15.0, ge=0, description="seconds between two saves of a pass in progress "
+                                                        "(OUT/passes; a killed run resumes after the last save; 0: "
+                                                        "after every window)")
     refine_steps: int = Field(2, ge=0, description="parabolic refinements of a candidate's coefficient")
     offsets: tuple[int, ...] = Field((2, 4, 6), description="windows back (in strides) on whose ground "
                                                             "each fit is also scored")

@@ -9,6 +9,7 @@ A terrain pair with visit layers holds, per cell, the surface before and after e
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from torchsoil.sim.geometry import resample_poses, wheel_positions
@@ -71,6 +72,23 @@ def wheel_passes(poses: np.ndarray, wheels: np.ndarray, wheel_width: float, grid
 def passes_before(passes: np.ndarray) -> np.ndarray:
     """(V, X, Y) wheel passes per visit -> (V, X, Y) wheel passes the cell had before visit v."""
     return np.cumsum(passes, 0) - passes
+
+
+def track_heading(times_before: np.ndarray, t: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(X, Y) heading [rad] of base_link when it last passed each cell before: times_before
+    (v, X, Y) the `visit_time` layers of the visits before [s, NaN: no such visit], t (N,)
+    and yaw (N,) [rad, unwrapped] the poses' times and headings. A cell no earlier visit
+    passed takes the nearest cell's; NaN everywhere when none did."""
+    shape = np.shape(times_before)[1:]
+    last = np.full(shape, np.nan)
+    for tv in times_before:
+        last = np.where(np.isfinite(tv), tv, last)
+    ok = np.isfinite(last)
+    if not ok.any():
+        return last
+    if not ok.all():
+        last = last[tuple(ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True))]
+    return np.interp(last, t, yaw)
 
 
 def visit_poses(poses: np.ndarray, arc: np.ndarray, times: np.ndarray, reach: float) -> np.ndarray:

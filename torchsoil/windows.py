@@ -4,6 +4,7 @@ which cells its cost counts, and the cropped, simulation-ready data of one windo
 from __future__ import annotations
 
 import math
+import tempfile
 from dataclasses import dataclass
 from itertools import chain
 from typing import NamedTuple
@@ -236,27 +237,42 @@ class WindowStore:
     window (crop, masks, wheel geometry) is about a quarter of a run. Share a store, like the
     PathIndex, only among estimators over the same pair and map nuisance; the key holds what
     may differ between them (tyre section, settings, view, device, the window's span). Windows
-    are kept while their tensors take at most `max_bytes` (0.2 to 0.5 MB a window with the
-    default corridor and 2 cm cells); beyond that, windows are prepared anew each time, so
-    that an hour's drive does not hold every window in memory."""
+    are kept in memory while their tensors take at most `max_bytes` (0.2 to 0.5 MB a window
+    with the default corridor and 2 cm cells: a 20 m drive's windows of one tyre section take
+    about 20 MB); beyond that they are written to a temporary directory under `spill_dir`
+    (None: the system's; removed with the store) and read back from there, so that memory
+    does not grow with the drive and a long drive is not prepared anew on every pass.
+    spill=False: beyond `max_bytes`, windows are prepared anew each time."""
 
-    def __init__(self, max_bytes: int = 2 << 30):
-        self.max_bytes = max_bytes
+    def __init__(self, max_bytes: int = 16 << 20, spill: bool = True, spill_dir: str | None = None):
+        self.max_bytes, self.spill, self.spill_dir = max_bytes, spill, spill_dir
         self.nbytes = 0
+        self.spilled_bytes = 0
         self._kept: dict[tuple, WindowData | None] = {}
+        self._files: dict[tuple, str] = {}
+        self._tmp = None
 
     def __len__(self) -> int:
-        return len(self._kept)
+        return len(self._kept) + len(self._files)
 
     def get(self, key: tuple, prepare) -> WindowData | None:
         """The window under `key`, from `prepare()` the first time (None: not preparable)."""
         if key in self._kept:
             return self._kept[key]
+        if key in self._files:
+            return torch.load(self._files[key], weights_only=False)
         wd = prepare()
         size = _nbytes(wd)
         if self.nbytes + size <= self.max_bytes:
             self._kept[key] = wd
             self.nbytes += size
+        elif self.spill:
+            if self._tmp is None:
+                self._tmp = tempfile.TemporaryDirectory(prefix="torchsoil-windows-", dir=self.spill_dir)
+            path = f"{self._tmp.name}/{len(self._files)}.pt"
+            torch.save(wd, path)
+            self._files[key] = path
+            self.spilled_bytes += size
         return wd
 
 
@@ -277,6 +293,30 @@ def smooth_heightmap(h: np.ndarray, sigma: float) -> np.ndarray:
     den = ndimage.gaussian_filter(valid.astype(np.float64), sigma, mode="nearest")
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(valid, num / den, np.nan)
+
+
+def smooth_along(h: np.ndarray, yaw: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian smoothing of an (X, Y) heightmap [m] along a direction per cell only: yaw
+    (X, Y) [rad, world frame; i runs along x, j along y], sigma in cells, NaN cells ignored
+    (normalised) and kept NaN; cells with a NaN yaw are left as they are. Relief that runs
+    along the direction (a rut along the track that dug it) keeps its cross-section while the
+    noise averages out. sigma = 0 returns h unchanged."""
+    if sigma <= 0:
+        return h
+    valid = np.isfinite(h)
+    vals, w = np.where(valid, h, 0.0).astype(np.float64), valid.astype(np.float64)
+    ii, jj = np.indices(h.shape, dtype=np.float64)
+    c, s = np.cos(np.nan_to_num(yaw)), np.sin(np.nan_to_num(yaw))
+    num = np.zeros(h.shape)
+    den = np.zeros(h.shape)
+    for k in range(-int(math.ceil(3 * sigma)), int(math.ceil(3 * sigma)) + 1):
+        g = math.exp(-0.5 * (k / sigma) ** 2)
+        at = [ii + k * c, jj + k * s]
+        num += g * ndimage.map_coordinates(vals, at, order=1, mode="nearest")
+        den += g * ndimage.map_coordinates(w, at, order=1, mode="nearest")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(valid & (den > 0), num / den, np.nan)
+    return np.where(np.isfinite(yaw), out, h)
 
 
 def _stopped(poses: np.ndarray, speed: float, duration: float) -> bool:

@@ -103,3 +103,93 @@ def test_the_command_run_again_into_its_folder_reads_every_pass_back(tmp_path, s
     again = diagnose_input(tmp_path / "short.npz", tmp_path / "out", settings, progress=False, tensorboard=False)
     assert runs == [] and again == first
     assert json.loads((tmp_path / "out" / "diagnosis.json").read_text()) == json.loads(json.dumps(first))
+
+
+class StopAtWindow(StopAfter):
+    """A progress bar that interrupts the base pass when it reports window `k` (a kill mid-pass)."""
+
+    def __init__(self, k):
+        super().__init__(10 ** 6)
+        self.k = k
+
+    def set_postfix_str(self, text):
+        if text == f"base window {self.k}":
+            raise Interrupt
+
+
+def test_a_pass_killed_midway_resumes_from_its_last_window(tmp_path, short_drive, monkeypatch):
+    """Kept after every window (every=0), a base pass stopped as it reports window 10 goes on
+    from window 10, not from the start, and the diagnosis ends as one run straight through."""
+    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
+    straight = diagnose(short_drive, cfg).summary
+    with pytest.raises(Interrupt):
+        diagnose(short_drive, cfg, progress=StopAtWindow(10), cache=PassCache(tmp_path / "p", {"i": 1}, every=0))
+    assert len(list((tmp_path / "p").glob("base-partial-*.pkl"))) == 1
+    starts = []
+    original = fit_module.Estimator.run
+    monkeypatch.setattr(fit_module.Estimator, "run",
+                        lambda self, *a, start=0, **k: starts.append(start) or original(self, *a, start=start, **k))
+    resumed = diagnose(short_drive, cfg, cache=PassCache(tmp_path / "p", {"i": 1}, every=0)).summary
+    assert starts[0] == 10 and all(s == 0 for s in starts[1:])
+    assert resumed == straight
+    assert not list((tmp_path / "p").glob("*-partial-*.pkl"))      # dropped once their passes were done
+
+
+def test_a_diagnose_killed_with_sigkill_resumes_to_the_straight_run(tmp_path, short_drive):
+    """`torchsoil diagnose` killed once a pass in progress has been kept, then `--resume`: the
+    diagnosis.json of a run straight through."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    short_drive.save(tmp_path / "short.npz")
+    sets = [a for kv in ("diagnosis.n_fit=1", "diagnosis.sections=[]", "diagnosis.dig_orders=[]",
+                         "diagnosis.refine_steps=1", "diagnosis.checkpoint_s=0") for a in ("--set", kv)]
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+
+    def run(out, *extra):
+        return subprocess.Popen([sys.executable, "-m", "torchsoil", "diagnose", str(tmp_path / "short.npz"), "--out",
+                                 str(out), "--no-tensorboard", *sets, *extra], env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    straight = run(tmp_path / "straight")
+    assert straight.communicate(timeout=600) and straight.returncode == 0
+    killed = run(tmp_path / "killed")
+    passes = tmp_path / "killed" / "passes"
+    while killed.poll() is None and not (passes.exists() and any(passes.glob("*-partial-*.pkl"))):
+        time.sleep(0.01)
+    assert killed.poll() is None, "the run ended before it could be killed"
+    killed.send_signal(signal.SIGKILL)
+    killed.wait()
+    assert not (tmp_path / "killed" / "diagnosis.json").exists()
+    again = run(tmp_path / "killed", "--resume")
+    said, err = again.communicate(timeout=600)
+    assert again.returncode == 0, err.decode()[-2000:]
+    assert "resuming:" in said.decode()
+    assert (json.loads((tmp_path / "killed" / "diagnosis.json").read_text())
+            == json.loads((tmp_path / "straight" / "diagnosis.json").read_text()))
+
+
+def test_the_per_visit_pass_is_kept_and_read_back(tmp_path, monkeypatch):
+    """On a pair with visit layers, the per-visit pass of the hardening test is kept with the
+    others: a diagnosis run again does not fit the visits again, and tests the same."""
+    from types import SimpleNamespace
+
+    from tests.test_visits import two_visit_pair
+    from torchsoil.diagnosis import run as run_module
+    from torchsoil.settings import Settings
+
+    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
+    st, calls = Settings(), []
+    original = run_module.run_visits
+    monkeypatch.setattr(run_module, "run_visits", lambda *a, **k: calls.append(1) or original(*a, **k))
+    base = SimpleNamespace(nuisance=None, index=None)
+    first = run_module._revisit(pair, st.diagnosis, st.estimator, st.sim, base, 2,
+                                cache=PassCache(tmp_path / "p", {"i": 1}))
+    again = run_module._revisit(pair, st.diagnosis, st.estimator, st.sim, base, 2,
+                                cache=PassCache(tmp_path / "p", {"i": 1}))
+    assert len(calls) == 1 and first[1] is not None
+    assert json.dumps(again, default=str) == json.dumps(first, default=str)

@@ -106,7 +106,7 @@ def test_soil_varying_along_the_path_is_adequate(tmp_path):
 
 
 def test_out_of_catalogue_tread_is_unexplained_not_a_wrong_id():
-    _, diag = run("tread", 1)
+    pair, diag = run("tread", 1)
     s = diag.summary
     assert s["verdict"] == "unexplained"
     assert s["missing_physics"] is None and s["extension_parameters"] == {}
@@ -114,6 +114,8 @@ def test_out_of_catalogue_tread_is_unexplained_not_a_wrong_id():
     line = diag.evidence["spectral_line"]
     n = 0.2 / line["wavelength"]                               # the tread's pitch or a harmonic, found blind
     assert abs(n - round(n)) < 0.06 and line["p"] < 1e-3
+    pressed = sum(b - a for a, b in s["where"]["along_track"])  # the tyre marks the whole drive
+    assert pressed > 0.75 * np.hypot(*np.diff(pair.poses[:, 1:3], axis=0).T).sum()
 
 
 def test_summary_validation_names_the_fault(speed_power):

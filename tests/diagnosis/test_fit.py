@@ -1,5 +1,7 @@
 """Coefficient search and the acceptance rule."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -179,11 +181,61 @@ def test_tyre_section_is_fitted_as_a_nuisance(section, want):
     pair = _straight_pair(section)
     assert (pair.wheel_flat_fraction, pair.wheel_section_exponent) == (0.0, 1.0)
     tried = ((0.0, 1.0), (0.4, 1.0), (0.85, 1.0), (0.0, 0.25))
-    best, costs, shared = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
+    best, costs, shared, _ = fit_section(pair, EstimatorConfig(), SimConfig(), tried)
     assert best == want and set(costs) == set(tried)
     assert costs[want] < min(c for k, c in costs.items() if k != want)
-    assert set(shared) == {"index", "nuisance", "view", "store"}
+    assert set(shared) == {"index", "nuisance", "view", "store", "surfaces"}
     assert pair.wheel_flat_fraction == 0.0                                   # not changed in place
+
+
+def test_paired_z_by_hand():
+    """base 3 mm on four windows, other 0.1, 0, 0.2, 0.1 mm lower: mean 0.1, sd
+    sqrt(0.02 / 3) = 0.08165, z = 0.1 / (0.08165 / 2) = 2.449; fewer than 3 windows (or
+    scores of different lengths) leave it to the means."""
+    from torchsoil.diagnosis.fit import paired_z
+
+    base = np.array([3.0, 3.0, 3.0, 3.0])
+    assert paired_z(base, base - [0.1, 0.0, 0.2, 0.1]) == pytest.approx(2.449, abs=1e-3)
+    assert paired_z(base, base + [0.1, 0.0, 0.2, 0.1]) == pytest.approx(-2.449, abs=1e-3)
+    assert paired_z(base[:2], base[:2] - 0.1) == math.inf
+    assert paired_z(np.array([3.0]), base + 0.1) == -math.inf
+
+
+def test_the_robots_own_section_stays_unless_another_fits_clearly_better(monkeypatch):
+    """Window residuals [mm] given by hand: a section lower on average but only by the
+XX
+    taken."""
+    from torchsoil.diagnosis import fit as fit_mod
+
+    own, noisy, clear = (0.0, 1.0), (0.3, 0.5), (0.85, 1.0)
+    res = {own: [3.0, 3.1, 2.9, 3.0, 3.05], noisy: [2.9, 3.2, 2.8, 3.1, 2.98],
+           clear: [2.8, 2.95, 2.7, 2.78, 2.86]}
+
+    def fake_cost(pair, est, sim, sec, *args, **kwargs):
+        r = np.array(res[sec])
+        return float(r.mean()), {"index": None}, r
+
+    monkeypatch.setattr(fit_mod, "section_cost", fake_cost)
+    pair = _straight_pair("taper")
+    assert fit_mod.fit_section(pair, None, None, [noisy])[0] == own
+    assert fit_mod.fit_section(pair, None, None, [noisy, clear])[0] == clear
+
+
+def test_the_robots_own_section_under_another_dig_order_is_kept_when_it_fits_as_well():
+    """Window residuals [mm] by hand: under "robot" a crowned section fits best on average,
+    standing in for the other order; under "wheel" the robot's own section fits within the
+XX with the robot's section. Where the
+    robot's section under "wheel" is worse on every window (z 15.5), the best pair stays."""
+    from torchsoil.diagnosis.run import plainest
+
+    own, crowned = (0.5, 1.0), (0.0, 0.5)
+    best = np.array([2.90, 3.00, 2.80, 2.95, 2.85])
+    fits = {("robot", crowned): best, ("robot", own): best + 0.05,
+            ("wheel", own): best + [0.1, -0.08, 0.05, -0.05, 0.02]}
+    assert plainest(fits, ("robot", crowned), own) == "wheel"
+    fits[("wheel", own)] = best + [0.06, 0.05, 0.07, 0.05, 0.06]
+    assert plainest(fits, ("robot", crowned), own) == "robot"
+    assert plainest(fits, ("robot", own), own) == "robot"
 
 
 @pytest.mark.parametrize("dig", ["robot", "wheel"])

@@ -11,7 +11,10 @@ from torchsoil.diagnosis.locate import (
     Profiles,
     combined_z,
     correlation,
+    evidence_basis,
     gain_correlation,
+    lag1,
+    line_zone,
     paired_improvement,
     spectral_line,
     zone_of,
@@ -300,6 +303,38 @@ def test_a_lug_line_is_found_down_to_two_and_a_half_cells():
     assert false <= 4
 
 
+def test_a_tread_on_part_of_the_drive_is_placed_there():
+    """A 0.09 m lug line (4.5 cells) pressed only between 6 and 14 m of a 20 m drive, 0.8 mm
+    in heavy-tailed noise of 1.2 mm per cell, left and right ruts out of phase: its segments
+    are flagged there and nowhere else; noise alone flags nothing."""
+    rng = np.random.default_rng(1)
+    dx = 0.02
+    s = np.arange(0, 20, dx)
+    pressed = (s > 6) & (s < 14)
+    quiet = sum(line_zone(0.0012 * rng.standard_t(4, (2, len(s))), dx, 0.09).any() for _ in range(30))
+    assert quiet <= 1
+    y = 0.0012 * rng.standard_t(4, (2, len(s)))
+    y[:, pressed] += 0.0008 * np.cos(2 * np.pi * s[pressed] / 0.09 + np.array([[0.0], [1.5]]))
+    line = spectral_line(y, dx)
+    assert abs(line["wavelength"] - 0.09) < 0.001 and line["p"] < 1e-4
+    on = line_zone(y, dx, line["wavelength"], segment=4.0)
+    assert on.any() and not on[~((s > 5) & (s < 15))].any()
+    assert on[pressed].mean() > 0.6
+
+
+def test_the_tread_series_spans_the_contact_width():
+    """Cells up to the footprint radius enter the tread's series with band = radius; the rut
+    floor alone (|offset| < radius / 2) is the default; cells beyond the radius never."""
+    prof = Profiles.empty(0.07, 0.02, 0.3)
+    lat = np.array([0.0, 0.02, 0.04, 0.06, 0.08])
+    prof.floor_s.append(np.full(5, 1.0))
+    prof.floor_r.append(np.array([1.0, 2.0, 4.0, 8.0, 16.0]))
+    prof.floor_side.append(np.zeros(5, int))
+    prof.floor_lat.append(lat)
+    assert prof.floor_series()[1][0] == pytest.approx(1.5)              # 0 and 0.02 m out
+    assert prof.floor_series(band=0.07)[1][0] == pytest.approx(15.0 / 4)  # up to 0.06 m out
+
+
 def test_each_rut_is_placed_along_its_own_track_on_a_turn():
     """A left turn of radius 5 m: a tread printed every 0.09 m along each wheel's own track
     lies every 0.09 x 5 / 4.5 = 0.1 m of base_link's arc in the inner (left) rut and every
@@ -323,8 +358,40 @@ def test_each_rut_is_placed_along_its_own_track_on_a_turn():
         prof.floor_s.append(s)
         prof.floor_r.append(0.002 * np.cos(2 * np.pi * own[side] / lam))
         prof.floor_side.append(np.full(len(s), side))
+        prof.floor_lat.append(np.zeros(len(s)))
     as_seen = [spectral_line(r, dx)["wavelength"] for r in prof.floor_series(by_side=True)[1]]
     assert as_seen == pytest.approx([lam * R / 4.5, lam * R / 5.5], abs=0.002)
     arcs = ((base, side_arc(poses, 0.5)), (base, side_arc(poses, -0.5)))
     line = strongest_line(prof.floor_series(by_side=True, arcs=arcs)[1], dx)
     assert line["ruts"] == "both" and line["wavelength"] == pytest.approx(lam, abs=0.001)
+
+
+def _gains(blocks_gain, block=4, stride=0.4):
+    """Base and extended costs [m] over windows `stride` m apart whose block-of-`block` gains
+    are blocks_gain [m] (every window of a block gains the same)."""
+    gain = np.repeat(np.asarray(blocks_gain, np.float64), block)
+    base = np.full(len(gain), 3e-3)
+    return base, base - gain, stride * np.arange(len(gain))
+
+
+def test_evidence_basis_names_the_blocks_that_carry_a_gain():
+    tiny = 1e-5 * (-1.0) ** np.arange(10)              # the other blocks: alternating, kept
+    g = tiny.copy()
+    g[2], g[7] = 2e-3, 1e-3
+    b = evidence_basis(*_gains(g))
+    assert b["windows"] == 40 and b["blocks"] == 10
+    assert b["n_eff"] == pytest.approx(10.0)              # lag-1 below 0: as many as the blocks
+    assert b["carrier_blocks"] == 1 and b["carriers"] == [[pytest.approx(3.2), pytest.approx(4.4)]]
+    b = evidence_basis(*_gains(g), share=0.9)
+    assert b["carriers"] == [[pytest.approx(3.2), pytest.approx(4.4)], [pytest.approx(11.2), pytest.approx(12.4)]]
+    g[3] = 2e-3                                           # touching blocks: one stretch
+    assert evidence_basis(*_gains(g))["carriers"] == [[pytest.approx(3.2), pytest.approx(6.0)]]
+
+
+def test_evidence_basis_counts_a_smooth_gain_as_few_blocks_and_leaves_out_the_untouched():
+    g = np.concatenate([np.linspace(1e-4, 1e-3, 12), np.zeros(4)])   # a slow trend, then nothing changed
+    b = evidence_basis(*_gains(g))
+    assert b["blocks"] == 12 and b["windows"] == 48
+    r = min(max(lag1(g[:12]), 0.0), 0.95)
+    assert b["n_eff"] == pytest.approx(12 * (1 - r) / (1 + r)) and b["n_eff"] < 3   # not floored at 3
+    assert evidence_basis(*_gains(np.zeros(6)))["carriers"] == []

@@ -3,7 +3,7 @@
 from types import SimpleNamespace
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.report import effect_text, explain
+from torchsoil.diagnosis.report import basis_text, effect_text, explain, per_pass_text, revisit_markdown
 
 
 def _adequate(fits, z_accept):
@@ -102,3 +102,40 @@ def test_an_accepted_term_says_how_much_it_changes_the_model():
     hard = SimpleNamespace(ext=catalogue.get("multi_pass_hardening"), k=-0.45, effects={-0.45: 0.45})
     assert "sinkage of a second pass over the same ground by 45 %" in effect_text(hard)
     assert effect_text(SimpleNamespace(ext=speed.ext, k=0.2, effects=None)) == ""
+
+
+def _per_pass():
+    """A fit pass by pass (revisits.per_pass_fit) by hand: g 0.5, first-pass d 30 mm at both
+    visits of a robot with two wheels per track; one window came back over a single pass."""
+    def group(visit, n, windows):
+        return {"visit": visit, "passes_before": n, "windows": windows, "d_first_pass": 0.03, "d_sd": 0.002,
+                "passes": [{"pass": n + j, "sinkage": 0.03 * 0.5 ** (n + j), "sd": 0.001} for j in (0, 1)]}
+    return {"g": 0.5, "g_tried": [[0.667, -0.2], [0.5, 0.0]], "windows": 20,
+            "visits": [group(0, 0, 20), group(1, 1, 1), group(1, 2, 19)]}
+
+
+def test_the_sinkage_pass_by_pass_reads_each_pass_in_turn():
+    text = per_pass_text(_per_pass())
+    assert "g = 0.5" in text and "30.00 mm at visit 0, 30.00 mm at visit 1" in text
+    assert "30.0, 15.0, 7.5, 3.8 mm in turn" in text          # the largest group of each visit
+    assert per_pass_text(None) == "" and per_pass_text({"reason": "3 windows"}) == ""
+
+
+def test_the_revisit_section_tables_the_sinkage_of_every_pass():
+    rev = {"z_visible": 2.6, "z_level": 1.96, "windows": 20, "cost_before": 0.0046, "noise_floor": 0.0035,
+           "g": 0.667, "g_folds": [0.68, 0.66], "gain": 0.001, "cost_after": 0.0035, "accepted": True,
+           "rut": {"measured": 0.0036, "simulated_without_law": 0.0093, "simulated_with_law": 0.0033},
+           "laws": {"geometric": {"coefficient": 0.667, "cost": 0.0035}}, "shape": None, "per_pass": _per_pass()}
+    md = revisit_markdown(rev)
+    assert "| 1 | 2 | 19 | 30.0 ± 2.0 | 7.5 ± 1.0, 3.8 ± 1.0 |" in md
+    assert "| 0 | 0 | 20 | 30.0 ± 2.0 | 30.0 ± 1.0, 15.0 ± 1.0 |" in md
+    assert "tried: 0.667, 0.5" in md
+    assert "not fitted (3 windows" in revisit_markdown({**rev, "per_pass": {"reason": "3 windows"}})
+
+
+def test_a_named_term_says_what_its_gain_rests_on():
+    basis = {"windows": 48, "blocks": 12, "n_eff": 2.5, "carrier_blocks": 2, "carriers": [[3.2, 6.0]]}
+    text = basis_text(basis)
+    assert "48 windows in 12 blocks" in text and "2.5 independent blocks" in text
+    assert "half of it comes from 2 of them (3.2-6.0 m)" in text
+    assert basis_text(None) == "" and basis_text({**basis, "blocks": 0}) == ""

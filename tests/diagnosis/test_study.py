@@ -69,6 +69,16 @@ def test_hardening_drives_come_back_over_their_ruts(kind):
     assert back.sum() > 30      # 0.3 m at least
 
 
+def test_revisit_cases_keep_the_drives_over_their_own_ruts_only():
+    cases = sc.randomized_cases(21, 20, seed=0)
+    kept = sc.revisit_cases(cases)
+    hardening = [c for c in cases if c[4] == "multi_pass_hardening"]
+    assert hardening and all(c in kept for c in hardening)
+    assert any(c[3] == "adequate" for c in kept)                   # null drives of those shapes too
+    assert all(c[0].split()[-1] in sc.REVISITS for c in kept)
+    assert all(c in kept for c in cases if c[0].split()[-1] in sc.REVISITS)
+
+
 def test_error_rates_by_hand():
     def rec(want, want_id, verdict, eid):
         return {"case": f"{want}{want_id}{verdict}{eid}", "want": want, "want_id": want_id, "verdict": verdict,
@@ -268,3 +278,17 @@ def test_a_record_re_scores_a_term_that_left_ground_alone_as_the_diagnosis_did()
     assert t["k_fold"] == list(k_fold) and t["held_z"] == pytest.approx(z_held, abs=1e-3)
     assert t["z"] == pytest.approx(z, abs=1e-3)
     assert abs(paired_improvement(base, e, same=1e-7)[2] - z_held) > 0.05   # the untouched blocks count
+
+
+def test_a_study_record_keeps_the_hardening_test_in_brief():
+    from types import SimpleNamespace
+
+    from torchsoil.diagnosis.study import revisit_test
+
+    rev = {"accepted": True, "windows": 11, "z_visible": 2.5, "z_level": 1.96, "g": 0.62, "g_folds": [0.6, 0.64],
+           "laws": {}, "s": [1.0, 1.4], "per_pass": {"g": 0.54, "visits": []}}
+    brief = revisit_test(SimpleNamespace(evidence={"revisits": rev}))
+    assert brief == {"accepted": True, "windows": 11, "z_visible": 2.5, "z_level": 1.96, "g": 0.62,
+                     "g_folds": [0.6, 0.64], "g_per_pass": 0.54}
+    assert "g_per_pass" not in revisit_test(SimpleNamespace(evidence={"revisits": {**rev, "per_pass": None}}))
+    assert revisit_test(SimpleNamespace(evidence={"revisits": None})) is None

@@ -258,9 +258,13 @@ def test_dig_order_turns():
 
 
 def test_wheels_dig_in_turn():
-    """dig_order "wheel" on flat ground under a flat tread (f = 0.5, so the reference the rear
-    wheel smooths from the front's rut is its floor): 2 d where both axles passed, d where
-    only one did, and the same rut when the drive runs in reverse; "robot" digs d everywhere."""
+    """dig_order "wheel" on flat ground under a flat tread (f = 0.5, r = 3.5 cells, the wheel's
+    centre line on a cell row): d where one axle passed, and where both did, the rear wheel
+    rests on the front's rut as a rigid footprint does, at the mean height over its whole disc
+    of 37 cells (lateral offsets 0, +-1, +-2, +-3 in 7, 14, 10 and 6 of them; s = 1, 1, 0.95048,
+    0.18826), and sinks d from there: 1.85498 d at the centre line. The paper's small disc
+    (revisit_ref "disc") sits on the flat floor: 2 d. The same rut when the drive runs in
+    reverse; "robot" digs d everywhere."""
     from dataclasses import replace
 
     from torchsoil.robot import paper_platform
@@ -275,12 +279,39 @@ def test_wheels_dig_in_turn():
     j = int(np.argmin(abs(y - 0.5)))
     at = {name: int(np.argmin(abs(x - v))) for name, v in
           (("rear_only", 0.0), ("both", 1.0), ("front_only", 2.4))}
+    contact = (7 + 14 + 10 * 0.95048 + 6 * 0.18826) / 37          # front rut's mean over the rear's disc, / d
     th = theta(d1=0.03, d2=0.03, chi=0.0, beta=89.9)
     for p in (poses, back):
         geom = wheel_geometry(grid, p, robot, dtype=torch.float64)
         turn = simulate(flat, geom, th, SimConfig(dig_order="wheel")).h[0, :, j]
+        disc = simulate(flat, geom, th, SimConfig(dig_order="wheel", revisit_ref="disc")).h[0, :, j]
         paper = simulate(flat, geom, th, SimConfig(dig_order="robot")).h[0, :, j]
-        assert turn[at["both"]].item() == pytest.approx(-0.06, abs=1e-9)
+        assert turn[at["both"]].item() == pytest.approx(-0.03 * (1 + contact), abs=1e-6)
+        assert disc[at["both"]].item() == pytest.approx(-0.06, abs=1e-9)
         assert turn[at["rear_only"]].item() == pytest.approx(-0.03, abs=1e-9)
         assert turn[at["front_only"]].item() == pytest.approx(-0.03, abs=1e-9)
         assert all(paper[i].item() == pytest.approx(-0.03, abs=1e-9) for i in at.values())
+
+
+def test_the_trailing_wheel_finds_the_spoil_of_the_wheel_ahead():
+    """The front wheel lays its spoil beside its rut before the rear wheel comes: one row off
+    the centre line the rear's disc reaches 3 cells of the front's berm, chi 5.27748 d / 2
+    high (its rut's cross-section, 1 + 2 (1 + 0.95048 + 0.18826) cells of d, spread over one
+    band cell each side), and the other 34 cells of its rut: reference (-29.44610 + 3 x 2.63874
+    chi) / 37 d, and the rear digs d below it. Without the berm (chi 0) it digs deeper."""
+    from dataclasses import replace
+
+    from torchsoil.robot import paper_platform
+
+    robot = replace(paper_platform(), wheel_flat_fraction=0.5)
+    grid = Grid.covering(-1.0, -0.3, 3.0, 0.8, 0.02)
+    xs = np.arange(0.0, 2.0 + 1e-9, 0.02)
+    geom = wheel_geometry(grid, np.column_stack([xs, np.zeros_like(xs), np.zeros_like(xs)]), robot,
+                          dtype=torch.float64)
+    x, y = grid.centers()
+    i, j = int(np.argmin(abs(x - 1.0))), int(np.argmin(abs(y - 0.5))) + 1
+    for chi in (0.0, 0.5):
+        r = simulate(torch.zeros(grid.shape, dtype=torch.float64), geom, theta(d1=0.03, d2=0.03, chi=chi, beta=89.9),
+                     SimConfig(dig_order="wheel"))
+        ref = (-29.44610 + 3 * 2.63874 * chi) / 37 * 0.03
+        assert r.h_unrelaxed[0, i, j].item() == pytest.approx(ref - 0.03, abs=1e-6)

@@ -5,7 +5,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from torchsoil.sim.sinkage import disc_offsets, reference_height, taper
+from torchsoil.sim.sinkage import contact_height, disc_offsets, reference_height, revisit_reference, taper
 
 
 @pytest.mark.parametrize("f", [0.0, 0.3, 0.9])
@@ -37,3 +37,44 @@ def test_disc_offsets_symmetric():
     off = set(disc_offsets(1.75))
     assert (0, 0) in off and (1, 1) in off and (2, 0) not in off
     assert all((-i, -j) in off and (j, i) in off for i, j in off)
+
+
+def trench(depth=0.03, half=1, shape=(9, 9)):
+    """(1, X, Y) ground at 0 with a trench `depth` m deep along x, 2 half + 1 cells wide."""
+    h = torch.zeros(1, *shape, dtype=torch.float64)
+    c = shape[1] // 2
+    h[:, :, c - half:c + half + 1] = -depth
+    return h
+
+
+def test_contact_height_spans_a_rut_narrower_than_the_footprint():
+    """Footprint radius 2 cells (0.04 m at dx 0.02 m): 13 cells, 11 of them in a 3-cell trench,
+    so a wheel over the trench rests 11/13 of its depth down; the paper's disc (half that
+    radius, 5 cells, all in the trench) sits on its floor."""
+    h = trench(0.03)
+    assert float(contact_height(h, 0.04, 0.02)[0, 4, 4]) == pytest.approx(-0.03 * 11 / 13)
+    assert float(reference_height(h, 0.02, 0.02)[0, 4, 4]) == pytest.approx(-0.03)
+
+
+@given(a=st.floats(-1, 1), b=st.floats(-0.5, 0.5), c=st.floats(-0.5, 0.5))
+@settings(max_examples=20, deadline=None)
+def test_contact_height_of_a_plane_is_the_plane(a, b, c):
+    """Away from the map edge, fresh planar ground: the wheel's contact is the surface itself."""
+    i = torch.arange(12, dtype=torch.float64)[:, None]
+    j = torch.arange(12, dtype=torch.float64)[None, :]
+    h = (a + b * i * 0.02 + c * j * 0.02)[None]
+    got = contact_height(h, 0.07, 0.02)
+    torch.testing.assert_close(got[:, 4:8, 4:8], h[:, 4:8, 4:8])
+
+
+def test_revisit_reference_changes_only_the_dug_cells():
+    h = trench(0.03)
+    fresh = reference_height(h, 0.02, 0.02)
+    dug = torch.zeros(9, 9, dtype=torch.bool)
+    dug[:, 3:6] = True
+    got = revisit_reference(h, fresh, dug, "footprint", 0.5, 0.04, 0.02)
+    assert float(got[0, 4, 4]) == pytest.approx(-0.03 * 11 / 13)
+    torch.testing.assert_close(got[:, ~dug], fresh[:, ~dug])
+    torch.testing.assert_close(revisit_reference(h, fresh, dug, "disc", 0.5, 0.04, 0.02), fresh)
+    with pytest.raises(ValueError, match="footprint"):
+        revisit_reference(h, fresh, dug, "floor", 0.5, 0.04, 0.02)

@@ -213,6 +213,18 @@ class PassCounts:
                 self.nbytes += n.nbytes
         return n
 
+    def of(self, drive: DriveSignals, wd, geom, before: bool, by_wheel: bool) -> np.ndarray:
+        """`entry_passes` of the visit `geom` simulated for window data wd, kept by window,
+        visit, view (before) and dig order (by_wheel)."""
+        key = (visit_key(wd, geom), before, by_wheel)
+        return self.get(key, lambda: entry_passes(drive, geom, wd.grid, before, by_wheel))
+
+
+def visit_key(wd, geom) -> tuple:
+    """Which window (wd: windows.WindowData) and which of its simulated visits (geom) a
+    per-entry factor belongs to."""
+    return (wd.spec.s0, wd.spec.s1, wd.crop, int(geom.poses.shape[0]), float(geom.poses[0, 0]))
+
 
 class ExtensionModel:
     """An extension with a fixed coefficient, applied to the windows of one drive.
@@ -251,12 +263,10 @@ class ExtensionModel:
         kw = dict(device=theta.device, dtype=theta.dtype)
         geom = wd.geom if geom is None else geom
         if self.ext.kind == "depth":
-            key = (wd.spec.s0, wd.spec.s1, wd.crop, int(geom.poses.shape[0]), float(geom.poses[0, 0]))
+            key = visit_key(wd, geom)
             if key not in self._cache:
-                before = self.view == "first_view"
                 if self.ext.id == "multi_pass_hardening":       # (E,): cell by cell
-                    n = self.counts.get((*key, before, self.by_wheel),
-                                        lambda: entry_passes(self.drive, geom, wd.grid, before, self.by_wheel))
+                    n = self.counts.of(self.drive, wd, geom, self.view == "first_view", self.by_wheel)
                     f = pass_factor(n, self.k)
                 else:                                           # (K, N): wheel by pose
                     f = depth_factor(self.ext, self.drive, self.robot, geom.poses.cpu().numpy(), self.k,

@@ -27,10 +27,11 @@ class PassCache:
 
     directory: where they are kept (created). key: JSON-ready dict of what they depend on
     (`provenance.cache_key` of the run record, with the torchsoil version); a folder holding
-    another key is emptied first."""
+    another key is emptied first. every: seconds between two saves of a pass in progress
+    (`fit.Partial`; 0: after every window)."""
 
-    def __init__(self, directory: str | Path, key: dict):
-        self.dir = Path(directory)
+    def __init__(self, directory: str | Path, key: dict, every: float = 15.0):
+        self.dir, self.every = Path(directory), every
         key_text = json.dumps(key, sort_keys=True)
         meta = self.dir / KEY_FILE
         if self.dir.exists() and (not meta.exists() or meta.read_text() != key_text):
@@ -38,6 +39,16 @@ class PassCache:
         self.dir.mkdir(parents=True, exist_ok=True)
         meta.write_text(key_text)
         self.hits = 0
+
+    @classmethod
+    def open(cls, directory: str | Path, every: float = 15.0) -> PassCache:
+        """The cache a diagnosis made in `directory`, as it is (for its parallel passes:
+        diagnosis.parallel; its key is neither checked nor written again)."""
+        cache = cls.__new__(cls)
+        cache.dir, cache.every, cache.hits = Path(directory), every, 0
+        if not (cache.dir / KEY_FILE).exists():
+            raise FileNotFoundError(f"no diagnosis cache in {directory}")
+        return cache
 
     def _path(self, label: str, what: tuple) -> Path:
         digest = hashlib.sha1(repr(what).encode()).hexdigest()[:16]
@@ -68,11 +79,26 @@ class PassCache:
             pickle.dump((repr(what), value), fh, protocol=pickle.HIGHEST_PROTOCOL)
         os.replace(tmp, path)
 
+    def drop(self, label: str, what: tuple) -> None:
+        """Forget what was saved under (label, what) (a pass in progress, once it is done)."""
+        self._path(label, what).unlink(missing_ok=True)
+
     def __len__(self) -> int:
         return sum(1 for _ in self.dir.glob("*.pkl"))
 
 
 def portable(p):
     """A `fit.Pass` without what a later run rebuilds from the pair (its path index, map
-    nuisance and window store), for `PassCache.save`."""
-    return dataclasses.replace(p, index=None, nuisance=None, store=None)
+    nuisance, window store and surfaces), for `PassCache.save`."""
+    return dataclasses.replace(p, index=None, nuisance=None, store=None, surfaces=None)
+
+
+def kept(cache: PassCache | None, label: str, what: tuple, compute):
+    """What `cache` keeps under (label, what), else compute(), then kept there (no cache:
+    compute() alone)."""
+    value = cache.load(label, what) if cache is not None else None
+    if value is None:
+        value = compute()
+        if cache is not None:
+            cache.save(label, what, value)
+    return value

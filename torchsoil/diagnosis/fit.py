@@ -12,16 +12,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts, effect_size
-from torchsoil.diagnosis.checkpoint import PassCache, portable
+from torchsoil.diagnosis.checkpoint import PassCache, kept, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, term_test
 from torchsoil.estimator import Estimator, Stitcher
+from torchsoil.memory import release
 from torchsoil.settings import EstimatorConfig, SimConfig
 from torchsoil.windows import WindowStore
 
@@ -53,6 +55,7 @@ class Pass:
     nuisance: object = None
     view: str | None = None
     store: object = None
+    surfaces: object = None
     h_sim: np.ndarray | None = None
 
     @property
@@ -66,28 +69,31 @@ class Pass:
 
 
 def shared_of(done) -> dict:
-    """run_pass's keywords for later passes over the same pair (index, nuisance, view, store),
-    from an Estimator or a Pass."""
-    return {"index": done.index, "nuisance": done.nuisance, "view": done.view, "store": done.store}
+    """run_pass's keywords for later passes over the same pair (index, nuisance, view, store,
+    surfaces), from an Estimator or a Pass."""
+    return {"index": done.index, "nuisance": done.nuisance, "view": done.view, "store": done.store,
+            "surfaces": done.surfaces}
 
 
 def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel | None = None,
              profiles: bool = False,
              theta0: torch.Tensor | None = None, on_window=None, offsets: tuple[int, ...] = (2, 4, 6),
              index=None, nuisance=None, view: str | None = None, store: WindowStore | None = None,
-             stitch: bool = False, cache: PassCache | None = None) -> Pass:
+             stitch: bool = False, cache: PassCache | None = None, surfaces=None) -> Pass:
     """Run the estimator once over the drive; collect costs (and profiles when asked).
 
     on_window: optional callable(k, WindowOutput, estimator) called after every window.
     offsets: windows back (in strides) on whose ground each fit is also scored; use
     multiples of window / stride so that the ground does not overlap the fit's. index: the
     pair's PathIndex from an earlier pass with the same config (Pass.index), to skip
-    recomputing it; nuisance, view and store likewise (Pass.nuisance, Pass.view, Pass.store;
-    a new store when None). stitch: also keep the simulated H_b over the drive (Pass.h_sim).
-    cache: where finished passes are kept (checkpoint.PassCache): a pass found there is read
-    back (on_window is then not called), a new one is saved."""
+    recomputing it; nuisance, view, store and surfaces likewise (Pass.nuisance, Pass.view,
+    Pass.store, Pass.surfaces; a new store when None). stitch: also keep the simulated H_b
+    over the drive (Pass.h_sim). cache: where finished passes are kept (checkpoint.PassCache):
+    a pass found there is read back (on_window is then not called), a new one is saved, and a
+    pass in progress is kept as it goes (`Partial`) and resumed from its last kept window."""
     estimator = Estimator(pair, est, sim, modifiers=model.modifiers if model is not None else None, index=index,
-                          nuisance=nuisance, view=view, store=store if store is not None else WindowStore())
+                          nuisance=nuisance, view=view, store=store if store is not None else WindowStore(),
+                          surfaces=surfaces)
     shared = shared_of(estimator)
     label = "base" if model is None else model.ext.id
     what = (None if model is None else model.k, section_of(pair), sim.dig_order, tuple(offsets), profiles, stitch,
@@ -99,12 +105,18 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
     prof = None
     if profiles:
         r = pair.robot.wheel_width / 2
-        prof = Profiles.empty(r, pair.dx, est.weight_width * pair.robot.wheel_width)
+        prof = Profiles.empty(r, pair.dx, est.weight_width * pair.robot.wheel_width, floor=model is None)
     stride = est.stride
     rows, floor, backward = [], [], []
     wheels_y = pair.robot.wheels[:, 1]
     recent: dict[int, object] = {}
-    for k, o in enumerate(estimator.run(theta=theta0)):
+    part = Partial(cache, label, what)
+    start, thetas = 0, theta0
+    if part.state is not None:        # an interrupted pass: on from its last finished window
+        start, thetas, rows, floor, backward, prof, sim_state, recent = part.restore(estimator, theta0)
+        if stitcher is not None:
+            stitcher.h_sim, stitcher.best = sim_state
+    for k, o in enumerate(estimator.run(start=start, theta=thetas), start=len(rows)):
         rows.append(o.row)
         floor.append(o.reference["floor"])
         recent[k] = o.data
@@ -125,6 +137,9 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
                      (idx.offset[i0:i1, j0:j1], idx.wheel_dist[i0:i1, j0:j1]))
         if on_window is not None:
             on_window(k, o, estimator)
+        part.fitted(o)
+        if o.final:
+            part.window_done(rows, floor, backward, prof, stitcher, recent)
     res = np.array([r["residual"] for r in rows], np.float64)
     pred = np.array([r["prediction"] for r in rows], np.float64)
     out = Pass(model.k if model is not None else 0.0, rows, res, pred, np.array(floor, np.float64), prof,
@@ -132,7 +147,55 @@ def run_pass(pair, est: EstimatorConfig, sim: SimConfig, model: ExtensionModel |
                h_sim=stitcher.h_sim if stitcher is not None else None, **shared)
     if cache is not None:
         cache.save(label, what, portable(out))
+        part.drop()
+    release()
     return out
+
+
+class Partial:
+    """The state of a pass in progress, kept in its PassCache every `PassCache.every` seconds (at
+    the end of a window; 0: after every window) and read back by the same pass run again, so
+    that an interrupted pass loses at most the windows fitted since: the next window's index and
+    each visit's warm start, the rows, costs, profiles and stitched H_b so far, and which windows
+    the held-out scores still need (prepared again)."""
+
+    def __init__(self, cache: PassCache | None, label: str, what: tuple):
+        self.cache, self.label, self.what = cache, f"{label}-partial", what
+        self.state = cache.load(self.label, what) if cache is not None else None
+        self.saved = time.monotonic()
+        self.next = 0                 # the window the pass fits next
+        self.thetas: dict = {}        # visit -> its last fit's free parameters (the next warm start)
+
+    def restore(self, estimator, theta0):
+        """(start window, warm starts {visit or None (any other): (P_free,)}, rows, floor,
+        backward, profiles, (h_sim, best) or None, recent {output: WindowData}) of the kept state."""
+        st = self.state
+        self.next, self.thetas = st["start"], dict(st["thetas"])
+        recent = {k: None if at is None else (estimator.visit_data(at[0]).get(at[1]) if estimator.per_visit
+                                              else estimator.data(at[0])) for k, at in st["recent"].items()}
+        return (self.next, {None: theta0, **self.thetas}, st["rows"], st["floor"], st["backward"], st["prof"],
+                st["stitch"], recent)
+
+    def window_done(self, rows, floor, backward, prof, stitcher, recent) -> None:
+        """After each window's last visit."""
+        self.next += 1
+        if self.cache is None or time.monotonic() - self.saved < self.cache.every:
+            return
+        self.cache.save(self.label, self.what, {
+            "start": self.next, "thetas": self.thetas, "rows": rows, "floor": floor, "backward": backward,
+            "prof": prof, "stitch": None if stitcher is None else (stitcher.h_sim, stitcher.best),
+            "recent": {k: None if wd is None else (wd.spec.index, rows[k].get("visit", 0))
+                       for k, wd in recent.items()}})
+        self.saved = time.monotonic()
+
+    def fitted(self, o) -> None:
+        """After each output: its fit is its visit's next warm start."""
+        if o.fit is not None:
+            self.thetas[o.row.get("visit", 0)] = o.fit.theta
+
+    def drop(self) -> None:
+        if self.cache is not None:
+            self.cache.drop(self.label, self.what)
 
 
 Section = tuple[float, float]
@@ -149,8 +212,8 @@ def with_section(pair, section: Section):
 
 
 def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int = 3, progress=None,
-                model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
-                ) -> tuple[Section, dict[Section, float], dict]:
+                model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None,
+                z: float = 1.96) -> tuple[Section, dict[Section, float], dict, dict[Section, np.ndarray]]:
     """The tyre section as a nuisance: the footprint taper (flat fraction f, exponent e;
     sim.sinkage.taper) that fits the drive best.
 
@@ -160,37 +223,74 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     that reads as unexplained structure. The estimator runs on every `every`-th window (with
     the default 0.8 m window and 0.4 m stride, every 3rd: ground that does not overlap) once
     per candidate (f, e), the robot's own and `sections`; two numbers for the whole drive
-    against hundreds of cells per window, so the windows' own residual (m) decides. model: an
+    against hundreds of cells per window, so the windows' own residual (m) decides. The
+    robot's own section stays unless another fits those windows better at a paired z of
+    `z` (`paired_z`): on noisy maps sections that fit alike are told apart by the noise
+    alone, and a section taken on noise moves d (a crowned tyre for the flat one of a
+    recording made elsewhere fitted its first-pass d 4 mm deep). model: an
     extension with a fixed coefficient to fit the section under (a wider footprint and a
     fuller section both widen the rut: a footprint term must beat the base model at its
     best section, with the section it needs itself). shared: run_pass's index, nuisance and
     view (and store), when already known. cache: where each section's score is kept and read
     back (checkpoint.PassCache). Returns (best (f, e), {(f, e): mean residual, m},
-    {index, nuisance, view, store}: run_pass's keywords for later passes)."""
+    {index, nuisance, view, store}: run_pass's keywords for later passes, {(f, e): the
+    windows' residuals (W,), m})."""
     own = section_of(pair)
-    candidates = list(dict.fromkeys([own, *((float(f), float(e)) for f, e in sections)]))
+    candidates = section_candidates(pair, sections)
     costs: dict[Section, float] = {}
     shared = dict(shared or {})
     shared.setdefault("store", WindowStore())
+    windows = {}
     for sec in candidates:
-        estimator = Estimator(with_section(pair, sec), est, sim,
-                              modifiers=model.modifiers if model is not None else None, **shared)
-        shared = shared_of(estimator)
-        what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
-        cost = cache.load("section", what) if cache is not None else None
-        if cost is None:
-            estimator.windows = estimator.windows[::max(1, every)]
-            res = [o.row["residual"] for o in estimator.run()]
-            cost = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
-            if cache is not None:
-                cache.save("section", what, cost)
-        costs[sec] = cost
+        costs[sec], found, windows[sec] = section_cost(pair, est, sim, sec, every, model, shared, cache)
+        shared = {**found, "store": shared["store"]}
         if progress is not None:
             progress.set_postfix_str(f"tyre section f={sec[0]:.2f} e={sec[1]:.2f}")
     best = min(candidates, key=lambda c: (costs[c], c != own))
+    if best != own and paired_z(windows[own], windows[best]) < z:
+        best = own
     if progress is not None:
         progress.update(1)
-    return best, costs, shared
+    return best, costs, shared, windows
+
+
+def section_candidates(pair, sections) -> list[Section]:
+    """The sections `fit_section` tries: the pair's own first, then `sections`, each once."""
+    return list(dict.fromkeys([section_of(pair), *((float(f), float(e)) for f, e in sections)]))
+
+
+def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: Section, every: int = 3,
+                 model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
+                 ) -> tuple[float, dict, np.ndarray]:
+    """One tyre section's score for `fit_section`: the mean window residual [m] of every
+    `every`-th window with the section (f, e) (math.inf when none was fitted); run_pass's
+    keywords (index, nuisance, view, surfaces) of its estimator; and those windows' residuals
+    (W,) [m], read back from or kept in `cache` (a score kept by an older version reads back as
+    its mean alone). Its windows are prepared for this pass only, not stored."""
+    estimator = Estimator(with_section(pair, sec), est, sim, modifiers=model.modifiers if model is not None else None,
+                          **{**(shared or {}), "store": None})
+    what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
+
+    def score() -> list[float]:
+        estimator.windows = estimator.windows[::max(1, every)]
+        return [float(o.row["residual"]) for o in estimator.run()]
+
+    res = np.atleast_1d(np.asarray(kept(cache, "section", what, score), np.float64))
+    return (float(np.nanmean(res)) if np.isfinite(res).any() else math.inf), shared_of(estimator), res
+
+
+def paired_z(base: np.ndarray, other: np.ndarray) -> float:
+    """How much better `other` fits than `base` (W,) window by window [m]: the mean of base -
+    other over the windows both fitted, over its standard error (windows that do not overlap
+    taken as independent). With fewer than 3 such windows (or a score kept by an older
+    version) the means decide: +-inf."""
+    base, other = np.asarray(base, np.float64), np.asarray(other, np.float64)
+    both = np.isfinite(base) & np.isfinite(other) if base.shape == other.shape else np.zeros(0, bool)
+    diff = (base - other)[both] if both.any() else np.zeros(0)
+    sd = float(np.std(diff, ddof=1)) if len(diff) >= 3 else 0.0
+    if sd == 0.0:
+        return math.inf if np.nanmean(other) < np.nanmean(base) else -math.inf
+    return float(diff.mean() / (sd / math.sqrt(len(diff))))
 
 
 def folds(n: int, block: int) -> np.ndarray:
@@ -271,43 +371,67 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     soil's angle looks like a rounder tyre's standing). cache: where finished passes are kept and
     read back (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
-    shared = shared_of(base)
     sec: dict[float, Section] = {0.0: section_of(pair)}
     counts = PassCounts()
 
     def run(k: float) -> None:
-        k = float(np.clip(k, *ext.bounds))
         if any(abs(k - q) < 1e-9 for q in passes):
             return
-        model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts)
-        sec[k] = sec[0.0]
         if progress is not None:
             progress.set_postfix_str(f"{ext.id} k={k:+.3g}")
-        if ext.kind in ("radius", "wall") and sections:
-            sec[k] = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
-        passes[k] = run_pass(with_section(pair, sec[k]), est, sim, model,
-                             profiles=True, theta0=theta0, offsets=offsets, cache=cache, **shared)
+        passes[k], sec[k] = candidate_pass(pair, est, sim, ext, k, drive, base, theta0, offsets, sections, cache,
+                                           counts)
         if progress is not None:
             progress.update(1)
 
-    for k in ext.trials:
+    for k in trial_ks(ext):
         run(k)
     every = np.ones(len(base.prediction), bool)
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
         if new is not None:
-            run(new)
+            run(float(np.clip(new, *ext.bounds)))
     ks = sorted(passes)
     lab = folds(len(base.prediction), int(round(block_m / est.stride)))
     k_fold = fold_choice({k: passes[k].held_out for k in ks}, lab)
     pred, held, res = (by_fold({k: getattr(passes[k], name) for k in ks}, k_fold, lab)
                        for name in ("prediction", "held_out", "residual"))
     k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
+    shown = min(passes, key=lambda q: abs(q - k_all))     # the report's cross-sections: this pass's profiles
+    for k in ks:                                          # the others' would grow with the drive, unused
+        if k != 0.0 and k != shown:
+            passes[k] = dataclasses.replace(passes[k], profiles=None)
     imp, se, held_z, own_z, z = term_test(base.held_out, held, base.residual, res)
     effects = {k: effect_size(ext, k, drive, pair.robot) for k in ks}
     return CandidateFit(ext, k_all, k_fold, pred, res, imp, se, z, passes, held, sections=sec, own_z=own_z,
                         held_z=held_z, effects=effects)
+
+
+def trial_ks(ext: Extension) -> list[float]:
+    """The coefficients `fit_extension` tries first: ext.trials within ext.bounds, but 0 (the
+    base model's pass)."""
+    ks = dict.fromkeys(float(np.clip(k, *ext.bounds)) for k in ext.trials)
+    return [k for k in ks if abs(k) >= 1e-9]
+
+
+def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k: float, drive: DriveSignals,
+                   base: Pass, theta0=None, offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
+                   cache: PassCache | None = None, counts: PassCounts | None = None) -> tuple[Pass, Section]:
+    """One pass of `fit_extension`: the extension at coefficient k (within its bounds), under
+    the pair's tyre section or, for a footprint or wall term given `sections`, the one of
+    them that fits best with it (`fit_section`); read back from or kept in `cache`. base: the
+    base model's pass (its shared index, nuisance, view, store and surfaces). counts: the
+    hardening term's pass counts kept across a candidate's passes. Returns (the pass, its
+    section (f, e))."""
+    shared = shared_of(base)
+    model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts or PassCounts())
+    sec = section_of(pair)
+    if ext.kind in ("radius", "wall") and sections:
+        sec = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
+    done = run_pass(with_section(pair, sec), est, sim, model, profiles=True, theta0=theta0, offsets=offsets,
+                    cache=cache, **shared)
+    return done, sec
 
 
 def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:

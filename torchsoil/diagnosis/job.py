@@ -8,6 +8,7 @@ from tqdm import tqdm
 
 from torchsoil import provenance
 from torchsoil.diagnosis.checkpoint import PassCache
+from torchsoil.diagnosis.parallel import pass_pool
 from torchsoil.diagnosis.report import write_all
 from torchsoil.diagnosis.run import diagnose, n_steps
 from torchsoil.robot import Robot
@@ -21,33 +22,40 @@ OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covar
 def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
                    robot: Robot | None = None, progress: bool = True, tensorboard: bool = True,
                    overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None,
-                   extrinsics: dict[str, list[float]] | None = None, rows: list | None = None) -> dict:
+                   extrinsics: dict[str, list[float]] | None = None, rows: list | None = None,
+                   resume: bool = False, workers: int = 1, engine: str = "local") -> dict:
     """Diagnose a terrain pair (.npz) or a recording (bag, through the lidar pipeline).
 
     Writes out_dir/run.json (what made the folder; another run's folder is refused unless
     `overwrite`), diagnosis.json, report.md, figures and TensorBoard events; returns the
     diagnosis.json dict. Each finished estimator pass is kept in out_dir/passes
     (checkpoint.PassCache): the same diagnosis run again into out_dir (after an interruption)
-    reads them back and runs only the rest. robot_yaml (`lidars:`) and extrinsics ({frame or
+    reads them back and runs only the rest (`resume`: out_dir must hold such a run's run.json).
+    robot_yaml (`lidars:`) and extrinsics ({frame or
     topic: [x, y, z, roll, pitch, yaw]}, m, rad) give lidar extrinsics over the recording's. rows: a list that
     receives the base model's window rows (params.csv rows: s [m], d1..dT [m], chi, beta [deg],
-    costs [m], flags), for summaries of many diagnoses (torchsoil.fleet)."""
+    costs [m], flags), for summaries of many diagnoses (torchsoil.fleet). workers, engine: the
+    independent passes run as that many tasks at once on the local process pool or Ray
+    (diagnosis.parallel; workers 1 on the local engine: all in this process); same results."""
     settings = settings or Settings()
     out = Path(out_dir)
     pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
     record = run_record("diagnose", input_path, settings, pipeline, robot, ("sim", "estimator", "diagnosis"))
-    provenance.claim(out, record, overwrite=overwrite, outputs=OUTPUTS)
+    provenance.claim(out, record, resume=resume, overwrite=overwrite, outputs=OUTPUTS)
     pair = load_input(input_path, out, robot, pipeline, provenance.cache_key(record, "pipeline"))
     cfg = settings.diagnosis
     with torch_threads(threads), tqdm(total=n_steps(cfg), unit="pass", desc="diagnosing",
                                       disable=not progress) as bar:
         key = provenance.cache_key(record, "sim", "estimator", "diagnosis", "pipeline") | {
             "torchsoil": record["torchsoil"]}
-        cache = PassCache(out / "passes", key)
-        diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar, cache=cache)
+        cache = PassCache(out / "passes", key, every=cfg.checkpoint_s)
+        kept = len(cache)
+        if kept and progress:
+            tqdm.write(f"resuming: {kept} kept results (finished passes, section scores, a pass in progress) "
+                       f"in {cache.dir} are read back")
+        with pass_pool(workers, engine, cache, bar) as pool:
+            diag = diagnose(pair, cfg, settings.estimator, settings.sim, progress=bar, cache=cache, pool=pool)
         bar.update(bar.total - bar.n)
-    if cache.hits and progress:
-        tqdm.write(f"resumed: {cache.hits} finished passes and section scores read back from {cache.dir}")
     if rows is not None:
         rows.extend(diag.base.rows)
     write_all(diag, pair, out, Path(input_path).name, tb=tensorboard)

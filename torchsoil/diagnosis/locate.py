@@ -45,12 +45,12 @@ def lag1(x: np.ndarray) -> float:
     return float((x[1:] * x[:-1]).sum() / den) if den > 0 else 0.0
 
 
-def effective_n(n: int, *series: np.ndarray) -> float:
+def effective_n(n: int, *series: np.ndarray, floor: float = 3.0) -> float:
     """Effective sample size of n autocorrelated values: n (1 - r) / (1 + r) with r the product
-    of the series' lag-1 autocorrelations (one series: its own), floored at 3."""
+    of the series' lag-1 autocorrelations (one series: its own), floored at `floor`."""
     r = float(np.prod([max(lag1(s), 0.0) for s in series])) if len(series) > 1 else max(lag1(series[0]), 0.0)
     r = min(r, 0.95)
-    return float(max(3.0, n * (1 - r) / (1 + r)))
+    return float(max(floor, n * (1 - r) / (1 + r)))
 
 
 @dataclass(frozen=True)
@@ -112,14 +112,7 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
     say nothing about the noise of the difference; counted as samples of it, they would cap z
     near the square root of the number of blocks the term touches, however large and steady
     its gain there. Returns (mean over the blocks kept, se, z)."""
-    b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
-    if b.shape != e.shape:
-        raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
-    ok = np.isfinite(b) & np.isfinite(e)
-    d = b[ok] - e[ok]
-    nb = len(d) // max(1, block)
-    blocks = d[: nb * block].reshape(nb, block)
-    kept = np.abs(blocks).max(1) > same
+    d, blocks, kept, _ = _paired_blocks(base, ext, block, same)
     blocks, place = blocks[kept], np.flatnonzero(kept).astype(np.float64)
     nb = len(blocks)
     if nb < 3:
@@ -133,6 +126,49 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
         return m, 0.0, 0.0 if m == 0 else math.copysign(math.inf, m)
     p = float(stats.t.sf(m / se, max(n_eff - fitted, 1.0)))
     return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
+
+
+def _paired_blocks(base, ext, block: int, same: float, s=None):
+    """The differences base - ext over the windows where both are finite (D,); their blocks of
+    `block` consecutive ones (nb, block) and which blocks to keep (nb,) bool (those where the
+    two series differ by more than `same` somewhere); and s (W,) of the same windows in the
+    same blocks (nb, block), or None."""
+    b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
+    if b.shape != e.shape:
+        raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
+    ok = np.isfinite(b) & np.isfinite(e)
+    d = b[ok] - e[ok]
+    nb = len(d) // max(1, block)
+    blocks = d[: nb * block].reshape(nb, block)
+    at = None if s is None else np.asarray(s, np.float64)[ok][: nb * block].reshape(nb, block)
+    return d, blocks, np.abs(blocks).max(1) > same, at
+
+
+def evidence_basis(base, ext, s, block: int = 4, same: float = SAME, share: float = 0.5) -> dict:
+    """What a paired gain (`paired_improvement` of base - ext, (W,) costs on the windows centred
+    at arc lengths s (W,) [m]) rests on: the windows and blocks it counts (blocks where the two
+    agree on every window left out, as there), their effective number (`effective_n` of the
+    block means, not floored: the test floors it, a reader should not), and the fewest blocks
+    whose gains hold `share` of the summed positive gain, as spans of arc length [m] (touching
+    blocks merged). Returns {windows, blocks, n_eff, carrier_blocks, carriers: [[s0, s1], ...]}."""
+    _, blocks, kept, spans = _paired_blocks(base, ext, block, same, s)
+    means, spans = blocks[kept].mean(1), spans[kept]
+    out = {"windows": int(kept.sum()) * block, "blocks": int(kept.sum()),
+           "n_eff": effective_n(len(means), means, floor=0.0) if len(means) else 0.0,
+           "carrier_blocks": 0, "carriers": []}
+    gain = np.maximum(means, 0.0)
+    if gain.sum() <= 0:
+        return out
+    order = np.argsort(-gain)
+    n = int(np.searchsorted(np.cumsum(gain[order]), share * gain.sum()) + 1)
+    carriers: list[list[float]] = []
+    for i in sorted(order[:n]):
+        lo, hi = float(spans[i].min()), float(spans[i].max())
+        if carriers and lo - carriers[-1][1] <= 1.5 * (hi - lo) / max(block - 1, 1):
+            carriers[-1][1] = hi
+        else:
+            carriers.append([lo, hi])
+    return {**out, "carrier_blocks": n, "carriers": carriers}
 
 
 def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float = SAME) -> float:
@@ -233,6 +269,70 @@ def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengt
     return {"ratio": best[0], "wavelength": float(best[1]), "amplitude": float(best[3]), "p": float(min(1.0, p))}
 
 
+def line_zone(series: np.ndarray, dx: float, wavelength: float, segment: float = 2.0,
+              alpha: float = 0.01) -> np.ndarray:
+    """Where along a series a spectral line stands (complex demodulation): each row of series
+    ((S,) or (M, S), spaced dx [m] apart on one arc-length grid, NaN gaps filled) is shifted
+    by the line's frequency 1 / wavelength [m] and averaged over a Hann segment of `segment`
+    m centred on each sample; the line's power there (summed over rows) is compared with the
+    same at eight off-line frequencies 2 to 5 segment bins either side, the local background.
+    A sample is flagged where that ratio exceeds the F(2 M, 16 M) quantile at alpha over the
+    number of independent segments (2 S dx / segment), a line-free series staying quiet.
+
+    Returns (S,) bool: the centres of the segments that hold the line (a tread pressed only
+    on part of the drive, by soft ground or a lug pattern worn flat)."""
+    rows = np.atleast_2d(np.asarray(series, np.float64))
+    S = rows.shape[1]
+    n = max(3, int(round(segment / dx)) | 1)
+    if S < 2 * n or not np.isfinite(wavelength) or wavelength <= 0:
+        return np.zeros(S, bool)
+    s = np.arange(S) * dx
+    f0, step = 1.0 / wavelength, 1.0 / (n * dx)
+    offs = [k * step for k in (-5, -4, -3, -2, 2, 3, 4, 5) if 0 < f0 + k * step < 0.5 / dx]
+    win = np.hanning(n + 2)[1:-1]
+    win /= win.sum()
+    line, back, m = np.zeros(S), np.zeros(S), 0
+    for y in rows:
+        ok = np.isfinite(y)
+        if ok.sum() < 2 * n:
+            continue
+        y = np.interp(np.arange(S), np.flatnonzero(ok), y[ok])
+        y = y - np.convolve(y, np.ones(n) / n, "same")        # the rut's slow changes out
+        line += _demodulated_power(y, s, f0, win)
+        back += sum(_demodulated_power(y, s, f0 + o, win) for o in offs) / len(offs)
+        m += 1
+    if m == 0 or not offs:
+        return np.zeros(S, bool)
+    crit = _zone_level(m, len(offs), S * dx, segment, alpha)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        flagged = line / back > crit
+    flagged[: n // 2] = flagged[S - n // 2:] = False          # segments that run off the series
+    return flagged
+
+
+def _zone_level(rows: int, off_line: int, length: float, segment: float, alpha: float) -> float:
+    """`line_zone`'s critical power ratio: the F(2 rows, 2 rows off_line) quantile at alpha
+    over the independent segments of `segment` m in `length` m."""
+    return float(stats.f.isf(alpha / max(1.0, 2 * length / segment), 2 * rows, 2 * rows * off_line))
+
+
+def zone_segment(ratio: float, rows: int, length: float, shortest: float = 2.0, alpha: float = 0.01) -> float:
+    """The `line_zone` segment [m] in which a line of the strength it has over a whole series of
+    `length` m (ratio to its background, `spectral_line`) would stand out alone, `shortest` at
+    least and half the series at most: a weak line is placed coarsely rather than in the
+    fragments where noise happened to add to it."""
+    segment = shortest
+    for _ in range(3):             # the level depends on how many segments the series holds
+        crit = _zone_level(rows, 8, length, segment, alpha)
+        segment = float(np.clip(length * crit / max(ratio - 1.0, 1e-9), shortest, length / 2))
+    return segment
+
+
+def _demodulated_power(y: np.ndarray, s: np.ndarray, f: float, win: np.ndarray) -> np.ndarray:
+    """|local amplitude|^2 of frequency f [1/m] in y sampled at s [m], averaged by window win."""
+    return np.abs(np.convolve(y * np.exp(-2j * np.pi * f * s), win, "same")) ** 2
+
+
 # ------------------------------------------------------------------ profiles
 @dataclass
 class Profiles:
@@ -255,11 +355,15 @@ class Profiles:
     floor_s: list = field(default_factory=list)
     floor_r: list = field(default_factory=list)
     floor_side: list = field(default_factory=list)
+    floor_lat: list = field(default_factory=list)
+    floor: bool = True
 
     @classmethod
-    def empty(cls, radius: float, dx: float, reach: float) -> Profiles:
+    def empty(cls, radius: float, dx: float, reach: float, floor: bool = True) -> Profiles:
+        """No segment yet; floor=False: without the rut-floor series (a candidate's pass, whose
+        cross-track profiles alone are drawn: half a pass's memory on a long drive)."""
         n = int(math.ceil(reach / dx))
-        return cls(np.arange(-n, n + 1) * dx, dx, radius)
+        return cls(np.arange(-n, n + 1) * dx, dx, radius, floor=floor)
 
     def add(self, wd, h_sim, s_cells: np.ndarray, s0: float, s1: float, wheels_y: np.ndarray,
             outer: tuple[np.ndarray, np.ndarray] | None = None) -> None:
@@ -303,10 +407,13 @@ class Profiles:
         self.seg_s.append(0.5 * (s0 + s1))
         for k in acc:
             getattr(self, k).append(acc[k])
-        fl = (zone_of(lat, self.radius, self.dx) == 0) & (w_side == 1)
+        if not self.floor:
+            return
+        fl = (np.abs(lat) <= self.radius) & (w_side == 1)
         self.floor_s.append(s[fl])
         self.floor_r.append((hs - hb)[fl])
         self.floor_side.append(side[fl])
+        self.floor_lat.append(lat[fl])
 
     # -------------------------------------------------------------- summaries
     def _stack(self, name: str) -> np.ndarray:
@@ -398,17 +505,24 @@ class Profiles:
         m = float(d[ok].mean())
         return {"mean": m, "se": se, "z": m / se if se > 0 else 0.0, "series": d}
 
-    def floor_series(self, by_side: bool = False, arcs: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def floor_series(self, by_side: bool = False, arcs: tuple | None = None, band: float | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
         """Rut-floor residual per arc-length cell: (S,) arc length [m] and mean residual [m],
         (S,) over both sides, or (2, S) left and right wheels' ruts with by_side (a tread's
         marks need not line up from one side to the other). arcs: optional per side (left,
         right) a pair ((N,) base_link arc, (N,) that side's track arc) [m], increasing: each
         side's cells are then placed by the distance its own wheels travelled (`side_arc`),
-        where a tread's wavelength holds on a turn."""
+        where a tread's wavelength holds on a turn. band: the cells up to this offset [m] from
+        the wheel centre line (the footprint radius at most: a tyre prints its lugs across
+        its contact width); None: the rut floor, |offset| < radius / 2."""
         if not self.floor_s:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         s, r = np.concatenate(self.floor_s), np.concatenate(self.floor_r)
-        side = np.concatenate(self.floor_side) if by_side else np.zeros(len(s), int)
+        lats = getattr(self, "floor_lat", None)          # absent from passes kept by older versions
+        lat = np.abs(np.concatenate(lats)) if lats and sum(map(len, lats)) == len(s) else np.zeros(len(s))
+        keep = lat < self.radius / 2 if band is None else lat <= band
+        s, r = s[keep], r[keep]
+        side = np.concatenate(self.floor_side)[keep] if by_side else np.zeros(len(s), int)
         if len(s) == 0:
             return np.zeros(0), np.zeros((2, 0) if by_side else 0)
         if by_side and arcs is not None:

@@ -11,6 +11,8 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
+from torchsoil.figures import coarse, coarse_extent
+
 KEYS = ("verdict", "missing_physics", "where", "explanation", "cost_before", "cost_after", "noise_floor",
         "extension_parameters", "candidates")
 VERDICTS = ("adequate", "missing_physics", "unexplained")
@@ -48,7 +50,8 @@ def explain(diag) -> str:
                  "surface before the robot, so d is the sinkage of each wheel, not of the robot, and a "
                  "hardening term counts every wheel's pass (a rear wheel in its front wheel's rut runs the "
                  "second).")
-    return _explain(diag) + _nearest(diag) + note
+    named = diag.summary["verdict"] == "missing_physics"        # by a candidate, or on the ground driven again
+    return _explain(diag) + ("" if named else _nearest(diag)) + note
 
 
 def _nearest(diag) -> str:
@@ -118,11 +121,75 @@ def effect_text(f) -> str:
     return f" At that coefficient the term changes the sinkage by {100 * e:.0f} % or more on a twentieth of the drive."
 
 
+LAW_TEXT = {"geometric": "d_n = d_0 g^n", "hyperbolic": "d_n = d_0 / (1 + a n)", "power": "d_n = d_0 (1 + n)^b"}
+
+
+def revisit_text(rev: dict, s: dict, span: str) -> str:
+    """The explanation of hardening named on the same ground (revisits.hardening_across_visits)."""
+    shape = rev["shape"] or "geometric"
+    how = (f"a {shape} law fits best ({LAW_TEXT[shape]}, {rev['parameter']} = {rev['coefficient']:.3g})"
+           if rev["shape"] else f"{LAW_TEXT['geometric']} with g = {rev['g']:.3g} per wheel pass (the drive does "
+           f"not tell the laws' shapes apart: "
+           + ", ".join(f"{k} {v['coefficient']:.3g}" for k, v in rev["laws"].items()) + ")")
+    rut = rev["rut"]
+    return (f"The base model leaves out: each later pass over the same ground sinks less than the first "
+            f"(multi_pass_hardening), named on the ground driven more than once. {len(rev['s'])} windows were "
+            f"fitted visit by visit; the first visit's soil predicts the later visits' ground at "
+            f"{_mm(rev['cost_before'])} against their noise floor {_mm(rev['noise_floor'])} (paired over windows, "
+            f"z = {rev['z_visible']:.1f} against {rev['z_level']:.1f}), and sinking less by {how} brings it to "
+            f"{_mm(rev['cost_after'])} (g chosen on the other fold of blocks: {rev['g_folds'][0]:.3g}, "
+            f"{rev['g_folds'][1]:.3g}). Each pass sinks {100 * rev['effect']:.0f} % less than the one before. The "
+            f"later visits dug ruts of {_mm(rut['measured'])}; the first visit's soil would dig "
+            f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}. The mismatch "
+            f"lies on the rut floor and follows the passes; it matters at {span}." + per_pass_text(rev.get("per_pass")))
+
+
+def _main_groups(pp: dict) -> list[dict]:
+    """The per-pass fit's largest group of windows at each visit (revisits.per_pass_fit)."""
+    best: dict[int, dict] = {}
+    for grp in pp["visits"]:
+        if grp["visit"] not in best or grp["windows"] > best[grp["visit"]]["windows"]:
+            best[grp["visit"]] = grp
+    return [best[v] for v in sorted(best)]
+
+
+def per_pass_text(pp: dict | None) -> str:
+    """One sentence on the sinkage pass by pass (revisits.per_pass_fit), or "" without it."""
+    if not pp or "g" not in pp:
+        return ""
+    groups = _main_groups(pp)
+    sinks = ", ".join(f"{1000 * q['sinkage']:.1f}" for grp in groups for q in grp["passes"])
+    return (f" Fitted pass by pass (each wheel digging in turn from the rut the passes before it left, sinking "
+            f"d g^n after n passes), every visit fits the same first-pass sinkage at g = {pp['g']:.3g} ("
+            + ", ".join(f"{_mm(grp['d_first_pass'])} at visit {grp['visit']}" for grp in groups)
+            + f"): the wheel passes sink {sinks} mm in turn" + _rut_text(pp.get("rut")) + ".")
+
+
+def _rut_text(rut: dict | None) -> str:
+    if not rut or not np.isfinite([rut["measured"], rut["simulated"]]).all():
+        return ""
+    return (f", and the later visits' ruts are {_mm(rut['simulated'])} simulated under the law, "
+            f"{_mm(rut['measured'])} measured")
+
+
+def basis_text(basis: dict | None) -> str:
+    """What a named term's held-out gain rests on (locate.evidence_basis), or ""."""
+    if not basis or not basis["blocks"]:
+        return ""
+    spans = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in basis["carriers"])
+    half = (f"; half of it comes from {basis['carrier_blocks']} of them ({spans})" if basis["carriers"] else "")
+    return (f" The gain rests on {basis['windows']} windows in {basis['blocks']} blocks of neighbours, as much "
+            f"evidence as {basis['n_eff']:.1f} independent blocks{half}.")
+
+
 def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
     where = s["where"]
     span = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in where["along_track"]) or "no particular stretch"
+    rev = getattr(diag, "revisits", None)
+    if s["verdict"] == "missing_physics" and diag.best is None and rev is not None:
+        return revisit_text(rev, s, span)
     if s["verdict"] == "missing_physics":
         f = diag.best
         par = s["extension_parameters"]
@@ -135,7 +202,8 @@ def _explain(diag) -> str:
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
                 f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "
                 f"allowed by noise; coefficient chosen on other "
-                f"windows than those it is scored on).{effect_text(f)} The mismatch lies on the "
+                f"windows than those it is scored on).{effect_text(f)}{basis_text(ev.get('basis'))} The mismatch "
+                f"lies on the "
                 f"{where['cross_track'].replace('_', ' ')}"
                 f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "
                 f"Noise floor {_mm(s['noise_floor'])}.")
@@ -191,18 +259,22 @@ def write_json(summary: dict, path: Path) -> Path:
 
 # ------------------------------------------------------------------ figures
 def fig_residual_map(diag, pair, path: Path) -> Path:
-    r = diag.residual_map
+    r, f = coarse(diag.residual_map)
     fig = Figure(figsize=(10, 3.5))
     ax = fig.subplots()
-    xs, ys = pair.grid.centers()
+    extent = coarse_extent(pair.origin, pair.dx, diag.residual_map.shape, f)
     lim = 3 * np.nanstd(r) if np.isfinite(r).any() else 1e-3
-    im = ax.pcolormesh(xs, ys, r.T * 1e3, cmap="RdBu_r", vmin=-1e3 * lim, vmax=1e3 * lim, shading="nearest")
+    im = ax.imshow(r.T * 1e3, origin="lower", extent=extent, cmap="RdBu_r", vmin=-1e3 * lim, vmax=1e3 * lim,
+                   interpolation="nearest")
     fig.colorbar(im, ax=ax, label="simulated - measured H_b [mm]")
-    sidx = diag.s_index
-    for a, b in diag.summary["where"]["along_track"]:
-        mask = np.isfinite(sidx) & (sidx >= a) & (sidx < b)
-        if mask.any():
-            ax.contour(xs, ys, mask.T.astype(float), levels=[0.5], colors="k", linewidths=1.2)
+    sidx = coarse(diag.s_index)[0]
+    xs = extent[0] + (np.arange(r.shape[0]) + 0.5) * f * pair.dx
+    ys = extent[2] + (np.arange(r.shape[1]) + 0.5) * f * pair.dx
+    located = np.zeros(sidx.shape, bool)                  # one outline for all spans: a contour each would
+    for a, b in diag.summary["where"]["along_track"]:     # keep a grid each, as many as the drive has spans
+        located |= np.isfinite(sidx) & (sidx >= a) & (sidx < b)
+    if located.any():
+        ax.contour(xs, ys, located.T.astype(np.float32), levels=[0.5], colors="k", linewidths=1.2)
     ax.plot(pair.poses[:, 1], pair.poses[:, 2], "k--", lw=0.5)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
@@ -289,6 +361,37 @@ def fig_costs(diag, path: Path) -> Path:
     return path
 
 
+def revisit_markdown(rev: dict) -> str:
+    """The per-visit hardening test (revisits.hardening_across_visits) as Markdown."""
+    if "z_visible" not in rev:
+        return f"Not tested: {rev.get('reason', 'no later visits')}."
+    rut = rev["rut"]
+    lines = [f"Each later visit of {rev['windows']} windows simulated from its own start with the first visit's "
+             f"soil: cost {_mm(rev['cost_before'])} against a noise floor of {_mm(rev['noise_floor'])} (z = "
+             f"{rev['z_visible']:.2f}, needed {rev['z_level']:.2f}); with each pass sinking g = {rev['g']:.3g} "
+             f"times the one before (folds {rev['g_folds'][0]:.3g}, {rev['g_folds'][1]:.3g}; mean gain "
+             f"{_mm(rev['gain'])}): {_mm(rev['cost_after'])}. Accepted: {rev['accepted']}.", "",
+             f"Rut the later visits added: measured {_mm(rut['measured'])}, simulated from the first visit's soil "
+             f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}.", "",
+             "| law | coefficient | cross-visit cost |", "| --- | --- | --- |"]
+    lines += [f"| {k}: {LAW_TEXT[k]} | {v['coefficient']:.3g} | {_mm(v['cost'])} |" for k, v in rev["laws"].items()]
+    lines += ["", f"Shape: {rev['shape'] or 'not told apart on this drive'}."]
+    pp = rev.get("per_pass")
+    if pp and "g" in pp:
+        lines += ["", f"Sinkage pass by pass: each wheel digs in turn from the rut the passes before it left and "
+                      f"sinks d g^n after n earlier wheel passes; g = {pp['g']:.3g} makes the later visits fit the "
+                      f"first visit's d (tried: " + ", ".join(f"{g:.3g}" for g, _ in pp["g_tried"]) + ").", "",
+                  "| visit | wheel passes before | windows | first-pass d [mm] | each pass's sinkage [mm] |",
+                  "| --- | --- | --- | --- | --- |"]
+        lines += [f"| {grp['visit']} | {grp['passes_before']:.0f} | {grp['windows']} | "
+                  f"{1000 * grp['d_first_pass']:.1f} ± {1000 * grp['d_sd']:.1f} | "
+                  + ", ".join(f"{1000 * q['sinkage']:.1f} ± {1000 * q['sd']:.1f}" for q in grp["passes"]) + " |"
+                  for grp in pp["visits"]]
+    elif pp:
+        lines += ["", f"Sinkage pass by pass: not fitted ({pp.get('reason')})."]
+    return "\n".join(lines)
+
+
 def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -> Path:
     s, ev = diag.summary, diag.evidence
     lines = [f"# Diagnosis of {input_name}", "", f"**Verdict: {s['verdict']}**"
@@ -333,7 +436,11 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
               f"prediction {_mm(s['cost_before']['prediction'])}",
               f"- after: residual {_mm(s['cost_after']['residual'])}, "
               f"prediction {_mm(s['cost_after']['prediction'])}",
-              f"- noise floor: {_mm(s['noise_floor'])}", "", "## Figures", ""]
+              f"- noise floor: {_mm(s['noise_floor'])}", ""]
+    rev = getattr(diag, "revisits", None)
+    if rev is not None:
+        lines += ["## Ground driven more than once", "", revisit_markdown(rev), ""]
+    lines += ["## Figures", ""]
     lines += [f"![{k}]({v})" for k, v in figures.items()]
     path.write_text("\n".join(lines) + "\n")
     return path

@@ -7,10 +7,10 @@ import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import ndimage, stats
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.checkpoint import PassCache
+from torchsoil.diagnosis.checkpoint import PassCache, kept
 from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, side_arc, window_signals
 from torchsoil.diagnosis.fit import (
     CandidateFit,
@@ -18,18 +18,34 @@ from torchsoil.diagnosis.fit import (
     accept,
     fit_extension,
     fit_section,
+    paired_z,
     run_pass,
+    section_candidates,
+    section_cost,
     section_of,
+    shared_of,
+    trial_ks,
     with_section,
 )
-from torchsoil.diagnosis.locate import ZONES, correlation, paired_improvement, spectral_line
+from torchsoil.diagnosis.locate import (
+    ZONES,
+    correlation,
+    evidence_basis,
+    line_zone,
+    paired_improvement,
+    spectral_line,
+    zone_segment,
+)
+from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 from torchsoil.windows import path_arc
 
 
 @dataclass
 class Diagnosis:
-    """Everything the report needs: `summary` is the diagnosis.json dict (docs/formats.md 4)."""
+    """Everything the report needs: `summary` is the diagnosis.json dict (docs/formats.md 4);
+    residual_map: (X, Y) float32 simulated - measured H_b of the base model [m]; s_index: (X, Y)
+    arc length of each cell [m]."""
 
     summary: dict
     base: Pass
@@ -39,6 +55,7 @@ class Diagnosis:
     windows: dict
     residual_map: np.ndarray
     s_index: np.ndarray
+    revisits: dict | None = None
 
 
 def _z_two_sided(alpha: float) -> float:
@@ -121,6 +138,22 @@ def strongest_line(by_side: np.ndarray, dx: float) -> dict:
     return {**best, "p": min(1.0, len(lines) * best["p"]), "ruts": ruts}
 
 
+def line_spans(by_side: np.ndarray, grid: np.ndarray, arcs: tuple, line: dict, dx: float) -> list[list[float]]:
+    """Where along the drive the strongest line (`strongest_line`) stands, as base_link arc
+    intervals [m]: `locate.line_zone` on the ruts that carry it ((2, S) on the own-track arc
+    grid (S,) [m]; arcs as for Profiles.floor_series), over the segment its drive-wide
+    strength needs (`locate.zone_segment`), gaps under half a segment bridged."""
+    rows = {"left": by_side[:1], "right": by_side[1:], "both": by_side}[line.get("ruts", "both")]
+    segment = zone_segment(line["ratio"], len(rows), rows.shape[1] * dx)
+    on = line_zone(rows, dx, line["wavelength"], segment)
+    if not on.any():
+        return []
+    on = ndimage.binary_closing(on, np.ones(max(1, int(segment / 2 / dx)), bool), border_value=0)
+    s = np.mean([np.interp(grid, own, base) for base, own in arcs], 0)
+    edges = np.flatnonzero(np.diff(np.r_[0, on.astype(np.int8), 0])).reshape(-1, 2)   # runs [a, b)
+    return [[round(float(s[a]) - dx / 2, 2), round(float(s[b - 1]) + dx / 2, 2)] for a, b in edges]
+
+
 def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float]]:
     """Merge the [s0, s1) spans of flagged windows into intervals, m."""
     out: list[list[float]] = []
@@ -191,15 +224,31 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
                                                    f"held-out cost vs change r = {c2.r:+.2f} (n_eff {c2.n_eff:.1f})"}
 
 
+def plainest(fits: dict, best: tuple, declared, z: float = 1.96) -> str:
+    """The dig order to keep: `best` (order, section)'s, unless the robot's own section under
+    another order fits the windows as well (`fit.paired_z` of best over it below z): then
+    that order, the robot's section kept. Noise tells apart pairs that fit alike, and a
+    section taken to stand in for the other order moves d (a crowned tyre digging all at once
+    for a flat one digging axle by axle, on a recording made elsewhere). fits: {(order,
+    section): the windows' residuals (W,), m}."""
+    if best[1] == declared:
+        return best[0]
+    for (order, sec), w in fits.items():
+        if sec == declared and order != best[0] and paired_z(w, fits[best]) < z:
+            return order
+    return best[0]
+
+
 def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None,
-                       cache: PassCache | None = None):
+                       cache: PassCache | None = None, pool=None):
     """The tyre section and the dig order as nuisances (`fit_section`; SimConfig.dig_order):
     the section searched over cfg.sections under sim's order, then each other order of
-    cfg.dig_orders at the best few sections; the lowest mean window residual wins.
+    cfg.dig_orders at the best few sections; the lowest mean window residual wins, unless the
+    robot's own section fits as well under one order (`plainest`).
 
     Returns (the pair with that section, sim with that order, section evidence, dig-order
     evidence (None when only one order was tried), run_pass keywords, the sections a footprint
-    or wall term may choose from)."""
+    or wall term may choose from). pool: a parallel.PassPool that scores the sections first."""
     section, dig = None, None
     declared = section_of(pair)
     if not cfg.sections and not set(cfg.dig_orders) - {sim.dig_order}:
@@ -208,14 +257,29 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     def best_few(costs):
         return tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
 
-    best, costs, shared = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache)
-    orders, tried = {sim.dig_order: costs[best]}, best_few(costs)
-    for order in dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order):
+    shared = None
+    if pool is not None:                  # the pair's own section here, the others as tasks
+        shared = section_cost(pair, est, sim, declared, cache=cache)[1]
+        pool.share(pair, shared)
+        pool.run("section", [(est, sim, sec, 3, None) for sec in section_candidates(pair, cfg.sections)[1:]])
+    best, costs, shared, windows = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache,
+                                               shared=shared)
+    orders, tried, by_order = {sim.dig_order: costs[best]}, best_few(costs), {sim.dig_order: costs}
+    fits = {(sim.dig_order, best): windows[best], (sim.dig_order, declared): windows[declared]}
+    others = list(dict.fromkeys(o for o in cfg.dig_orders if o != sim.dig_order))
+    if pool is not None:
+        pool.run("section", [(est, sim.replace(dig_order=o), sec, 3, None) for o in others for sec in tried])
+    for order in others:
         alt = sim.replace(dig_order=order)
-        b, c, shared = fit_section(pair, est, alt, tried, shared=shared, cache=cache)
-        orders[order] = c[b]
+        b, c, shared, w = fit_section(pair, est, alt, tried, shared=shared, cache=cache)
+        orders[order], by_order[order] = c[b], c
+        fits.update({(order, b): w[b], (order, declared): w[declared]})
         if c[b] < costs[best]:
             sim, best, costs = alt, b, c
+    order = plainest(fits, (sim.dig_order, best), declared)
+    if order != sim.dig_order:
+        sim, best, costs = sim.replace(dig_order=order), declared, by_order[order]
+        orders[order] = costs[declared]
     if len(orders) > 1:
         dig = {"declared": next(iter(orders)), "fitted": sim.dig_order, "residual": orders}
     if cfg.sections:
@@ -224,15 +288,58 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
     return with_section(pair, best), sim, section, dig, shared, best_few(costs) if cfg.sections else ()
 
 
+def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass, n_tracks: int,
+             progress=None, cache: PassCache | None = None) -> tuple[float, dict | None]:
+    """Hardening on the same ground (revisits.hardening_across_visits) on a pair with visit
+    layers, at half the family-wise level; where it names a law, the sinkage pass by pass under
+    it (revisits.per_pass_fit, the dict's `per_pass`). Its passes kept in and read back from
+    `cache`. Returns (the level left to the catalogue's candidates, the test's dict or None
+    without visit layers)."""
+    if getattr(pair, "visit_front", None) is None:
+        return cfg.alpha_accept, None
+    alpha = cfg.alpha_accept / 2
+    kw = dict(nuisance=base.nuisance, index=base.index)
+    vp = kept(cache, "visits", (section_of(pair), sim.dig_order), lambda: run_visits(pair, est, sim, **kw))
+    if progress is not None:
+        progress.update(1)
+    rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+    if rev["accepted"]:
+        rev["per_pass"] = kept(cache, "per_pass", (section_of(pair), rev["g"]),
+                               lambda: per_pass_fit(pair, est, sim, rev["g"], **kw))
+    return alpha, rev
+
+
+def _named_on_visits(revisit: dict | None, best) -> bool:
+    """Hardening is named on the ground driven again when its test there accepted it and no
+    other catalogue term was (a term accepted on the last view wins: its own evidence)."""
+    return revisit is not None and revisit["accepted"] and (best is None or best.ext.id == "multi_pass_hardening")
+
+
+def _visit_costs(revisit: dict, residual: float) -> tuple[dict, dict, dict]:
+    """cost_before, cost_after and extension_parameters of hardening named on the same
+    ground: the cost of predicting the later visits from the first visit's soil without and
+    with the law [m] (the windows' mean residual [m] beside them), the law's coefficient: for
+    the geometric law, g of the fit pass by pass where there is one (every wheel's pass counted,
+    revisits.per_pass_fit), else the cross-visit cost's."""
+    before = {"residual": residual, "prediction": revisit["cost_before"]}
+    after = {"residual": residual, "prediction": revisit["cost_after"]}
+    c, pp = revisit["coefficient"], revisit.get("per_pass") or {}
+    if revisit["parameter"] == "g_pass" and "g" in pp:
+        c = pp["g"]
+    return before, after, {revisit["parameter"]: round(c, 4)}
+
+
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
-             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None) -> Diagnosis:
+             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None, pool=None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
     estimator and simulator settings (their sections; defaults when None). progress:
     optional tqdm-like bar (update(n)). cache: where the finished passes are kept
     (checkpoint.PassCache): a diagnosis run again with the same cache reads them back, so an
-    interrupted one resumes where it stopped."""
+    interrupted one resumes where it stopped. pool: a parallel.PassPool (`parallel.pass_pool`,
+    with the same cache) that runs the independent passes (sections, dig orders, candidates)
+    as parallel tasks first; the results are the same."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache)
+    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool)
     robot = pair.robot
     drive = DriveSignals.from_poses(pair.poses, robot)
     window, stride = est.window, est.stride
@@ -259,7 +366,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     arcs = tuple((base_arc, side_arc(pair.poses, float(y.mean()))) if len(y) else (base_arc, base_arc)
                  for y in sides)
     fs = prof.floor_series()[0]                                # base_link arc length, m
-    fr = prof.floor_series(by_side=True, arcs=arcs)[1]        # each rut along its own wheels' track
+    # each rut along its own wheels' track, across the tyre's contact width (its lugs print there)
+    fgrid, fr = prof.floor_series(by_side=True, arcs=arcs, band=prof.radius)
     line = strongest_line(fr, pair.dx)
     n_tracks = robot.n_tracks
 
@@ -271,13 +379,21 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
           for e in catalogue.CATALOGUE.values()}
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
+    if pool is not None and ranked:        # every candidate's trial passes, then its refinements, as tasks
+        pool.share(pair, shared_of(base), base)
+        head = (est, sim, section_of(pair))
+        tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
+        pool.run("pass", [(*head, i, k, *tail) for i in ranked for k in trial_ks(catalogue.get(i))])
+        if cfg.refine_steps:
+            pool.run("refine", [(*head, i, None, *tail) for i in ranked])
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
-    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], cfg.alpha_accept,
+    alpha, revisit = _revisit(pair, cfg, est, sim, base, n_tracks, progress, cache)
+    z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], alpha,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
                       strict=True))
@@ -309,7 +425,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         verdict = "unexplained"
         if sig_line:
             cross = "rut_floor"
-            spans = [[round(float(fs[0]), 2), round(float(fs[-1]), 2)]] if len(fs) else []
+            spans = line_spans(fr, fgrid, arcs, line, pair.dx) or (
+                [[round(float(fs[0]), 2), round(float(fs[-1]), 2)]] if len(fs) else [])
             covariate = "arc_length"
         else:
             if sig_zones:
@@ -332,6 +449,14 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     before = {"residual": float(np.nanmean(base.residual)), "prediction": float(np.nanmean(base.prediction))}
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
+    params = ({} if best is None else
+              catalogue.reported_parameters(best.ext, best.k, best.passes[best.k].rows))
+    named = best.ext.id if best is not None else None
+    if _named_on_visits(revisit, best):      # hardening named on the ground driven again
+        verdict, cross, covariate, best, named = "missing_physics", "rut_floor", "passes", None, "multi_pass_hardening"
+        spans = _spans(np.ones(len(revisit["s"]), bool), np.array(revisit["s"]) - window / 2,
+                       np.array(revisit["s"]) + window / 2)
+        before, after, params = _visit_costs(revisit, before["residual"])
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "rut_shape": prof.shape(z_loc),
                 "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
@@ -343,35 +468,36 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "tyre_section": section,
                 "dig_order": dig,
+                "revisits": revisit,
+                "basis": evidence_basis(base.held_out, best.held_out, s) if best is not None else None,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
         "verdict": verdict,
-        "missing_physics": best.ext.id if best is not None else None,
+        "missing_physics": named,
         "where": {"cross_track": cross, "along_track": spans, "covariate": covariate},
         "explanation": "",
         "cost_before": before,
         "cost_after": after,
         "noise_floor": float(np.nanmean(base.floor)),
-        "extension_parameters": ({} if best is None else
-                                 catalogue.reported_parameters(best.ext, best.k, best.passes[best.k].rows)),
+        "extension_parameters": params,
         "candidates": [{"id": f.ext.id, "prediction": float(np.nanmean(f.prediction)), "accepted": bool(f.accepted)}
                        for f in fits],
     }
     from torchsoil.diagnosis.report import explain
 
-    h_back = np.asarray(pair.h_back, np.float64)
-    if base.nuisance is not None:
-        h_back = h_back - base.nuisance.field               # as the estimator fitted it (Estimator.h_back)
-    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, base.h_sim - h_back, base.index.s)
+    h_back = base.surfaces[1]                               # as the estimator fitted it (Estimator.h_back)
+    residual = base.h_sim - h_back.astype(np.float32)       # drawn only (report.fig_residual_map)
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s, revisit)
     summary["explanation"] = explain(diag)
     return diag
 
 
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:
-    """Upper bound on the estimator passes of one diagnosis (for a progress bar)."""
+    """Upper bound on the estimator passes of one diagnosis (for a progress bar; one per visit
+    pass on a pair with visit layers)."""
     cfg = cfg or DiagnosisConfig()
-    return 1 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)
+    return 2 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)   # + the per-visit pass
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]

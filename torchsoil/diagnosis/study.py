@@ -59,7 +59,22 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
             "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
             "cost_before": s["cost_before"], "cost_after": s["cost_after"], "noise_floor": s.get("noise_floor"),
             "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds,
-            "tests": held_out_tests(diag), "series": held_out_series(diag), **extra}
+            "tests": held_out_tests(diag), "series": held_out_series(diag), "revisits": revisit_test(diag), **extra}
+
+
+def revisit_test(diag) -> dict | None:
+    """The hardening test on the ground driven again (`revisits.hardening_across_visits`) in
+    brief: accepted, the later visits it simulated (windows), its z against its level, the
+    per-pass g on all later visits and by fold, the g of the fit pass by pass where it ran
+    (g_per_pass), the reason it could not run; None on a drive without visit layers."""
+    rev = diag.evidence.get("revisits")
+    if rev is None:
+        return None
+    keys = ("accepted", "windows", "z_visible", "z_level", "g", "g_folds", "reason")
+    out = {k: rev[k] for k in keys if k in rev}
+    if "g" in (rev.get("per_pass") or {}):
+        out["g_per_pass"] = rev["per_pass"]["g"]
+    return out
 
 
 def held_out_tests(diag) -> list[dict]:
@@ -146,12 +161,13 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
 
 
 def study_case(case: tuple, settings: Settings) -> dict:
-    """The record of one (name, scenario, seed, verdict, id) case: its drive made and
-    diagnosed (`_record`), with the world's effect law, the tyre and measurement draws and the
-    drive's length [m]."""
+    """The record of one (name, scenario, seed, verdict, id) case: its drive made (with visit
+    layers where it drives over its own ruts, as a pipeline keeping every visit writes them)
+    and diagnosed (`_record`), with the world's effect law, the tyre and measurement draws and
+    the drive's length [m]."""
     name, scn, seed, want_verdict, want_id = case
     t0 = time.perf_counter()
-    data = make_terrain_pair(scn, seed=seed)
+    data = make_terrain_pair(scn, seed=seed, visits=True)
     pair = TerrainPair.from_mapping(data)
     diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
     xy = pair.poses[:, 1:3]

@@ -147,7 +147,7 @@ REVISITS = ("out_and_back", "loop", "lane_changes")
 def random_law(rng: np.random.Generator, eid: str) -> dict:
     """An effect law of a random form (effects.FORMS) and magnitude for effect `eid`."""
     if eid == "tread":
-        return {"amp": float(rng.uniform(0.004, 0.008)), "wavelength": float(rng.uniform(0.12, 0.3))}
+        return {"amp": float(rng.uniform(0.004, 0.008)), "wavelength": float(rng.uniform(0.06, 0.3))}
     x0, k_range = LAWS[eid]
     form = str(rng.choice(fx.FORMS))
     law = {"form": form, "p": float(rng.uniform(0.5, 2.0)) if form == "power" else 1.0,
@@ -252,3 +252,9 @@ def randomized_cases(n: int, n_null: int = 20, seed: int = 0) -> list[tuple[str,
         raise ValueError(f"at most 500 effect and 500 null drives per study seed, got {n} and {n_null}")
     return ([random_case(1000 * seed + i, KINDS[i % len(KINDS)]) for i in range(n)]
             + [random_case(1000 * seed + 500 + j, None) for j in range(n_null)])
+
+
+def revisit_cases(cases: list[tuple]) -> list[tuple]:
+    """The cases (`randomized_cases`) whose drive comes back over its own ruts (REVISITS): every
+    hardening drive and the null drives of those shapes."""
+    return [c for c in cases if c[0].rsplit(" ", 1)[-1] in REVISITS]

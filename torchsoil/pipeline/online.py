@@ -92,8 +92,8 @@ class OnlinePipeline:
         self.ground_stamp = -np.inf
         self.n_final = 0
         self.finished = False
-        wheel_x, edge = robot.wheels[:, 0], robot.wheel_width / 2 + cfg.raster.wheel_margin
-        self.keep_x = {"front": lambda x: x > wheel_x.max() + edge, "back": lambda x: x < wheel_x.min() - edge}
+        edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
+        self.keep_beyond = {"front": robot.wheels[:, 0].max() + edge, "back": robot.wheels[:, 0].min() - edge}
 
     # ------------------------------------------------------------------ input
     def add_cloud(self, name: str, cloud: Cloud) -> None:
@@ -358,7 +358,9 @@ class OnlinePipeline:
         st["fitness"].append(fit), st["rmse"].append(rmse), st["ok"].append(ok), st["empty"].append(False)
         if not ok:
             return
-        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & self.keep_x[name](pts[:, 0])
+        x = pts[:, 0]       # each lidar's ground: ahead of the front wheels, behind the rear ones
+        beyond = x > self.keep_beyond[name] if name == "front" else x < self.keep_beyond[name]
+        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & beyond
         world = icp.apply(self.L @ T, pts[sel])
         passed = self.visits.passed(world[:, :2], sw.stamp + sw.t[sel])
         layer = passed if name == "front" else np.maximum(passed - 1, 0)
@@ -429,17 +431,20 @@ class OnlinePipeline:
         rc = self.cfg.raster
         grid, mask = corridor(poses[:, :2, 3], rc.corridor_width, rc.dx)
         i0, j0 = (int(round(o / rc.dx)) for o in grid.origin)
-        _, times = self.visits.region(i0, i0 + grid.shape[0], j0, j0 + grid.shape[1])
-        n = np.where(mask, np.isfinite(times).sum(0), 0)                     # visits per cell
+        (I, J), n = grid.shape, np.zeros(grid.shape, np.int32)                 # visits per cell
+        for a in range(0, I, 256):                                             # a block of rows at a time
+            n[a:a + 256] = np.isfinite(self.visits.region(i0 + a, i0 + min(a + 256, I), j0, j0 + J)[1]).sum(0)
+        n[~mask] = 0
         V = max(int(n.max()), 1)
-        X, Y = np.meshgrid(*grid.centers(), indexing="ij")
+        xs, ys = grid.centers()
 
         def layer(name: str, v: int) -> Heightmap:
             h = self._layer(name, v).heightmap(grid, mask, rc.fill_radius)
             if np.array_equal(self.D, np.eye(3)):
                 return h
             d = self.D                                   # tiles hold heights levelled by L: turn by D
-            return h._replace(h=(h.h + d[2, 0] * X + d[2, 1] * Y + (d[2, 2] - 1) * h.h).astype(np.float32))
+            return h._replace(h=(h.h + d[2, 0] * xs[:, None] + d[2, 1] * ys[None, :] + (d[2, 2] - 1) * h.h).astype(
+                np.float32))
 
         fronts = [layer("front", v) for v in range(V)]
         backs = [layer("back", v) for v in range(V)]
@@ -449,9 +454,10 @@ class OnlinePipeline:
         visits = {}
         if V > 1:
             there = n[None] > np.arange(V)[:, None, None]
+            times = self.visits.region(i0, i0 + I, j0, j0 + J)[1][:V]
             visits = {"visit_front": np.where(there, np.stack([h.h for h in fronts]), np.nan).astype(np.float32),
                       "visit_back": np.where(there, np.stack([h.h for h in backs]), np.nan).astype(np.float32),
-                      "visit_time": np.where(there, times[:V], np.nan)}
+                      "visit_time": np.where(there, times, np.nan)}
         scan_stamps, flags = self.scan_flags()
         keep = (scan_stamps >= stamps[0] - 1.0) & (scan_stamps <= stamps[-1] + 1.0)
         extras = {"valid_front": hf.valid, "valid_back": hb.valid,

@@ -10,6 +10,7 @@ NaN and invalid. Per-cell point count and variance are kept.
 
 from __future__ import annotations
 
+import os
 from typing import NamedTuple
 
 import numpy as np
@@ -85,8 +86,11 @@ def spill_far(store, xy: np.ndarray, radius: float) -> int:
     d, _ = cKDTree(np.asarray(xy, np.float64)).query(centres)
     far = d > radius + side / np.sqrt(2) if np.isfinite(radius) else np.full(len(keys), radius < 0)
     for k, f in zip(keys, far, strict=True):
-        if f:
-            np.save(store._path(k), store.tiles.pop(k))
+        if f:   # replaced whole, never written in place (a pipeline checkpoint links the old file)
+            path = store._path(k)
+            with open(f"{path}.tmp", "wb") as fh:
+                np.save(fh, store.tiles.pop(k))
+            os.replace(f"{path}.tmp", path)
             store.spilled.add(k)
     return int(far.sum())
 
@@ -103,8 +107,6 @@ class Tiles:
         self.tiles: dict[tuple[int, int], np.ndarray] = {}   # (3, size, size): count, sum, sumsq
         self.spilled: set[tuple[int, int]] = set()
         if spill_dir is not None:
-            import os
-
             os.makedirs(spill_dir, exist_ok=True)
 
     def add(self, points: np.ndarray) -> None:
@@ -156,13 +158,25 @@ class Tiles:
                 out[:, x0 - i0:x1 - i0, y0 - j0:y1 - j0] = tile[:, x0 - a * s:x1 - a * s, y0 - b * s:y1 - b * s]
         return out[0], out[1], out[2]
 
-    def heightmap(self, grid: Grid, mask: np.ndarray, fill_radius: int) -> Heightmap:
-        """The Heightmap of `grid` (its cell centres on the lattice) within `mask` (X, Y)."""
+    def heightmap(self, grid: Grid, mask: np.ndarray, fill_radius: int, rows: int = 256) -> Heightmap:
+        """The Heightmap of `grid` (its cell centres on the lattice) within `mask` (X, Y), made
+        `rows` grid rows at a time (with `fill_radius` rows either side, all the fill reads), so
+        that its float64 sums never span more than a block of a long drive's grid."""
         i0, j0 = (int(round(o / self.dx)) for o in grid.origin)
-        count, total, sumsq = self.region(i0, i0 + grid.shape[0], j0, j0 + grid.shape[1])
-        count = np.where(mask, count, 0)
-        return finish(count.astype(np.int64), np.where(mask, total, 0.0), np.where(mask, sumsq, 0.0), mask,
-                      fill_radius)
+        X, Y = grid.shape
+        out = None
+        for a in range(0, X, rows):
+            b = min(a + rows, X)
+            lo, hi = max(a - fill_radius, 0), min(b + fill_radius, X)
+            count, total, sumsq = self.region(i0 + lo, i0 + hi, j0, j0 + Y)
+            m = mask[lo:hi]
+            part = finish(np.where(m, count, 0).astype(np.int64), np.where(m, total, 0.0), np.where(m, sumsq, 0.0),
+                          m, fill_radius)
+            if out is None:
+                out = Heightmap(*(np.empty((X, Y), f.dtype) for f in part))
+            for whole, f in zip(out, part, strict=True):
+                whole[a:b] = f[a - lo:b - lo]
+        return out
 
     def memory(self) -> int:
         """Bytes held in memory."""

@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 from torchsoil.io.bag import Recording, count_messages, frame_name, stream_recording, xyzrpy_matrix
 from torchsoil.pipeline import mapping
 from torchsoil.pipeline.online import OnlinePipeline
+from torchsoil.pipeline.resume import Checkpoints
 from torchsoil.robot import Robot
 from torchsoil.settings import PipelineConfig, ReadConfig
 from torchsoil.terrain import TerrainPair
@@ -130,7 +131,8 @@ def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]
 
 
 def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | None = None,
-                progress: bool = False, spill_dir: str | Path | None = None) -> PipelineResult:
+                progress: bool = False, spill_dir: str | Path | None = None,
+                checkpoints: Checkpoints | None = None) -> PipelineResult:
     """Recording -> terrain pair (H_f, H_b on one grid, T_ref) with per-sweep flags: the
     streaming pipeline (torchsoil.pipeline.online) run over the recording to its end.
 
@@ -141,6 +143,8 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
         config: the pipeline section of the settings (torchsoil.settings.PipelineConfig).
         progress: show a tqdm progress bar.
         spill_dir: directory for heightmap tiles far from the robot (bounded memory).
+        checkpoints: where the pipeline's state is kept as it goes (`resume.Checkpoints`, its
+            spill directory `spill_dir`); when it holds one, the run goes on from there.
     Raises:
         BagError / ValueError naming the bag, topic or frame when the input is unusable;
         nothing is written by this function.
@@ -149,15 +153,22 @@ def process_bag(bag_path: str | Path, robot: Robot, config: PipelineConfig | Non
     bar = _bars(progress)
     total = count_messages(bag_path, [cfg.read.front_topic, cfg.read.back_topic]) if progress else None
     rec = Recording([], [])
-    online = OnlinePipeline(robot, cfg, rec, spill_dir)
+    kept = checkpoints.load() if checkpoints is not None else None
+    online, skip = kept if kept is not None else (OnlinePipeline(robot, cfg, rec, spill_dir), 0)
     t_read = time.perf_counter()
-    for name, item in stream_recording(bag_path, rec, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic,
-                                       cfg.read.base_frame, progress=bar("read", total), times=cfg.read.times,
-                                       imu_topic=cfg.read.imu_topic):
+    for n, (name, item) in enumerate(stream_recording(
+            bag_path, rec, cfg.read.front_topic, cfg.read.back_topic, cfg.read.tf_topic, cfg.read.base_frame,
+            progress=bar("read", total), times=cfg.read.times, imu_topic=cfg.read.imu_topic)):
+        if n < skip:                     # taken before the checkpoint the run resumed from
+            continue
+        if n == skip and kept is not None:
+            rec.problems, online.rec = online.rec.problems, rec
         if name == "imu":
             online.add_imu(item)
         else:
             online.add_cloud(name, item)
+        if checkpoints is not None and checkpoints.due():
+            checkpoints.save(online, n + 1)
     online.finish()
     return finish_result(online, rec, bag_path, time.perf_counter() - t_read)
 
@@ -243,6 +254,8 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from torchsoil.figures import coarse, coarse_extent
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     tp = result.terrain
@@ -252,16 +265,15 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path
                header="t,x,y,z,roll,pitch,yaw", comments="")
     traj.with_suffix(".tmp").replace(traj)
     paths["trajectory"] = traj
-    x0, y0 = tp.origin
-    X, Y = tp.h_front.shape
-    extent = (y0 - tp.dx / 2, y0 + (Y - 0.5) * tp.dx, x0 - tp.dx / 2, x0 + (X - 0.5) * tp.dx)
     hd = tp.h_delta
     lim = float(np.nanpercentile(np.abs(hd), 99)) if np.isfinite(hd).any() else 0.01
     for name, h, kw in (("h_front", tp.h_front, {"cmap": "viridis"}),
                         ("h_back", tp.h_back, {"cmap": "viridis"}),
                         ("h_delta", hd, {"cmap": "RdBu_r", "vmin": -lim, "vmax": lim})):
         fig, ax = plt.subplots(figsize=(4, 8))
-        im = ax.imshow(h, origin="lower", extent=extent, aspect="equal", **kw)
+        h, f = coarse(h)
+        x0, x1, y0, y1 = coarse_extent(tp.origin, tp.dx, tp.h_front.shape, f)
+        im = ax.imshow(h, origin="lower", extent=(y0, y1, x0, x1), aspect="equal", **kw)
         ax.plot(tp.poses[:, 2], tp.poses[:, 1], "k-", lw=0.5)
         ax.set_xlabel("y [m]")
         ax.set_ylabel("x [m]")

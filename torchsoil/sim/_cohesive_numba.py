@@ -109,6 +109,81 @@ def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, it
             counts[b] += 1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _flux_adjoint(L, qx, qy, gx, gy, fe, out, fx, fy, lam, lamL, coef, qbx, qby, rbar):
+    """The face fluxes' adjoints (qbx, qby) from the heights' and loose thickness' (lam,
+    lamL), and the limiter share's (rbar) from them."""
+    X, Y = L.shape
+    rbar[:] = 0.0
+    for i in range(X):
+        for j in range(Y):
+            s = 1.0 if L[i, j] - coef * out[i, j] > 0 else 0.0
+            for k in range(2):
+                q = qx[i, j] if k == 0 else qy[i, j]
+                ii, jj = (i + 1, j) if k == 0 else (i, j + 1)
+                if not (fx[i, j] if k == 0 else fy[i, j]):
+                    qb = 0.0
+                else:
+                    qb = coef * (lam[i, j] - lam[ii, jj])
+                    if q > 0:
+                        so = 1.0 if L[ii, jj] - coef * out[ii, jj] > 0 else 0.0
+                        qb += coef * (lamL[i, j] - so * lamL[ii, jj])
+                    elif q < 0:
+                        qb += coef * (s * lamL[i, j] - lamL[ii, jj])
+                g = gx[i, j] if k == 0 else gy[i, j]
+                if g > 0:
+                    rbar[ii, jj] += qb * fe[i, j] * g
+                else:
+                    rbar[i, j] += qb * fe[i, j] * g
+                if k == 0:
+                    qbx[i, j] = qb
+                else:
+                    qby[i, j] = qb
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _limiter_adjoint(L, O, rbar, Obar, Lbar):
+    """The limiter r = L / O where O > L: the outflow's and loose thickness' adjoints."""
+    X, Y = L.shape
+    for i in range(X):
+        for j in range(Y):
+            if O[i, j] > L[i, j]:
+                Obar[i, j] = -rbar[i, j] * L[i, j] / (O[i, j] * O[i, j])
+                Lbar[i, j] = rbar[i, j] / O[i, j]
+            else:
+                Obar[i, j] = 0.0
+                Lbar[i, j] = 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _stencil_adjoint(gx, gy, nn, fi, fe, r, qbx, qby, Obar, tl, ti, fx, fy, coef, tlbar, tibar, gbx, gby):
+    """Through the stencils' flux factors to the slopes' adjoints (gbx, gby) and the angles'
+    (tlbar, tibar, accumulated)."""
+    X, Y = gx.shape
+    for i in range(X):
+        for j in range(Y):
+            a, c, n = gx[i, j], gy[i, j], nn[i, j]
+            rx = r[i + 1, j] if a > 0 else r[i, j]
+            ry = r[i, j + 1] if c > 0 else r[i, j]
+            lx, ly = fe[i, j] * a, fe[i, j] * c
+            lbx = coef * (Obar[i + 1, j] if lx > 0 else (-Obar[i, j] if lx < 0 else 0.0))
+            lby = coef * (Obar[i, j + 1] if ly > 0 else (-Obar[i, j] if ly < 0 else 0.0))
+            fib = qbx[i, j] * a + qby[i, j] * c
+            feb = qbx[i, j] * a * rx + qby[i, j] * c * ry + lbx * a + lby * c
+            gbx[i, j] = qbx[i, j] * (fi[i, j] + fe[i, j] * rx) + lbx * fe[i, j]
+            gby[i, j] = qby[i, j] * (fi[i, j] + fe[i, j] * ry) + lby * fe[i, j]
+            fib = fib - feb                       # fe = f_loose - f_intact
+            nb = 0.0
+            if n > tl[i, j]:
+                nb += feb * tl[i, j] / (n * n)
+                tlbar[i, j] -= feb / n
+            if n > ti[i, j]:
+                nb += fib * ti[i, j] / (n * n)
+                tibar[i, j] -= fib / n
+            gbx[i, j] = (gbx[i, j] + nb * a / n) if fx[i, j] else 0.0
+            gby[i, j] = (gby[i, j] + nb * c / n) if fy[i, j] else 0.0
+
+
 def _backward_py(hh, hl, counts, lam, lamL, tlbar, tibar, tl, ti, fx, fy, inv_dx, coef):
     B, X, Y = lam.shape
     for b in prange(B):
@@ -120,61 +195,10 @@ def _backward_py(hh, hl, counts, lam, lamL, tlbar, tibar, tl, ti, fx, fy, inv_dx
             _stencil(h, tl[b], ti[b], fx, fy, inv_dx, gx, gy, nn, fi, fe)
             _limit(L, gx, gy, fe, coef, O, r)
             _fluxes(gx, gy, fi, fe, r, qx, qy, out)
-            rbar[:] = 0.0
-            for i in range(X):         # face fluxes' adjoints from the heights' and loose thickness'
-                for j in range(Y):
-                    s = 1.0 if L[i, j] - coef * out[i, j] > 0 else 0.0
-                    for k in range(2):
-                        q = qx[i, j] if k == 0 else qy[i, j]
-                        ii, jj = (i + 1, j) if k == 0 else (i, j + 1)
-                        if not (fx[i, j] if k == 0 else fy[i, j]):
-                            qb = 0.0
-                        else:
-                            qb = coef * (lam[b, i, j] - lam[b, ii, jj])
-                            if q > 0:
-                                so = 1.0 if L[ii, jj] - coef * out[ii, jj] > 0 else 0.0
-                                qb += coef * (lamL[b, i, j] - so * lamL[b, ii, jj])
-                            elif q < 0:
-                                qb += coef * (s * lamL[b, i, j] - lamL[b, ii, jj])
-                        g = gx[i, j] if k == 0 else gy[i, j]
-                        if g > 0:
-                            rbar[ii, jj] += qb * fe[i, j] * g
-                        else:
-                            rbar[i, j] += qb * fe[i, j] * g
-                        if k == 0:
-                            qbx[i, j] = qb
-                        else:
-                            qby[i, j] = qb
-            for i in range(X):         # the limiter r = L / O where O > L
-                for j in range(Y):
-                    if O[i, j] > L[i, j]:
-                        Obar[i, j] = -rbar[i, j] * L[i, j] / (O[i, j] * O[i, j])
-                        Lbar[i, j] = rbar[i, j] / O[i, j]
-                    else:
-                        Obar[i, j] = 0.0
-                        Lbar[i, j] = 0.0
-            for i in range(X):         # stencils: flux factors, slopes, angles
-                for j in range(Y):
-                    a, c, n = gx[i, j], gy[i, j], nn[i, j]
-                    rx = r[i + 1, j] if a > 0 else r[i, j]
-                    ry = r[i, j + 1] if c > 0 else r[i, j]
-                    lx, ly = fe[i, j] * a, fe[i, j] * c
-                    lbx = coef * (Obar[i + 1, j] if lx > 0 else (-Obar[i, j] if lx < 0 else 0.0))
-                    lby = coef * (Obar[i, j + 1] if ly > 0 else (-Obar[i, j] if ly < 0 else 0.0))
-                    fib = qbx[i, j] * a + qby[i, j] * c
-                    feb = qbx[i, j] * a * rx + qby[i, j] * c * ry + lbx * a + lby * c
-                    gbx[i, j] = qbx[i, j] * (fi[i, j] + fe[i, j] * rx) + lbx * fe[i, j]
-                    gby[i, j] = qby[i, j] * (fi[i, j] + fe[i, j] * ry) + lby * fe[i, j]
-                    fib = fib - feb                       # fe = f_loose - f_intact
-                    nb = 0.0
-                    if n > tl[b, i, j]:
-                        nb += feb * tl[b, i, j] / (n * n)
-                        tlbar[b, i, j] -= feb / n
-                    if n > ti[b, i, j]:
-                        nb += fib * ti[b, i, j] / (n * n)
-                        tibar[b, i, j] -= fib / n
-                    gbx[i, j] = (gbx[i, j] + nb * a / n) if fx[i, j] else 0.0
-                    gby[i, j] = (gby[i, j] + nb * c / n) if fy[i, j] else 0.0
+            _flux_adjoint(L, qx, qy, gx, gy, fe, out, fx, fy, lam[b], lamL[b], coef, qbx, qby, rbar)
+            _limiter_adjoint(L, O, rbar, Obar, Lbar)
+            _stencil_adjoint(gx, gy, nn, fi, fe, r, qbx, qby, Obar, tl[b], ti[b], fx, fy, coef, tlbar[b],
+                             tibar[b], gbx, gby)
             for i in range(X):
                 for j in range(Y):
                     s = 1.0 if L[i, j] - coef * out[i, j] > 0 else 0.0

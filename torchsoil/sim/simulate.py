@@ -10,12 +10,12 @@ import torch
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.settings import SimConfig
+from torchsoil.sim.cohesive import relax_two_angle
 from torchsoil.sim.deposition import deposit
 from torchsoil.sim.geometry import WheelGeometry, footprint, wheel_geometry
 from torchsoil.sim.params import ParamSpec
-from torchsoil.sim.cohesive import relax_two_angle
 from torchsoil.sim.relaxation import relax
-from torchsoil.sim.sinkage import reference_height, sink, sink_in_turn
+from torchsoil.sim.sinkage import reference_height, revisit_reference, sink
 
 MAX_TAN_BETA = math.tan(math.radians(89.9))  # beta = 90 deg: nothing flows; avoids tan overflow
 
@@ -108,13 +108,11 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     if h_ref is None:
         h_ref = reference_height(h, config.ref_radius * geom.radius, geom.dx)
     if config.dig_order == "wheel" and geom.order is not None:
-        h_dug, removed = sink_in_turn(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth, geom.order,
-                                      config.ref_radius * geom.radius, geom.dx)
+        h_pre, removed, added, lost = dig_in_turn(h, h_ref, geom, fp, depth, chi, config)
     else:
         h_dug, removed = sink(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth)
-    added, lost = deposit(removed, geom.cell, fp.owner, fp.band, geom.bin,
-                          geom.n_bins * geom.n_wheels, chi)
-    h_pre = h_dug + added
+        added, lost = deposit(removed, geom.cell, fp.owner, fp.band, geom.bin, geom.n_bins * geom.n_wheels, chi)
+        h_pre = h_dug + added
 
     tan_beta = torch.tan(beta).clamp(max=MAX_TAN_BETA)
     relax_args = (geom.dx, geom.domain, config.tau, config.max_iter, config.fixed_iter, config.eps_scale)
@@ -126,6 +124,44 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     cell = geom.dx**2
     return SimResult(rr.h, h_pre, removed.flatten(1).sum(1) * cell,
                      added.flatten(1).sum(1) * cell, lost * cell, rr.iterations, rr.capped)
+
+
+def dig_in_turn(h: torch.Tensor, h_ref: torch.Tensor, geom: WheelGeometry, fp, depth: torch.Tensor,
+                chi: torch.Tensor, config: SimConfig):
+    """The axles dig in the order they meet the ground (sim.dig_order "wheel"), each from the
+    surface the axles ahead of it left, their spoil beside the rut included: the wheels of a
+    turn dig (`sink`) and lay their share chi beside their ruts (`deposit`) before the next
+    turn digs. On the cells an earlier turn dug, a trailing wheel's reference height is that
+    surface's `revisit_reference` (sim.revisit_ref; "footprint": the mean over its whole
+    footprint, the level a wheel that spans the rut rests on), h_ref elsewhere. Relaxation
+    waits until every turn has dug.
+
+    h: (B|1, X, Y) surface before the robot, m; h_ref: (B|1, X, Y) its reference height, m;
+    fp: `footprint(geom, ...)`; depth: (B, E) sinkage of each wheel-cell entry, m; chi: (B,).
+    Returns h_unrelaxed (B, X, Y), removed (B, X, Y) [m], added (B, X, Y) [m], lost (B,) [m]."""
+    B = max(h.shape[0], depth.shape[0])
+    out = h.expand(B, -1, -1)
+    dug = removed = added = lost = None
+    s = fp.s.to(out.dtype)
+    for r in range(int(geom.order.max()) + 1 if geom.order.numel() else 0):
+        m = geom.order == r
+        if not bool(m.any()):
+            continue
+        ref = h_ref if dug is None else revisit_reference(out, h_ref, dug, config.revisit_ref, config.ref_radius,
+                                                          geom.radius, geom.dx)
+        cut, rem = sink(out, ref, geom.cell[m], fp.covered[:, m], s[:, m], depth[:, m])
+        add, gone = deposit(rem, geom.cell, fp.owner, fp.band, geom.bin, geom.n_bins * geom.n_wheels, chi)
+        out = cut + add
+        c = fp.covered[:, m].to(out.dtype)
+        now = torch.zeros(c.shape[0], out[0].numel(), dtype=out.dtype, device=out.device)
+        now = now.scatter_reduce(1, geom.cell[m].expand(c.shape[0], -1), c, "amax").reshape(-1, *out.shape[1:]) > 0
+        dug = now if dug is None else dug | now
+        removed, added, lost = ((rem, add, gone) if removed is None else
+                                (removed + rem, added + add, lost + gone))
+    if removed is None:
+        zero = torch.zeros_like(out)
+        return out, zero, zero, out.new_zeros(B)
+    return out, removed, added, lost
 
 
 def simulate_path(h_front: torch.Tensor, grid: Grid, poses, robot: Robot, theta: torch.Tensor,

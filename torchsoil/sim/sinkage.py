@@ -49,6 +49,31 @@ def reference_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
     return num / den
 
 
+def contact_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
+    """Reference height of a wheel coming back over ground that wheels dug before: the mean of
+    h over the wheel's whole footprint, a disc of `radius` [m] (half the wheel width).
+
+    A wheel cannot follow relief narrower than itself: on a rut of its own width it rests on
+    the walls and shoulders as much as on the floor. Pressed into soft ground, a rigid
+    footprint comes to the level at which it holds the same soil as flat ground would (the
+    shoulders it presses fill the hollow beneath it): the mean height under it, from which it
+    sinks d. On flat or planar ground this is the surface itself, as `reference_height` over
+    the paper's smaller disc. (B, X, Y) -> (B, X, Y), m."""
+    return reference_height(h, radius, dx)
+
+
+def revisit_reference(h: torch.Tensor, h_ref: torch.Tensor, dug: torch.Tensor, how: str, ref_radius: float,
+                      radius: float, dx: float) -> torch.Tensor:
+    """Reference height over a surface h (B, X, Y) [m] part of which earlier wheel passes dug
+    (`dug`, (X, Y) or (B, X, Y) bool): `contact_height` of h there (how "footprint", the
+    footprint radius `radius` [m]) or the disc of ref_radius * radius (how "disc"), h_ref
+    (B|1, X, Y) [m] elsewhere."""
+    if how not in ("footprint", "disc"):
+        raise ValueError(f"revisit reference must be 'footprint' or 'disc', got {how!r}")
+    ref = contact_height(h, radius, dx) if how == "footprint" else reference_height(h, ref_radius * radius, dx)
+    return torch.where(dug, ref, h_ref)
+
+
 def sink(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torch.Tensor,
          s: torch.Tensor, depth: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Dig every footprint at once (the min over poses commutes because h_ref is fixed).
@@ -72,29 +97,3 @@ def sink(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torc
     floor = floor.scatter_reduce(1, cell.expand(B, -1), target, "amin")
     h_dug = torch.minimum(h, floor.reshape(h.shape))
     return h_dug, h - h_dug
-
-
-def sink_in_turn(h: torch.Tensor, h_ref: torch.Tensor, cell: torch.Tensor, covered: torch.Tensor,
-                 s: torch.Tensor, depth: torch.Tensor, order: torch.Tensor, radius: float,
-                 dx: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Dig the footprints axle by axle in the order the wheels meet the ground: a trailing
-    wheel digs again from the surface the wheels before it left, its reference height that
-    surface smoothed over a disc of `radius` [m] where they dug (h_ref elsewhere).
-
-    Shapes as in `sink`, plus order: (E,) int64 turn of each entry (0 first; WheelGeometry.order).
-    With one turn this is `sink`. Returns h_dug (B, X, Y) and removed h - h_dug >= 0, m."""
-    B = max(h.shape[0], depth.shape[0])
-    h0 = h.expand(B, -1, -1)
-    out, dug = h0, None
-    for r in range(int(order.max()) + 1 if order.numel() else 0):
-        m = order == r
-        if not bool(m.any()):
-            continue
-        ref = h_ref if dug is None else torch.where(dug.reshape(dug.shape[0], *h.shape[1:]),
-                                                    reference_height(out, radius, dx), h_ref)
-        out, _ = sink(out, ref, cell[m], covered[:, m], s[:, m], depth[:, m])
-        c = covered[:, m].to(out.dtype)
-        now = torch.zeros(c.shape[0], h[0].numel(), dtype=out.dtype, device=out.device)
-        now = now.scatter_reduce(1, cell[m].expand(c.shape[0], -1), c, "amax") > 0
-        dug = now if dug is None else dug | now
-    return out, h0 - out

@@ -107,7 +107,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     near a cell starts a new visit (default: twice the wheelbase plus a wheel width); section,
     width_scale: the tyre (`section_profile`; footprint width / the robot's). With
     config.dig_order "wheel" the axles dig in turn, each trailing wheel again from the rut
-    ahead of it, its reference height smoothed from that surface where it was dug.
+    ahead of it with the spoil of the wheels ahead beside it, resting where they dug on that
+    surface's mean over its footprint (config.revisit_ref "footprint", as a wheel on the ruts
+    of an earlier visit).
     """
     config = config or WorldConfig()
     soil = as_world_soil(soil)
@@ -126,9 +128,13 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     tan_beta = np.tan(sf["beta"])
     tan_intact = fx.intact_tan_beta(eff, tan_beta, sf["moisture"])
     cohesive = "cohesive_walls" in eff
-    loose = np.zeros(grid.shape)        # cohesive soil: thickness of moved soil on the intact ground, m
+    loose = np.zeros(grid.shape)        # thickness of moved soil on the intact ground, m (cohesive soil)
     track_width = float(np.ptp(robot.wheels[:, 1])) or 1.0
     gap = revisit_gap if revisit_gap is not None else 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
+    radius0 = robot.wheel_width * width_scale / 2
+    # a wheel on ground wheels dug before (a later visit, a trailing axle) rests on it at the
+    # mean over its footprint (revisit_ref "footprint"; sim.sinkage.contact_height)
+    again_radius = radius0 if config.revisit_ref == "footprint" else config.ref_radius * radius0
 
     h = h0.copy()
     # the reference height of a first visit comes from the surface before the robot
@@ -151,6 +157,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     n_axles = len(np.unique(np.round(robot.wheels[:, 0], 6)))
     lead = [h.copy() for _ in range(n_axles - 1)] if config.dig_order == "wheel" else []
     turn_dug = np.zeros((n_axles if lead else 0, *grid.shape), dtype=bool)
+    # per turn r, the deposits of the wheels of turns <= r, laid on lead[r] once those wheels
+    # have passed: a trailing wheel finds the spoil of the wheels ahead beside their ruts
+    lead_held = [HeldDeposits() for _ in lead]
     wheel_passes = np.zeros(grid.shape, dtype=np.int64)
     dug_visits = np.zeros(grid.shape, dtype=np.int64)
 
@@ -159,20 +168,11 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         sel = pending if which is None else pending & which
         if not sel.any():
             return
-        before = h.copy() if cohesive else None
+        laid = h.copy()
         held.lay(h, sel, dug)
-        ii, jj = np.nonzero(sel)
-        box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
-        args = (dx, torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None, config.eps_scale)
-        hb = torch.from_numpy(h[box].copy())[None]
-        if cohesive:                    # deposits are loose; cut and native ground intact
-            loose[:] += h - before
-            rr = relax_two_angle(hb, torch.from_numpy(loose[box].copy())[None], torch.from_numpy(tan_beta[box])[None],
-                                 torch.from_numpy(tan_intact[box])[None], *args, backend=config.backend)
-            loose[box] = rr.loose[0].numpy()
-        else:
-            rr = relax(hb, torch.from_numpy(tan_beta[box])[None], *args, config.backend)
-        h[box] = rr.h[0].numpy()
+        loose[:] += h - laid                # deposits are loose soil (cohesive soil's state)
+        _forget(lead_held, sel, dug)        # laid on h above; the next visit's turns start from h
+        _relax_box(h, loose, sel, tan_beta, tan_intact if cohesive else None, dx, config)
         done = sel.copy()
         pending[done] = False
         dug_visits[done] += dug[done]
@@ -186,7 +186,6 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     pass_time = np.full((MAX_VISITS, *grid.shape), np.nan)
     pass_dist = np.full(grid.shape, np.inf)             # base_link's closest so far in the visit under way
     t_wheel = np.full(grid.shape, np.nan)
-    radius0 = robot.wheel_width * width_scale / 2
     reach = radius0 * 1.5 + (config.band_width + 1) * dx + config.relax_margin * robot.wheel_width + 2 * dx
     wxy = robot.wheels[:, :2]
     K = len(robot.wheels)
@@ -228,7 +227,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
                 states[k:, i0:i1, j0:j1] = np.where(sel, hw[None], states[k:, i0:i1, j0:j1])
             again = new & (v >= 1)
             if again.any():
-                ref = reference_height(torch.from_numpy(hw)[None], config.ref_radius * radius0, dx)[0].numpy()
+                ref = reference_height(torch.from_numpy(hw)[None], again_radius, dx)[0].numpy()
                 h_ref[win] = np.where(again, ref, h_ref[win])
             n_visits[win] = v + new
         last_arc[win] = np.where(near, float(traj.arc[idx[-1]]), last_arc[win])
@@ -241,7 +240,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         fpose = fx.pose_depth_factor(eff, sp, ac, pi, ro, yr, robot.wheels[:, 1], track_width)
         fcell = np.take_along_axis(fpose, pidx.reshape(K, -1), 1).reshape(pidx.shape)
         ref, turn = _turn_reference(h_ref[win], lead, turn_dug, win, gp, pidx, robot.wheels[:, 0],
-                                    config.ref_radius * radius0, dx)
+                                    again_radius, dx)
         passes = _pass_index(dug_visits[win], turn, turn_dug[:, i0:i1, j0:j1], wheel_passes[win])
         depth = (sf["d"][win][None] * track_scale[robot.track][:, None, None] * fcell
                  * np.asarray(fx.pass_depth_factor(eff, passes)))
@@ -254,6 +253,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         _advance_turns(lead, win, turn, targets, turn_dug, covered)
         held.add(deposits, (i0, j0), grid.shape)
         loose[win][covered.any(0)] = 0.0               # a wheel's cut (or pressed) ground is intact
+        _lead_deposits(lead, lead_held, deposits, turn, covered, turn_dug, (i0, j0))
         pending[win] |= domain
         dug[win] |= covered.any(0)
         t_cov = np.where(covered, t_pose, -np.inf).max(0)
@@ -272,6 +272,24 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
     return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf,
                        pass_time[:V].copy())
+
+
+def _relax_box(h: np.ndarray, loose: np.ndarray, sel: np.ndarray, tan_beta: np.ndarray,
+               tan_intact: np.ndarray | None, dx: float, config: WorldConfig) -> None:
+    """Relax h (X, Y) [m] in place over the bounding box of the (X, Y) bool `sel` cells, at the
+    per-cell tan(beta); for cohesive soil (tan_intact (X, Y) given) with the two-angle
+    relaxation, intact ground standing up to tan_intact and the loose thickness `loose` (X, Y)
+    [m] updated in place."""
+    ii, jj = np.nonzero(sel)
+    box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
+    args = (dx, torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None, config.eps_scale)
+    hb, tb = torch.from_numpy(h[box].copy())[None], torch.from_numpy(tan_beta[box])[None]
+    if tan_intact is None:
+        h[box] = relax(hb, tb, *args, config.backend).h[0].numpy()
+        return
+    rr = relax_two_angle(hb, torch.from_numpy(loose[box].copy())[None], tb, torch.from_numpy(tan_intact[box])[None],
+                         *args, backend=config.backend)
+    h[box], loose[box] = rr.h[0].numpy(), rr.loose[0].numpy()
 
 
 def _pass_times(pass_time: np.ndarray, pass_dist: np.ndarray, win, under_way: np.ndarray, new: np.ndarray,
@@ -323,6 +341,32 @@ def _advance_turns(lead: list, win, turn: np.ndarray | None, targets: np.ndarray
         turn_dug[(slice(r, r + 1), *win)] |= (covered & (turn == r)).any(0)[None]
 
 
+def _lead_deposits(lead: list, lead_held: list, deposits: list, turn: np.ndarray | None, covered: np.ndarray,
+                   turn_dug: np.ndarray, corner: tuple[int, int]) -> None:
+    """Under dig_order "wheel", in place: lay on each turn's surface `lead[r]` the deposits of
+    the wheels of turns <= r (`lead_held[r]`, this chunk's `deposits` of `_step` added, the
+    chunk's window starting at `corner`) over the bins those wheels have passed, outside the
+    cells dug in this visit (turn_dug (R, X, Y)). A wheel's turn is its most common one over
+    its footprint cells (covered, turn (K, X, Y))."""
+    if not lead:
+        return
+    none = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), (np.zeros(0, np.int64),) * 2)
+    k_turn = [int(np.bincount(turn[k][covered[k]]).argmax()) if covered[k].any() else len(lead) + 1
+              for k in range(len(deposits))]
+    active = {k: int(dep[0].min()) for k, dep in enumerate(deposits) if len(dep[0])}
+    shape = lead[0].shape
+    dug = turn_dug.any(0)
+    for r, (surf, lh) in enumerate(zip(lead, lead_held, strict=True)):
+        lh.add([dep if k_turn[k] <= r else none for k, dep in enumerate(deposits)], corner, shape)
+        lh.lay_passed(surf, active, dug)
+
+
+def _forget(lead_held: list, settled: np.ndarray, dug: np.ndarray) -> None:
+    """Drop from each turn's held deposits those whose band reaches the settled cells."""
+    for lh in lead_held:
+        lh.lay(np.zeros(settled.shape), settled, dug)
+
+
 def _pass_index(dug_visits: np.ndarray, turn: np.ndarray | None, turn_dug: np.ndarray,
                 wheel_passes: np.ndarray) -> np.ndarray:
     """The pass each wheel runs over each cell, 1 = first: (1, X, Y) one plus the robot's
@@ -367,15 +411,24 @@ class HeldDeposits:
         `settled` cells, on their band cells outside the (X, Y) bool `dug` ones (on all their
         band cells where a wheel dug each). A bin with a volume but no band cell of its own
         gives it to the nearest bin of the same wheel that has some."""
-        flat, settled_f, dug_f = h.reshape(-1), settled.reshape(-1), dug.reshape(-1)
+        settled_f = settled.reshape(-1)
+        self._lay(h, lambda key, c: bool(settled_f[c].any()), dug)
+
+    def lay_passed(self, h: np.ndarray, active: dict, dug: np.ndarray) -> None:
+        """As `lay`, the deposits of the bins each wheel has passed: those more than one bin
+        before the first bin of wheel k in `active` {k: first arc bin its footprint dug in
+        the chunk under way} (all of a wheel not in it)."""
+        self._lay(h, lambda key, c: key[1] < active.get(key[0], np.inf) - 1, dug)
+
+    def _lay(self, h: np.ndarray, ready, dug: np.ndarray) -> None:
+        flat, dug_f = h.reshape(-1), dug.reshape(-1)
         cells = {key: np.unique(np.concatenate(parts)) for key, parts in self.cells.items()}
-        ready = [key for key, c in cells.items() if settled_f[c].any()]
         for key in [key for key in self.volume if key not in cells]:
             near = [c for c in cells if c[0] == key[0]]
             if near:
                 to = min(near, key=lambda c: abs(c[1] - key[1]))
                 self.volume[to] = self.volume.get(to, 0.0) + self.volume.pop(key)
-        for key in ready:
+        for key in [key for key, c in cells.items() if ready(key, c)]:
             c = cells[key]
             use = c[~dug_f[c]] if (~dug_f[c]).any() else c
             flat[use] += self.volume.pop(key, 0.0) / len(use)

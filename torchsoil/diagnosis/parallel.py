@@ -1,0 +1,132 @@
+"""A diagnosis's independent passes on a process pool or a Ray cluster.
+
+Most of a diagnosis is estimator passes that do not depend on each other: the tyre sections and
+dig orders scored on the same windows, and every candidate at its trial coefficients. `PassPool`
+runs them ahead of the diagnosis as tasks of a fleet engine (torchsoil.fleet: `local` process
+pools or `ray`), each task keeping its result in the diagnosis's `PassCache`; the diagnosis then
+runs as it does in one process and reads them back there. Its results are those of a run in one
+process; a task that fails only costs time, as the diagnosis then runs that pass itself.
+
+Each worker loads the pair and the estimator's whole-drive state (path index, map nuisance, view,
+smoothed surfaces) once, from files the pool writes beside the cache, and keeps them for its
+next tasks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+from torchsoil.diagnosis.checkpoint import PassCache, portable
+
+_LOADED: dict[tuple, tuple] = {}     # in a worker: the files last shared -> their unpickled contents
+
+
+def _load(files: tuple[str, ...]) -> tuple:
+    if files not in _LOADED:
+        _LOADED.clear()                   # an older state (or another diagnosis's): let it go
+        contents = []
+        for path in files:
+            with open(path, "rb") as fh:
+                contents.append(pickle.load(fh))
+        _LOADED[files] = tuple(contents)
+    return _LOADED[files]
+
+
+def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
+    """In a worker: one section score (`fit.section_cost`), one candidate pass
+    (`fit.candidate_pass`) or one candidate's refinements (`fit.fit_extension`), kept in the
+    cache at cache_dir."""
+    from torchsoil.diagnosis import catalogue
+    from torchsoil.diagnosis.covariates import DriveSignals
+    from torchsoil.diagnosis.fit import candidate_pass, fit_extension, section_cost, with_section
+    from torchsoil.windows import WindowStore
+
+    pair, (shared, base) = _load(tuple(files))
+    cache = PassCache.open(cache_dir, every)
+    if kind == "section":
+        est, sim, sec, every, model = args
+        section_cost(pair, est, sim, sec, every, model, shared, cache)
+        return
+    est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
+    pair = with_section(pair, section)
+    base = dataclasses.replace(base, **shared, store=WindowStore())
+    drive = DriveSignals.from_poses(pair.poses, pair.robot)
+    ext = catalogue.get(ext_id)
+    if kind == "pass":
+        candidate_pass(pair, est, sim, ext, k, drive, base, None, offsets, sections, cache)
+    else:
+        fit_extension(pair, est, sim, ext, drive, base, block_m, refine_steps, None, None, offsets, sections, cache)
+
+
+class PassPool:
+    """Runs passes of one diagnosis on `engine` (torchsoil.fleet.LocalEngine or RayEngine,
+    entered), keeping them in `cache` (a PassCache: for a Ray cluster, a folder every node
+    reads and writes). progress: optional tqdm-like bar (its postfix tells the tasks done)."""
+
+    def __init__(self, engine, cache: PassCache, progress=None):
+        self.engine, self.cache, self.progress = engine, cache, progress
+        self.files: tuple[str, str] | None = None
+        self.shared = 0                   # states shared so far (each in files of its own)
+        self.failed: list[str] = []
+
+    def share(self, pair, shared: dict, base=None) -> None:
+        """The pair and the estimator's whole-drive state the tasks start from (run_pass's
+        keywords: index, nuisance, view, surfaces; the store is each worker's own), and the
+        base model's pass once it is done (checkpoint.portable, without its stitched map).
+        Written to new files each time, so that workers do not keep an older state."""
+        n, self.shared = self.shared, self.shared + 1
+        state = ({k: v for k, v in shared.items() if k != "store"},
+                 None if base is None else dataclasses.replace(portable(base), h_sim=None))
+        files = (str(self.cache.dir / f"pool-pair-{n}.pool"), str(self.cache.dir / f"pool-state-{n}.pool"))
+        for path, value in zip(files, (pair, state), strict=True):
+            tmp = Path(path).with_suffix(".tmp")
+            with tmp.open("wb") as fh:
+                pickle.dump(value, fh, protocol=pickle.HIGHEST_PROTOCOL)
+            tmp.replace(path)
+        if self.files is not None:
+            for old in self.files:
+                Path(old).unlink(missing_ok=True)
+        self.files = files
+
+    def run(self, kind: str, jobs: list[tuple]) -> None:
+        """Each job's arguments (`_pass_task`) as a task; failed ones are noted in `failed` (the
+        diagnosis runs those passes itself)."""
+        if not jobs:
+            return
+        if self.files is None:
+            raise RuntimeError("PassPool.share first")
+        calls = [(self.files, str(self.cache.dir), self.cache.every, kind, a) for a in jobs]
+        for n, (_, out) in enumerate(self.engine.imap(_pass_task, calls), start=1):
+            if out.error:
+                self.failed.append(out.error)
+                print(f"a parallel pass failed (run here instead): {out.error}", file=sys.stderr)
+            if self.progress is not None:
+                self.progress.set_postfix_str(f"{kind} tasks {n}/{len(jobs)}")
+
+    def close(self) -> None:
+        for path in self.files or ():
+            Path(path).unlink(missing_ok=True)
+
+
+@contextmanager
+def pass_pool(workers: int = 1, engine: str = "local", cache: PassCache | None = None, progress=None):
+    """A PassPool on `workers` tasks at once (the local engine; with Ray: at most `workers`
+    when above 1, RAY_ADDRESS's cluster or a local Ray instance), or None for workers 1 on
+    the local engine (the diagnosis then runs in this process alone)."""
+    if workers <= 1 and engine == "local":
+        yield None
+        return
+    if cache is None:
+        raise ValueError("passes run in parallel are kept in a PassCache: give diagnose() a cache")
+    from torchsoil.fleet import make_engine
+
+    with make_engine(engine, workers if workers > 1 else None) as eng:
+        pool = PassPool(eng, cache, progress)
+        try:
+            yield pool
+        finally:
+            pool.close()
