@@ -9,7 +9,7 @@ import torch
 
 from tests.drive_by_hand import racetrack
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.catalogue import CATALOGUE, ExtensionModel, PassCounts, depth_factor
+from torchsoil.diagnosis.catalogue import CATALOGUE, ExtensionModel, PassCounts, depth_factor, intact_angle
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.grid import Grid
 from torchsoil.robot import paper_platform
@@ -112,9 +112,19 @@ def test_wider_footprint_and_steeper_walls_change_the_rut(setup):
     hw = simulate(h, geom, theta, modifiers=wide.modifiers(Window(geom), theta)).h
     assert (h - hw > 0.005).sum() > (h - base > 0.005).sum()          # more ground dug
     wall = ExtensionModel(CATALOGUE["cohesive_walls"], 1.5, drive, robot)
-    hs = simulate(h, geom, theta, modifiers=wall.modifiers(Window(geom), theta)).h
-    rut = (h - base) > 0.005
-    assert (h - hs)[rut].sum() > 1.03 * (h - base)[rut].sum()          # steep walls: less soil slides back
+    mod = wall.modifiers(Window(geom), theta)
+    tan_beta = torch.tan(theta[:, -1])
+    assert torch.allclose(mod.tan_beta_intact, 2.5 * tan_beta)        # intact ground: tan(beta) (1 + k)
+    assert not torch.allclose(simulate(h, geom, theta, modifiers=mod).h, base)
+    none = ExtensionModel(CATALOGUE["cohesive_walls"], 0.0, drive, robot)
+    assert torch.equal(simulate(h, geom, theta, modifiers=none.modifiers(Window(geom), theta)).h, base)  # k 0
+
+
+def test_intact_angle_of_two_angle_soil():
+    assert intact_angle(32.0, math.tan(math.radians(75)) / math.tan(math.radians(32)) - 1) == pytest.approx(75.0)
+    assert intact_angle(30.0, 0.0) == pytest.approx(30.0)
+    with pytest.raises(ValueError, match="k_wall"):
+        intact_angle(30.0, -0.1)
 
 
 def test_coefficient_outside_bounds_is_named(setup):

@@ -194,10 +194,30 @@ def test_modifiers(setup):
     wide = simulate(h, geom, theta(chi=0.0), modifiers=Modifiers(radius_scale=torch.tensor([1.3],
                                                                                           dtype=torch.float64)))
     assert wide.removed.item() > 1.2 * base.removed.item()
-    steep = simulate(h, geom, theta(chi=1.0, beta=20),
-                     modifiers=Modifiers(tan_beta_wall=torch.tensor([math.tan(math.radians(60))],
-                                                                    dtype=torch.float64)))
-    assert not torch.allclose(steep.h, simulate(h, geom, theta(chi=1.0, beta=20)).h)
+
+
+def test_cohesive_soil_hook(setup):
+    """A second (intact) angle: deposits are loose and settle at beta, the cut stands steeper;
+    an intact angle equal to beta is the one-angle model, and no second angle is today's."""
+    *_, geom, h = setup
+    th = theta(chi=1.0, beta=25)
+    base = simulate(h, geom, th)
+
+    def intact(deg):
+        return Modifiers(tan_beta_intact=torch.tensor([math.tan(math.radians(deg))], dtype=torch.float64))
+
+    assert torch.equal(simulate(h, geom, th, modifiers=Modifiers()).h, base.h)
+    assert torch.allclose(simulate(h, geom, th, modifiers=intact(25)).h, base.h, atol=1e-14, rtol=0)
+    bare = simulate(h, geom, theta(chi=0.0, beta=25), modifiers=intact(85))
+    assert torch.equal(bare.h, bare.h_unrelaxed) and bare.iterations.item() == 0   # the cut stands
+    assert not torch.allclose(simulate(h, geom, theta(chi=0.0, beta=25)).h, bare.h_unrelaxed)
+    steep = simulate(h, geom, th, modifiers=intact(85))
+    assert abs(steep.h.sum().item() - steep.h_unrelaxed.sum().item()) < 1e-9
+    deposit = steep.h_unrelaxed - bare.h_unrelaxed                        # the loose soil
+    assert deposit.max().item() > 1e-3 and not torch.allclose(steep.h, steep.h_unrelaxed)
+    assert (steep.h >= steep.h_unrelaxed - 1e-12)[deposit == 0].all()     # intact ground never loses
+    with pytest.raises(ValueError, match="tan\\(beta_loose\\) <= tan\\(beta_intact\\)"):
+        simulate(h, geom, th, modifiers=intact(20))
 
 
 def test_turning_and_standing_still(robot):

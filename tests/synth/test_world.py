@@ -116,6 +116,27 @@ def test_world_matches_the_project_simulator_on_uniform_soil(segments, chunk):
     assert np.abs(w.h_after - w.h_before)[changed].mean() > 20 * diff[changed].mean()
 
 
+def test_cohesive_world_matches_the_project_simulator_with_two_angles():
+    """cohesive_walls in the world is two-angle soil, as the simulator's Modifiers.tan_beta_intact:
+    ground not moved stands to tan(beta) x factor(c0 + moisture), the deposits settle at beta."""
+    import torch
+
+    from torchsoil.sim import Modifiers, ParamSpec, simulate_path
+
+    law = {"form": "linear", "k": 1.0, "c0": 1.5}                       # factor 2.5: 55 deg over 30
+    truth = build_truth(scenario(STRAIGHT, {"cohesive_walls": law}, soil=SOIL_30))
+    w = truth.world
+    dh = w.h_after - w.h_before
+    theta = ParamSpec.base(2).make(1, d1=0.03, d2=0.03, chi=0.3, beta=math.radians(30))
+    intact = Modifiers(tan_beta_intact=torch.tensor([2.5 * math.tan(math.radians(30))], dtype=torch.float64))
+    h0 = torch.as_tensor(w.h_before)[None]
+    two, one = (simulate_path(h0, w.grid, truth.traj.poses, truth.robot, theta, modifiers=m).h[0].numpy()
+                for m in (intact, None))
+    changed = np.abs(dh) > 1e-4
+    assert np.abs(two - w.h_after)[changed].mean() < 3e-4
+    assert np.abs(one - w.h_after)[changed].mean() > 2 * np.abs(two - w.h_after)[changed].mean()
+
+
 def test_wheels_dig_in_turn_in_the_world():
     """world.dig_order "wheel": the rear wheel digs again from the front one's rut, resting on
     it at the mean over its footprint (37 cells of r = 3.5: lateral offsets 0, +-1, +-2, +-3 in

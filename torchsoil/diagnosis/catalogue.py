@@ -11,12 +11,18 @@ saturation): the diagnosis must still name the term.
 | speed_dependent_sinkage | sinkage x (1 + k * (v / v_mean - 1)), v_mean over the ground driven | k [-] |
 | slip_sinkage | sinkage x (1 + k * (accel / g + sin(-pitch))) | k [-] |
 | lateral_load_transfer | wheel sinkage x (1 + k * side * (a_lat / g + sin(roll))), side = -1 left, +1 right | k [-] |
-| cohesive_walls | dug cells settle at tan(beta) * (1 + k) | k >= 0 [-] (walls up to vertical) |
+| cohesive_walls | intact ground stands to tan(beta) * (1 + k), moved soil settles at beta | k >= 0 [-] |
 | footprint_width | footprint radius x (1 + k) | k [-] |
 
 The per-window base parameters (d_1..d_T, chi, beta) are still fitted; the sinkage factors
 are normalised by nothing but their covariate, so d keeps its meaning at the covariate's
 reference (first pass, mean speed, no traction demand, no lateral load).
+
+Cohesive soil has two angles: ground that has not moved (native, or freshly cut by a wheel)
+stands up to the intact angle, soil that has moved (the deposits, and whatever slid since)
+settles at its loose angle, and a face flows beyond the loose angle only as far as it carries
+loose soil (`sim.cohesive`). The fitted beta stays the loose angle, the angle deposited soil
+settles at; the coefficient gives the intact one (`intact_angle`).
 
 Passes follow a power law in the pass number (1 + n) rather than a line: a line through the
 second pass's factor goes negative by the third pass of strong hardening, while soil hardens
@@ -74,11 +80,30 @@ CATALOGUE: dict[str, Extension] = {e.id: e for e in (
               "sinkage grows with traction demand (acceleration, climbing)"),
     Extension("lateral_load_transfer", "k_lateral", (0.0, 8.0), (1.5, 3.0), "lateral_load", "rut_floor",
               "depth", "load, and so sinkage, shifts to the downhill or outer wheels with roll and turning"),
-    Extension("cohesive_walls", "k_wall", (0.0, 9.0), (0.5, 1.5, 4.0), None, "rut_wall", "wall",
+    Extension("cohesive_walls", "k_wall", (0.0, 20.0), (0.5, 1.5, 4.0), None, "rut_wall", "wall",
               "rut walls stand steeper than the angle at which deposited soil settles"),
     Extension("footprint_width", "k_width", (-0.4, 0.45), (-0.2, 0.15, 0.3), None, "rut_wall", "radius",
               "the contact patch is wider or narrower than the nominal wheel width"),
 )}
+
+
+def intact_angle(beta_deg: float, k_wall: float) -> float:
+    """The intact angle [deg] of two-angle soil whose loose angle is beta_deg [deg] at the
+    cohesive_walls coefficient k_wall: atan(tan(beta) * (1 + k)), within 89 deg."""
+    if k_wall < 0 or not 0 < beta_deg < 90:
+        raise ValueError(f"need k_wall >= 0 and 0 < beta < 90 deg, got k_wall {k_wall}, beta {beta_deg} deg")
+    return math.degrees(math.atan(min(math.tan(math.radians(beta_deg)) * (1.0 + k_wall), MAX_TAN)))
+
+
+def reported_parameters(ext: Extension, k: float, rows: list[dict]) -> dict[str, float]:
+    """diagnosis.json's `extension_parameters` of a term at coefficient k: the coefficient,
+    and for cohesive_walls both angles [deg], the loose one (the median of the windows' fitted
+    beta, `rows` of the pass at k, beta in deg) and the intact one (`intact_angle`)."""
+    out = {ext.parameter: round(float(k), 4)}
+    if ext.id == "cohesive_walls":
+        loose = float(np.nanmedian([r["beta"] for r in rows]))
+        out |= {"beta_loose_deg": round(loose, 2), "beta_intact_deg": round(intact_angle(loose, k), 2)}
+    return out
 
 
 def signs(ext: Extension) -> int:
@@ -139,7 +164,7 @@ def effect_size(ext: Extension, k: float, drive: DriveSignals, robot: Robot, qua
     covariate terms (speed, slip, lateral load) the `quantile` of |sinkage factor - 1| over
     the ground driven and the wheels (`ground_times`: the change it makes on a twentieth of
     the drive at least); for the others |k|, the change of the second pass's sinkage
-    (hardening), of the footprint radius, or of the walls' tan(beta). A term that changes the
+    (hardening), of the footprint radius, or of tan(beta) on intact ground. A term that changes the
     physics by a percent is not the cause of a mismatch, however steady its gain
     (DiagnosisConfig.effect_materiality)."""
     if ext.kind != "depth" or ext.id == "multi_pass_hardening":
@@ -253,8 +278,9 @@ class ExtensionModel:
             return Modifiers(depth_scale=f[None].expand(B, *f.shape))
         if self.ext.kind == "radius":
             return Modifiers(radius_scale=torch.full((B,), 1.0 + self.k, **kw))
-        if self.ext.kind == "wall":
+        if self.ext.kind == "wall":                    # k = 0: one angle, the base model itself
+            if self.k == 0:
+                return Modifiers()
             beta = theta[:, ParamSpec.base(wd.geom.n_tracks).index("beta")]
-            tan_wall = (torch.tan(beta) * (1.0 + self.k)).clamp(max=MAX_TAN)
-            return Modifiers(tan_beta_wall=tan_wall)
+            return Modifiers(tan_beta_intact=(torch.tan(beta) * (1.0 + self.k)).clamp(max=MAX_TAN))
         raise ValueError(f"unknown extension kind {self.ext.kind!r}")

@@ -107,7 +107,7 @@ def shape_text(runs) -> str:
 
 
 WHAT_CHANGES = {"multi_pass_hardening": "sinkage of a second pass over the same ground",
-                "footprint_width": "footprint radius", "cohesive_walls": "slope (tangent) dug cells stand at"}
+                "footprint_width": "footprint radius", "cohesive_walls": "slope (tangent) intact ground stands at"}
 
 
 def effect_text(f) -> str:
@@ -192,8 +192,12 @@ def _explain(diag) -> str:
         return revisit_text(rev, s, span)
     if s["verdict"] == "missing_physics":
         f = diag.best
-        (k, v), = s["extension_parameters"].items()
-        return (f"The base model leaves out: {f.ext.description} ({f.ext.id}). Adding it with {k} = {v:.3g} "
+        par = s["extension_parameters"]
+        k, v = f.ext.parameter, f"{par[f.ext.parameter]:.3g}"
+        if "beta_intact_deg" in par:
+            v += (f" (intact ground stands up to {par['beta_intact_deg']:.0f} deg, moved soil settles at "
+                  f"{par['beta_loose_deg']:.0f} deg)")
+        return (f"The base model leaves out: {f.ext.description} ({f.ext.id}). Adding it with {k} = {v} "
                 f"lowers the cost of predicting the next window from {_mm(before['prediction'])} to "
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
                 f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "

@@ -449,7 +449,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     before = {"residual": float(np.nanmean(base.residual)), "prediction": float(np.nanmean(base.prediction))}
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
-    params = {best.ext.parameter: round(best.k, 4)} if best is not None else {}
+    params = ({} if best is None else
+              catalogue.reported_parameters(best.ext, best.k, best.passes[best.k].rows))
     named = best.ext.id if best is not None else None
     if _named_on_visits(revisit, best):      # hardening named on the ground driven again
         verdict, cross, covariate, best, named = "missing_physics", "rut_floor", "passes", None, "multi_pass_hardening"

@@ -372,7 +372,8 @@ def truth_coefficients(truth: dict) -> dict[str, float]:
     per-window values, where they carry it: k_speed from a line of sinkage against speed
     (reference: the mean speed), k_lateral from (d_right - d_left) / (d_right + d_left) against
     the lateral load v^2 curvature / g + sin(roll) (track 1 on the right), k_pass = g - 1 for
-    sinkage d g^pass (one earlier pass), k_wall = tan(beta) / tan(beta_loose) - 1 (median)."""
+    sinkage d g^pass (one earlier pass), k_wall = tan(beta) / tan(beta_loose) - 1 (median; with
+    both angles [deg], the truth's beta being the intact one)."""
     w = truth.get("windows") or []
     effect = (truth.get("expected") or {}).get("missing_physics")
     if not w:
@@ -388,9 +389,11 @@ def truth_coefficients(truth: dict) -> dict[str, float]:
         return {"k_lateral": float(np.sum(lat * y) / np.sum(lat * lat))}
     if effect == "multi_pass_hardening" and "g" in w[0]:
         return {"k_pass": float(np.median([x["g"] for x in w])) - 1.0}
-    if effect == "cohesive_walls" and "beta_loose_deg" in w[0]:
+    if effect == "cohesive_walls" and "beta_loose_deg" in w[0]:     # beta_deg: the intact angle
         return {"k_wall": float(np.median([math.tan(math.radians(x["beta_deg"])) / math.tan(math.radians(
-            x["beta_loose_deg"])) for x in w])) - 1.0}
+            x["beta_loose_deg"])) for x in w])) - 1.0,
+                "beta_loose_deg": float(np.median([x["beta_loose_deg"] for x in w])),
+                "beta_intact_deg": float(np.median([x["beta_deg"] for x in w]))}
     return {}
 
 

@@ -10,6 +10,7 @@ import torch
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.settings import SimConfig
+from torchsoil.sim.cohesive import relax_two_angle
 from torchsoil.sim.deposition import deposit
 from torchsoil.sim.geometry import WheelGeometry, footprint, wheel_geometry
 from torchsoil.sim.params import ParamSpec
@@ -27,13 +28,15 @@ class Modifiers(NamedTuple):
             one per geometry entry (WheelGeometry.cell: a cell near one wheel's path), for
             soil that changes cell by cell (ground driven before).
         radius_scale: (B,) factor on the footprint radius (contact patch wider or narrower).
-        tan_beta_wall: (B,) tangent of the angle at which dug cells (rut walls and floor)
-            settle; deposits keep tan(beta).
+        tan_beta_intact: (B,) tangent of the angle intact ground (native, or cut by the
+            wheels) stands up to, >= tan(beta): cohesive soil. The deposits are then loose soil
+            that settles at beta, and `cohesive.relax_two_angle` replaces the single-angle
+            relaxation (soil flows beyond beta only as far as it carries loose soil).
     """
 
     depth_scale: torch.Tensor | None = None
     radius_scale: torch.Tensor | None = None
-    tan_beta_wall: torch.Tensor | None = None
+    tan_beta_intact: torch.Tensor | None = None
 
 
 class SimResult(NamedTuple):
@@ -112,11 +115,12 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
         h_pre = h_dug + added
 
     tan_beta = torch.tan(beta).clamp(max=MAX_TAN_BETA)
-    if modifiers.tan_beta_wall is not None:
-        wall = modifiers.tan_beta_wall.to(dt).clamp(max=MAX_TAN_BETA)[:, None, None]
-        tan_beta = torch.where(fp.covered_any, wall, tan_beta[:, None, None])
-    rr = relax(h_pre, tan_beta, geom.dx, geom.domain, config.tau, config.max_iter,
-               config.fixed_iter, config.eps_scale, config.backend)
+    relax_args = (geom.dx, geom.domain, config.tau, config.max_iter, config.fixed_iter, config.eps_scale)
+    if modifiers.tan_beta_intact is None:
+        rr = relax(h_pre, tan_beta, *relax_args, config.backend)
+    else:
+        intact = modifiers.tan_beta_intact.to(dt).clamp(max=MAX_TAN_BETA).expand(B)
+        rr = relax_two_angle(h_pre, added, tan_beta, intact, *relax_args, backend=config.backend)
     cell = geom.dx**2
     return SimResult(rr.h, h_pre, removed.flatten(1).sum(1) * cell,
                      added.flatten(1).sum(1) * cell, lost * cell, rr.iterations, rr.capped)

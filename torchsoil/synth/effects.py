@@ -15,7 +15,7 @@ under the base model's conditions, with a choosable functional form phi:
 | speed_dependent_sinkage | v / v_ref - 1 | sinkage d |
 | slip_sinkage | traction demand a / g + sin(grade) | sinkage d |
 | lateral_load_transfer | per wheel -side * 2 h_cg / track * (a_lat / g + sin(roll)) | sinkage d of that wheel |
-| cohesive_walls | c0 + soil moisture | tan(beta) of dug cells (rut walls, floor) |
+| cohesive_walls | c0 + soil moisture | tan(beta) where the ground has not moved (native, cut; moved soil: beta) |
 | footprint_width | local d / d_ref | footprint radius |
 | tread (out of catalogue) | wheel arc length s | extra floor depth amp (1 + cos(2 pi s / wavelength)) / 2 |
 """
@@ -132,8 +132,10 @@ def pass_depth_factor(effects: dict[str, dict], pass_index: np.ndarray) -> np.nd
     return factor(np.asarray(pass_index, dtype=np.float64) - 1.0, effects["multi_pass_hardening"])
 
 
-def wall_tan_beta(effects: dict[str, dict], tan_beta: np.ndarray, moisture: np.ndarray) -> np.ndarray:
-    """tan of the angle at which dug cells settle (cohesive walls stand steeper)."""
+def intact_tan_beta(effects: dict[str, dict], tan_beta: np.ndarray, moisture: np.ndarray) -> np.ndarray:
+    """tan of the angle ground that has not moved (native, or cut by a wheel) stands up to:
+    tan(beta) x factor(c0 + moisture), within 89 deg, in cohesive soil (whose moved soil settles
+    at beta); tan(beta) without the effect."""
     if "cohesive_walls" not in effects:
         return tan_beta
     e = effects["cohesive_walls"]

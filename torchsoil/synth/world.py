@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from torchsoil.grid import Grid
 from torchsoil.robot import Robot
 from torchsoil.settings import SECTIONS, WorldConfig, WorldSoil
+from torchsoil.sim.cohesive import relax_two_angle
 from torchsoil.sim.geometry import dig_order as wheel_turns
 from torchsoil.sim.relaxation import relax
 from torchsoil.sim.sinkage import reference_height, taper
@@ -125,7 +126,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     if track_scale.shape != (robot.n_tracks,):
         raise ValueError(f"soil.track_scale must have {robot.n_tracks} entries, got {track_scale.tolist()}")
     tan_beta = np.tan(sf["beta"])
-    tan_wall = fx.wall_tan_beta(eff, tan_beta, sf["moisture"])
+    tan_intact = fx.intact_tan_beta(eff, tan_beta, sf["moisture"])
+    cohesive = "cohesive_walls" in eff
+    loose = np.zeros(grid.shape)        # thickness of moved soil on the intact ground, m (cohesive soil)
     track_width = float(np.ptp(robot.wheels[:, 1])) or 1.0
     gap = revisit_gap if revisit_gap is not None else 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
     radius0 = robot.wheel_width * width_scale / 2
@@ -165,15 +168,11 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         sel = pending if which is None else pending & which
         if not sel.any():
             return
+        laid = h.copy()
         held.lay(h, sel, dug)
+        loose[:] += h - laid                # deposits are loose soil (cohesive soil's state)
         _forget(lead_held, sel, dug)        # laid on h above; the next visit's turns start from h
-        ii, jj = np.nonzero(sel)
-        box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
-        tb = np.where(dug[box], tan_wall[box], tan_beta[box])
-        rr = relax(torch.from_numpy(h[box].copy())[None], torch.from_numpy(tb)[None], dx,
-                   torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None,
-                   config.eps_scale, config.backend)
-        h[box] = rr.h[0].numpy()
+        _relax_box(h, loose, sel, tan_beta, tan_intact if cohesive else None, dx, config)
         done = sel.copy()
         pending[done] = False
         dug_visits[done] += dug[done]
@@ -253,6 +252,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
                                                            final=idx[-1] == len(traj.poses) - 1)
         _advance_turns(lead, win, turn, targets, turn_dug, covered)
         held.add(deposits, (i0, j0), grid.shape)
+        loose[win][covered.any(0)] = 0.0               # a wheel's cut (or pressed) ground is intact
         _lead_deposits(lead, lead_held, deposits, turn, covered, turn_dug, (i0, j0))
         pending[win] |= domain
         dug[win] |= covered.any(0)
@@ -272,6 +272,24 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
         states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
     return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf,
                        pass_time[:V].copy())
+
+
+def _relax_box(h: np.ndarray, loose: np.ndarray, sel: np.ndarray, tan_beta: np.ndarray,
+               tan_intact: np.ndarray | None, dx: float, config: WorldConfig) -> None:
+    """Relax h (X, Y) [m] in place over the bounding box of the (X, Y) bool `sel` cells, at the
+    per-cell tan(beta); for cohesive soil (tan_intact (X, Y) given) with the two-angle
+    relaxation, intact ground standing up to tan_intact and the loose thickness `loose` (X, Y)
+    [m] updated in place."""
+    ii, jj = np.nonzero(sel)
+    box = (slice(ii.min(), ii.max() + 1), slice(jj.min(), jj.max() + 1))
+    args = (dx, torch.from_numpy(sel[box].copy()), config.tau, config.max_iter, None, config.eps_scale)
+    hb, tb = torch.from_numpy(h[box].copy())[None], torch.from_numpy(tan_beta[box])[None]
+    if tan_intact is None:
+        h[box] = relax(hb, tb, *args, config.backend).h[0].numpy()
+        return
+    rr = relax_two_angle(hb, torch.from_numpy(loose[box].copy())[None], tb, torch.from_numpy(tan_intact[box])[None],
+                         *args, backend=config.backend)
+    h[box], loose[box] = rr.h[0].numpy(), rr.loose[0].numpy()
 
 
 def _pass_times(pass_time: np.ndarray, pass_dist: np.ndarray, win, under_way: np.ndarray, new: np.ndarray,
