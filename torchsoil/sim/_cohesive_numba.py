@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from torchsoil.sim._relax_numba import compile_kernels, slope_adjoint
 from torchsoil.sim.relaxation import _EPS2, face_masks
 
 
@@ -203,26 +204,10 @@ def _backward_py(hh, hl, counts, lam, lamL, tlbar, tibar, tl, ti, fx, fy, inv_dx
                 for j in range(Y):
                     s = 1.0 if L[i, j] - coef * out[i, j] > 0 else 0.0
                     lamL[b, i, j] = s * lamL[b, i, j] + Lbar[i, j]
-                    d = -gbx[i, j] - gby[i, j]
-                    if i > 0:
-                        d += gbx[i - 1, j]
-                    if j > 0:
-                        d += gby[i, j - 1]
-                    lam[b, i, j] += inv_dx * d
+            slope_adjoint(gbx, gby, inv_dx, lam[b])
 
 
-_forward_serial = njit(cache=True, nogil=True)(_forward_py)
-_forward_parallel = njit(parallel=True, cache=True, nogil=True)(_forward_py)
-_backward_serial = njit(cache=True, nogil=True)(_backward_py)
-_backward_parallel = njit(parallel=True, cache=True, nogil=True)(_backward_py)
-
-
-def _forward(h, *args):
-    return (_forward_parallel if h.shape[0] > 1 else _forward_serial)(h, *args)
-
-
-def _backward(hh, *args):
-    return (_backward_parallel if hh.shape[0] > 1 else _backward_serial)(hh, *args)
+_forward, _backward = compile_kernels(_forward_py, _backward_py)
 
 
 def _sum_to(g: np.ndarray, shape) -> torch.Tensor:

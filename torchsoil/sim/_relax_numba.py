@@ -12,6 +12,36 @@ from numba import njit, prange
 from torchsoil.sim.relaxation import _EPS2, RelaxResult, face_masks
 
 
+@njit(cache=True, nogil=True, inline="always")
+def slope_adjoint(gbx, gby, inv_dx, lam):
+    """Add to the heights' adjoint lam (X, Y), in place, that of the forward-difference slopes
+    whose adjoints are gbx, gby (X, Y)."""
+    X, Y = lam.shape
+    for i in range(X):
+        for j in range(Y):
+            d = -gbx[i, j] - gby[i, j]
+            if i > 0:
+                d += gbx[i - 1, j]
+            if j > 0:
+                d += gby[i, j - 1]
+            lam[i, j] += inv_dx * d
+
+
+def compile_kernels(forward_py, backward_py):
+    """The forward and backward kernels compiled by numba, each called as serial code on one
+    batch element (a thread pool only costs there) and with a thread per element on several."""
+    fs, fp = njit(cache=True, nogil=True)(forward_py), njit(parallel=True, cache=True, nogil=True)(forward_py)
+    bs, bp = njit(cache=True, nogil=True)(backward_py), njit(parallel=True, cache=True, nogil=True)(backward_py)
+
+    def forward(h, *args):
+        return (fp if h.shape[0] > 1 else fs)(h, *args)
+
+    def backward(hist, *args):
+        return (bp if hist.shape[0] > 1 else bs)(hist, *args)
+
+    return forward, backward
+
+
 def _forward_py(h, tb, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hist, counts, store):
     B, X, Y = h.shape
     for b in prange(B):
@@ -80,29 +110,10 @@ def _backward_py(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
                     else:
                         gbx[i, j] = 0.0
                         gby[i, j] = 0.0
-            for i in range(X):
-                for j in range(Y):
-                    d = -gbx[i, j] - gby[i, j]
-                    if i > 0:
-                        d += gbx[i - 1, j]
-                    if j > 0:
-                        d += gby[i, j - 1]
-                    lam[b, i, j] += inv_dx * d
+            slope_adjoint(gbx, gby, inv_dx, lam[b])
 
 
-# One batch element: serial (a thread pool only costs there); several: one thread each.
-_forward_serial = njit(cache=True, nogil=True)(_forward_py)
-_forward_parallel = njit(parallel=True, cache=True, nogil=True)(_forward_py)
-_backward_serial = njit(cache=True, nogil=True)(_backward_py)
-_backward_parallel = njit(parallel=True, cache=True, nogil=True)(_backward_py)
-
-
-def _forward(h, *args):
-    return (_forward_parallel if h.shape[0] > 1 else _forward_serial)(h, *args)
-
-
-def _backward(hist, *args):
-    return (_backward_parallel if hist.shape[0] > 1 else _backward_serial)(hist, *args)
+_forward, _backward = compile_kernels(_forward_py, _backward_py)
 
 
 class _Relax(torch.autograd.Function):
