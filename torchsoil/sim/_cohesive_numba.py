@@ -45,15 +45,20 @@ def _limit(L, gx, gy, fe, coef, O, r):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _fluxes(gx, gy, fi, fe, r, qx, qy, out):
-    """Face fluxes (positive: from the +x / +y neighbour down to the cell) and each cell's outflow."""
+def _fluxes(gx, gy, nn, fi, fe, r, tl, ti, tau, qx, qy, out):
+    """Face fluxes (positive: from the +x / +y neighbour down to the cell) and each cell's
+    outflow; returns whether any slope exceeds the angle it flows at by tau (`cohesive._terms`)."""
     X, Y = gx.shape
     out[:] = 0.0
+    active = False
     for i in range(X):
         for j in range(Y):
             a, c = gx[i, j], gy[i, j]
             rx = r[i + 1, j] if a > 0 else r[i, j]
             ry = r[i, j + 1] if c > 0 else r[i, j]
+            t = tl[i, j]
+            if nn[i, j] - ti[i, j] >= tau or max((abs(a) - t) * rx, (abs(c) - t) * ry) >= tau:
+                active = True
             qx[i, j] = fi[i, j] * a + fe[i, j] * a * rx
             qy[i, j] = fi[i, j] * c + fe[i, j] * c * ry
             if qx[i, j] > 0:
@@ -64,6 +69,7 @@ def _fluxes(gx, gy, fi, fe, r, qx, qy, out):
                 out[i, j + 1] += qy[i, j]
             else:
                 out[i, j] -= qy[i, j]
+    return active
 
 
 def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hh, hl,
@@ -77,23 +83,13 @@ def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, it
         for it in range(n_iter):
             _stencil(h[b], tl[b], ti[b], fx, fy, inv_dx, gx, gy, nn, fi, fe)
             _limit(L[b], gx, gy, fe, coef, O, r)
-            active = False
-            for i in range(X):
-                for j in range(Y):
-                    a, c = gx[i, j], gy[i, j]
-                    rx = r[i + 1, j] if a > 0 else r[i, j]
-                    ry = r[i, j + 1] if c > 0 else r[i, j]
-                    n = nn[i, j]
-                    t = tl[b, i, j]
-                    if n - ti[b, i, j] >= tau or max((abs(a) - t) * rx, (abs(c) - t) * ry) >= tau:
-                        active = True
+            active = _fluxes(gx, gy, nn, fi, fe, r, tl[b], ti[b], tau, qx, qy, out)
             if not fixed and not active:
                 done[b] = 1
                 break
             if store:
                 hh[b, it] = h[b]
                 hl[b, it] = L[b]
-            _fluxes(gx, gy, fi, fe, r, qx, qy, out)
             for i in range(X):
                 for j in range(Y):
                     d = qx[i, j] + qy[i, j]
@@ -195,7 +191,7 @@ def _backward_py(hh, hl, counts, lam, lamL, tlbar, tibar, tl, ti, fx, fy, inv_dx
             h, L = hh[b, it], hl[b, it]
             _stencil(h, tl[b], ti[b], fx, fy, inv_dx, gx, gy, nn, fi, fe)
             _limit(L, gx, gy, fe, coef, O, r)
-            _fluxes(gx, gy, fi, fe, r, qx, qy, out)
+            _fluxes(gx, gy, nn, fi, fe, r, tl[b], ti[b], 0.0, qx, qy, out)
             _flux_adjoint(L, qx, qy, gx, gy, fe, out, fx, fy, lam[b], lamL[b], coef, qbx, qby, rbar)
             _limiter_adjoint(L, O, rbar, Obar, Lbar)
             _stencil_adjoint(gx, gy, nn, fi, fe, r, qbx, qby, Obar, tl[b], ti[b], fx, fy, coef, tlbar[b],
