@@ -141,7 +141,7 @@ LAWS = {"speed_dependent_sinkage": (0.5, (0.3, 0.8)), "slip_sinkage": (0.08, (4.
         "lateral_load_transfer": (0.14, (1.0, 2.0)), "multi_pass_hardening": (1.0, (-0.6, -0.3)),
         "cohesive_walls": (1.0, (0.5, 1.0)), "footprint_width": (0.6, (0.4, 0.8))}
 KINDS = (*LAWS, "tread")
-REVISITS = ("out_and_back", "loop", "lane_changes")
+REVISITS = ("out_and_back", "loop", "stadium", "lane_changes")
 
 
 def random_law(rng: np.random.Generator, eid: str) -> dict:
@@ -162,7 +162,8 @@ def random_path(rng: np.random.Generator, kind: str) -> dict:
     """`trajectory` and `terrain.relief` of a random drive of one kind (lengths in m, speeds
     m/s, angles deg): speed_steps, slope_speed (climbing with speed changes), s_turns (on a
     side slope), the revisits out_and_back (light-bulb turn back onto the same ruts), loop (round
-    and over the start again), lane_changes (back along the first leg, on and off its ruts),
+    and over the start again), stadium (a stadium loop driven twice: all its ground twice),
+    lane_changes (back along the first leg, on and off its ruts),
     or plain (straight or a gentle curve at one speed)."""
     u = rng.uniform
     relief = {"amplitude": float(u(0.01, 0.05))}
@@ -191,6 +192,10 @@ def random_path(rng: np.random.Generator, kind: str) -> dict:
         segs = [{"straight": leg}, {"arc": r, "angle_deg": 180}, {"straight": leg}, {"arc": r, "angle_deg": 180},
                 {"straight": float(u(3.0, leg))}]
         segs, accel = [{**s, "speed": float(u(0.8, 1.0))} for s in segs], 0.5
+    elif kind == "stadium":
+        r, leg = float(u(1.5, 2.0)), float(u(3.0, 4.0))
+        lap = [{"straight": leg}, {"arc": r, "angle_deg": 180}, {"straight": leg}, {"arc": r, "angle_deg": 180}]
+        segs, accel = [{**s, "speed": float(u(0.8, 1.0))} for s in lap + lap], 0.5
     elif kind == "lane_changes":
         leg = float(u(5.0, 7.0))
         segs = [{"straight": leg, "speed": 1.0}, {"arc": 1.5, "angle_deg": 180, "speed": 0.8},
