@@ -15,27 +15,27 @@ from torchsoil.sim.relaxation import _EPS2, face_masks
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _stencil(h, tl, ti, fx, fy, inv_dx, gx, gy, nn, fi, fe):
-    """Slopes, |grad h| and the intact / loose-excess flux factors of every stencil."""
+def _stencil(h, L, tl, ti, fx, fy, inv_dx, coef, gx, gy, nn, fi, fe, O, r):
+    """Slopes, |grad h| (tan(beta_loose) where the slope is below it: nothing flows there) and
+    the intact / loose-excess flux factors of every stencil; the loose outflow O of every cell
+    and the share r <= 1 of it the cell can give (its neighbours' stencils at -x and -y come
+    first in the sweep)."""
     X, Y = h.shape
     for i in range(X):
         for j in range(Y):
             a = (h[i + 1, j] - h[i, j]) * inv_dx if fx[i, j] else 0.0
             c = (h[i, j + 1] - h[i, j]) * inv_dx if fy[i, j] else 0.0
-            n = math.sqrt(a * a + c * c + _EPS2)
-            gx[i, j], gy[i, j], nn[i, j] = a, c, n
-            f_i = max(n - ti[i, j], 0.0) / n
-            fi[i, j] = f_i
-            fe[i, j] = max(n - tl[i, j], 0.0) / n - f_i
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _limit(L, gx, gy, fe, coef, O, r):
-    """Loose outflow O of every cell and the share r <= 1 of it the cell can give."""
-    X, Y = L.shape
-    for i in range(X):
-        for j in range(Y):
-            o = max(-fe[i, j] * gx[i, j], 0.0) + max(-fe[i, j] * gy[i, j], 0.0)
+            n2 = a * a + c * c + _EPS2
+            t = tl[i, j]
+            gx[i, j], gy[i, j] = a, c
+            if n2 > t * t:     # above the loose angle (sqrt only here)
+                n = math.sqrt(n2)
+                f_i = max(n - ti[i, j], 0.0) / n
+                nn[i, j], fi[i, j], fe[i, j] = n, f_i, (n - t) / n - f_i
+            else:
+                nn[i, j], fi[i, j], fe[i, j] = t, 0.0, 0.0
+            e = fe[i, j]
+            o = max(-e * a, 0.0) + max(-e * c, 0.0)
             if i > 0:
                 o += max(fe[i - 1, j] * gx[i - 1, j], 0.0)
             if j > 0:
@@ -81,8 +81,7 @@ def _forward_py(h, L, tl, ti, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, it
         w = np.zeros((10, X, Y))
         gx, gy, nn, fi, fe, O, r, qx, qy, out = w[0], w[1], w[2], w[3], w[4], w[5], w[6], w[7], w[8], w[9]
         for it in range(n_iter):
-            _stencil(h[b], tl[b], ti[b], fx, fy, inv_dx, gx, gy, nn, fi, fe)
-            _limit(L[b], gx, gy, fe, coef, O, r)
+            _stencil(h[b], L[b], tl[b], ti[b], fx, fy, inv_dx, coef, gx, gy, nn, fi, fe, O, r)
             active = _fluxes(gx, gy, nn, fi, fe, r, tl[b], ti[b], tau, qx, qy, out)
             if not fixed and not active:
                 done[b] = 1
@@ -189,8 +188,7 @@ def _backward_py(hh, hl, counts, lam, lamL, tlbar, tibar, tl, ti, fx, fy, inv_dx
         qbx, qby, rbar, Obar, Lbar, gbx, gby = w[10], w[11], w[12], w[13], w[14], w[15], w[16]
         for it in range(counts[b] - 1, -1, -1):
             h, L = hh[b, it], hl[b, it]
-            _stencil(h, tl[b], ti[b], fx, fy, inv_dx, gx, gy, nn, fi, fe)
-            _limit(L, gx, gy, fe, coef, O, r)
+            _stencil(h, L, tl[b], ti[b], fx, fy, inv_dx, coef, gx, gy, nn, fi, fe, O, r)
             _fluxes(gx, gy, nn, fi, fe, r, tl[b], ti[b], 0.0, qx, qy, out)
             _flux_adjoint(L, qx, qy, gx, gy, fe, out, fx, fy, lam[b], lamL[b], coef, qbx, qby, rbar)
             _limiter_adjoint(L, O, rbar, Obar, Lbar)
