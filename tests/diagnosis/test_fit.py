@@ -287,4 +287,39 @@ def test_a_wall_term_chooses_its_own_tyre_section():
     tried = ((0.0, 1.0), (0.0, 0.25), (0.85, 1.0))
     fit = fit_extension(pair, est, sim, CATALOGUE["cohesive_walls"], drive, base, refine_steps=0, sections=tried)
     assert fit.sections[0.0] == (0.0, 1.0)
-    assert fit.sections[1.5] == fit.sections[4.0] == (0.85, 1.0)
+    assert len(fit.sections) > 2 and all(sec == (0.85, 1.0) for k, sec in fit.sections.items() if k > 0)
+
+
+def test_trial_coefficients_go_outward_from_zero_on_each_side():
+    from torchsoil.diagnosis.fit import trial_sides
+
+    assert trial_sides(CATALOGUE["footprint_width"]) == [[0.15, 0.3], [-0.2]]
+    assert trial_sides(CATALOGUE["cohesive_walls"]) == [[0.5, 1.5, 4.0]]
+    assert trial_sides(CATALOGUE["multi_pass_hardening"]) == [[-0.3, -0.6]]
+
+
+@pytest.mark.parametrize("best, runs, k", [
+    (0.0, [0.15, -0.2], 0.0),                    # both sides rise at their first trial
+    (0.2, [0.15, 0.3, -0.2, 0.2], 0.2),          # rises at 0.3: the parabola's vertex
+    (0.4, [0.15, 0.3, -0.2, 0.45], 0.45),        # falls to the last trial: a step beyond, to the bound
+    (-0.25, [0.15, -0.2, -0.4, -0.25], -0.25)])  # the other side: a step beyond, then the vertex
+def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, runs, k):
+    """Fake passes whose held-out cost is a parabola in k about `best`: each side runs its
+    trials until the cost rises, then the refinements go to the vertex (cost in the base pass: k 0)."""
+    from torchsoil.diagnosis import fit as fit_mod
+
+    n, ran = 12, []
+    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * 1e-3)      # noqa: E731
+
+    def fake_pass(pair, est, sim, ext, k, *a, **kw):
+        ran.append(round(k, 5))
+        c = cost(k)
+        return fit_mod.Pass(k, [], c, c, c), (0.0, 1.0)
+
+    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
+    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
+    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
+    est = type("E", (), {"stride": 0.4})()
+    f = fit_mod.fit_extension(pair, est, None, CATALOGUE["footprint_width"], None, base, refine_steps=2)
+    assert ran == runs
+    assert f.k == pytest.approx(k)

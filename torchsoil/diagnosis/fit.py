@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy import stats
 
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts, effect_size
 from torchsoil.diagnosis.checkpoint import PassCache, kept, portable
@@ -279,6 +280,41 @@ def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: Section, every
     return (float(np.nanmean(res)) if np.isfinite(res).any() else math.inf), shared_of(estimator), res
 
 
+def own_fit_screen(pair, est: EstimatorConfig, sim: SimConfig, exts: list[Extension], drive: DriveSignals,
+                   base: Pass, cache: PassCache | None = None, pool=None) -> dict[str, dict]:
+    """Whether shape terms (a cohesive soil's walls, the footprint) show at all where no
+    cross-track zone is located: the per-window fit may take up a term's shape in d, chi and
+    beta (steep intact walls and loose spoil fitted as one angle between the two), leaving no
+    residual to locate, yet the windows fit their own ground better with it. Scored on every
+    third window (`section_cost`: ground that does not overlap) under the pair's section, at
+    the first trial coefficient of each side (`trial_sides`) against the base model: a
+    one-sided paired t test of the windows' residuals per side, Bonferroni over the sides.
+    pool: a parallel.PassPool (sharing this base pass) that scores them first. Returns {ext
+    id: {p, statistic}}."""
+    shared, sec = shared_of(base), section_of(pair)
+    models = {(e.id, side[0]): ExtensionModel(e, side[0], drive, pair.robot, base.view or "last_visit", sim.dig_order)
+              for e in exts for side in trial_sides(e)}
+    if pool is not None:
+        pool.run("section", [(est, sim, sec, 3, m) for m in models.values()])
+    ref = section_cost(pair, est, sim, sec, 3, None, shared, cache)[2] if exts else None
+    out = {}
+    for ext in exts:
+        sides = trial_sides(ext)
+        p, text = 1.0, "own fit: none scored"
+        for side in sides:
+            res = section_cost(pair, est, sim, sec, 3, models[ext.id, side[0]], shared, cache)[2]
+            d = (ref - res)[np.isfinite(ref) & np.isfinite(res)] if ref.shape == res.shape else np.zeros(0)
+            sd = float(np.std(d, ddof=1)) if len(d) >= 3 else 0.0
+            if sd == 0.0:
+                continue
+            t = float(d.mean() / (sd / math.sqrt(len(d))))
+            q = float(stats.t.sf(t, len(d) - 1))
+            if q < p or text.endswith("none scored"):
+                p, text = q, f"own fit at {ext.parameter} {side[0]:g}: t = {t:+.2f} over {len(d)} windows"
+        out[ext.id] = {"p": float(min(1.0, len(sides) * p)), "statistic": text}
+    return out
+
+
 def paired_z(base: np.ndarray, other: np.ndarray) -> float:
     """How much better `other` fits than `base` (W,) window by window [m]: the mean of base -
     other over the windows both fitted, over its standard error (windows that do not overlap
@@ -362,14 +398,15 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                   block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
                   offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
                   cache: PassCache | None = None) -> CandidateFit:
-    """Fit one extension's coefficient: passes at its trial coefficients, one parabolic
-    refinement, then two-fold cross-validated held-out costs and the paired comparison with
-    the base pass (which must have been scored with the same `offsets`). sections: tyre
-    sections (f, e) (`fit_section`) a footprint or wall term's passes choose their own from
-    (the pair's is the base model's): a wider footprint and a fuller section both widen the
-    rut, and steeper walls and a rounder section trade off (a flat tread's rut relaxed at the
-    soil's angle looks like a rounder tyre's standing). cache: where finished passes are kept and
-    read back (checkpoint.PassCache)."""
+    """Fit one extension's coefficient: passes at its trial coefficients (`trial_sides`:
+    outward from 0 while the cost falls), `refine_steps` parabolic refinements, then two-fold
+    cross-validated held-out costs and the paired comparison with the base pass (which must
+    have been scored with the same `offsets`). sections: tyre sections (f, e) (`fit_section`)
+    a footprint or wall term's passes choose their own from (the pair's is the base model's):
+    a wider footprint and a fuller section both widen the rut, and steeper walls and a rounder
+    section trade off (a flat tread's rut relaxed at the soil's angle looks like a rounder
+    tyre's standing). cache: where finished passes are kept and read back
+    (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
     sec: dict[float, Section] = {0.0: section_of(pair)}
     counts = PassCounts()
@@ -384,9 +421,15 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
         if progress is not None:
             progress.update(1)
 
-    for k in trial_ks(ext):
-        run(k)
     every = np.ones(len(base.prediction), bool)
+    for side in trial_sides(ext):        # outward from 0 on each side, while the cost falls
+        last = _mean(base.held_out, every)
+        for k in side:
+            run(k)
+            cost = _mean(passes[k].held_out, every)
+            if not cost < last:
+                break
+            last = cost
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
@@ -409,10 +452,19 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
 
 
 def trial_ks(ext: Extension) -> list[float]:
-    """The coefficients `fit_extension` tries first: ext.trials within ext.bounds, but 0 (the
+    """The coefficients `fit_extension` may try first: ext.trials within ext.bounds, but 0 (the
     base model's pass)."""
     ks = dict.fromkeys(float(np.clip(k, *ext.bounds)) for k in ext.trials)
     return [k for k in ks if abs(k) >= 1e-9]
+
+
+def trial_sides(ext: Extension) -> list[list[float]]:
+    """`trial_ks` by sign, each side in the order `fit_extension` runs them: outward from 0.
+    It stops a side at the first coefficient whose mean held-out cost is no lower than the one
+    before (the base model's for the first): past a rise the cost of a one-coefficient term
+    rises on, and the refinement only looks at the best coefficient and its neighbours."""
+    ks = trial_ks(ext)
+    return [s for s in (sorted(k for k in ks if k > 0), sorted((k for k in ks if k < 0), reverse=True)) if s]
 
 
 def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k: float, drive: DriveSignals,

@@ -1,7 +1,7 @@
 """A diagnosis's independent passes on a process pool or a Ray cluster.
 
 Most of a diagnosis is estimator passes that do not depend on each other: the tyre sections and
-dig orders scored on the same windows, and every candidate at its trial coefficients. `PassPool`
+dig orders scored on the same windows, and every candidate at its first trial coefficients. `PassPool`
 runs them ahead of the diagnosis as tasks of a fleet engine (torchsoil.fleet: `local` process
 pools or `ray`), each task keeping its result in the diagnosis's `PassCache`; the diagnosis then
 runs as it does in one process and reads them back there. Its results are those of a run in one
@@ -38,7 +38,7 @@ def _load(files: tuple[str, ...]) -> tuple:
 
 def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
     """In a worker: one section score (`fit.section_cost`), one candidate pass
-    (`fit.candidate_pass`) or one candidate's refinements (`fit.fit_extension`), kept in the
+    (`fit.candidate_pass`) or the rest of one candidate's fit (`fit.fit_extension`), kept in the
     cache at cache_dir."""
     from torchsoil.diagnosis import catalogue
     from torchsoil.diagnosis.covariates import DriveSignals

@@ -18,13 +18,14 @@ from torchsoil.diagnosis.fit import (
     accept,
     fit_extension,
     fit_section,
+    own_fit_screen,
     paired_z,
     run_pass,
     section_candidates,
     section_cost,
     section_of,
     shared_of,
-    trial_ks,
+    trial_sides,
     with_section,
 )
 from torchsoil.diagnosis.locate import (
@@ -329,6 +330,19 @@ def _visit_costs(revisit: dict, residual: float) -> tuple[dict, dict, dict]:
     return before, after, {revisit["parameter"]: round(c, 4)}
 
 
+def _screen_shapes(ev: dict, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, drive: DriveSignals,
+                   base: Pass, progress=None, cache: PassCache | None = None, pool=None) -> None:
+    """A shape term no cross-track zone located is testable still where the windows fit their
+    own ground better with it (`fit.own_fit_screen`, at alpha_locate): its location evidence
+    `ev[id]` (`evidence_for`) updated in place."""
+    shapes = [e for e in catalogue.CATALOGUE.values() if e.covariate is None and not ev[e.id]["testable"]]
+    if shapes and progress is not None:
+        progress.set_postfix_str("shape terms' own fit")
+    for i, scr in own_fit_screen(pair, est, sim, shapes, drive, base, cache, pool).items():
+        ev[i] = {"testable": scr["p"] < cfg.alpha_locate, "p": scr["p"],
+                 "statistic": f"{ev[i]['statistic']}; {scr['statistic']}"}
+
+
 def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
              sim: SimConfig | None = None, progress=None, cache: PassCache | None = None, pool=None) -> Diagnosis:
     """Diagnose one terrain pair (torchsoil.terrain.TerrainPair) with the diagnosis,
@@ -377,15 +391,16 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     material = cfg.materiality * float(np.nanmean(base.floor))
     ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc)
           for e in catalogue.CATALOGUE.values()}
+    if pool is not None:
+        pool.share(pair, shared_of(base), base)
+    _screen_shapes(ev, pair, cfg, est, sim, drive, base, progress, cache, pool)
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
-    if pool is not None and ranked:        # every candidate's trial passes, then its refinements, as tasks
-        pool.share(pair, shared_of(base), base)
+    if pool is not None and ranked:        # every candidate's first trial passes, then the rest of its fit, as tasks
         head = (est, sim, section_of(pair))
         tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
-        pool.run("pass", [(*head, i, k, *tail) for i in ranked for k in trial_ks(catalogue.get(i))])
-        if cfg.refine_steps:
-            pool.run("refine", [(*head, i, None, *tail) for i in ranked])
+        pool.run("pass", [(*head, i, side[0], *tail) for i in ranked for side in trial_sides(catalogue.get(i))])
+        pool.run("refine", [(*head, i, None, *tail) for i in ranked])
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
