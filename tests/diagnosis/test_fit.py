@@ -323,3 +323,38 @@ def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, 
     f = fit_mod.fit_extension(pair, est, None, CATALOGUE["footprint_width"], None, base, refine_steps=2)
     assert ran == runs
     assert f.k == pytest.approx(k)
+
+
+@pytest.fixture(scope="module")
+def two_angle_drives():
+    """Base passes over the same 8 m drive in two-angle soil (loose 22 deg, intact 31 deg; the
+    study's `walls saturating`) and in one-angle soil, each with its drive signals."""
+    from torchsoil.diagnosis.covariates import DriveSignals
+    from torchsoil.diagnosis.fit import run_pass
+    from torchsoil.diagnosis.study_cases import scenario
+    from torchsoil.settings import EstimatorConfig, SimConfig
+    from torchsoil.synth.scenario import make_terrain_pair
+    from torchsoil.terrain import TerrainPair
+
+    out = {}
+    for name in ("two-angle", "one-angle"):
+        scn = scenario("cohesive_walls")
+        scn["trajectory"] = {"segments": [{"straight": 8.0, "speed": 1.0}]}
+        if name == "one-angle":
+            scn.pop("effects")
+        pair = TerrainPair.from_mapping(make_terrain_pair(scn, seed=1))
+        est, sim = EstimatorConfig(), SimConfig()
+        out[name] = (pair, est, sim, DriveSignals.from_poses(pair.poses, pair.robot), run_pass(pair, est, sim))
+    return out
+
+
+def test_walls_the_windows_took_up_show_in_their_own_fit(two_angle_drives):
+    """Two-angle soil fitted with one angle leaves nothing across the rut to locate, but every
+    window fits its own ground better with the wall term; one-angle soil does not."""
+    from torchsoil.diagnosis.fit import own_fit_screen
+
+    walls = CATALOGUE["cohesive_walls"]
+    got = {name: own_fit_screen(pair, est, sim, [walls], drive, base)["cohesive_walls"]
+           for name, (pair, est, sim, drive, base) in two_angle_drives.items()}
+    assert got["two-angle"]["p"] < 0.01 < 0.2 < got["one-angle"]["p"]
+    assert "k_wall 0.5" in got["two-angle"]["statistic"]
