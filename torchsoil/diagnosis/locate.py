@@ -92,15 +92,6 @@ def _about_line(means: np.ndarray, place: np.ndarray) -> np.ndarray:
     return m - x * float((x * m).sum() / (x * x).sum())
 
 
-def _about_line_n(means: np.ndarray, place: np.ndarray) -> tuple[np.ndarray, int, float]:
-    """Block means (n,) about their line along the drive (`_about_line`), the parameters that
-    took (2, or 1 about the mean), and their effective number: n (1 - r) / (1 + r) with r the
-    lag-1 correlation of that scatter (`effective_n`, not floored), as the trend is the
-    term's and the scatter its noise."""
-    scatter = _about_line(means, place)
-    return scatter, 2 if len(means) >= 5 else 1, min(float(len(means)), effective_n(len(means), scatter, floor=0.0))
-
-
 def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[float, float, float]:
     """Per-window improvement base - ext [m] of two cost series on the same windows.
 
@@ -109,20 +100,18 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
     follows the size of its effect, which changes along the drive with the soil and the
     covariate (a footprint term gains most where the ruts are deepest), so the block means are
     regressed on their place along the drive: the mean gain is tested against their scatter
-    about that line, with the effective-sample-size correction for that scatter's lag-1
-    correlation (`_about_line_n`), as a t statistic with n_eff - 2 degrees of freedom, returned
-    as the normal z of the same one-sided p. Without an effect the line costs one degree of
-    freedom and the test keeps its level; with one, a steady trend in the gain is no longer
-    counted as its noise. With fewer than 5 blocks the spread about the mean is used instead
-    (n_eff - 1 degrees of freedom). A gain that rests on fewer independent blocks than the
-    test's parameters and two (4 about the line, 3 about the mean) is not tested: z 0. Such
-    a gain comes from a stretch or two of the drive (soil that changes there), and a floor
-    on n_eff would count it as more evidence than it is. Windows where either cost is NaN are
-    dropped, and so are blocks where the two series agree to `same` [m] on every window: a
-    term that acts only on some ground (a pass count on revisited ground) leaves the others'
-    costs exactly as they were, and such blocks say nothing about the noise of the
-    difference; counted as samples of it, they would cap z near the square root of the number
-    of blocks the term touches, however large and steady its gain there. Returns (mean over the blocks kept, se, z)."""
+    about that line, with the effective-sample-size correction for the block means' own lag-1
+    correlation (a trend only raises it: the correction errs on the cautious side), as a t
+    statistic with n_eff - 2 degrees of freedom, returned as the normal z of the same one-sided
+    p. Without an effect the line costs one degree of freedom and the test keeps its level;
+    with one, a steady trend in the gain is no longer counted as its noise. With
+    fewer than 5 blocks the spread about the mean is used instead (n_eff - 1 degrees of
+    freedom). Windows where either cost is NaN are dropped, and so are blocks where the two
+    series agree to `same` [m] on every window: a term that acts only on some ground (a pass
+    count on revisited ground) leaves the others' costs exactly as they were, and such blocks
+    say nothing about the noise of the difference; counted as samples of it, they would cap z
+    near the square root of the number of blocks the term touches, however large and steady
+    its gain there. Returns (mean over the blocks kept, se, z)."""
     d, blocks, kept, _ = _paired_blocks(base, ext, block, same)
     blocks, place = blocks[kept], np.flatnonzero(kept).astype(np.float64)
     nb = len(blocks)
@@ -130,9 +119,8 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
         return (float(d.mean()) if len(d) else 0.0), math.inf, 0.0
     means = blocks.mean(1)
     m = float(means.mean())
-    scatter, fitted, n_eff = _about_line_n(means, place)
-    if n_eff < fitted + 2:
-        return m, math.inf, 0.0
+    scatter, fitted = _about_line(means, place), 2 if nb >= 5 else 1
+    n_eff = min(float(nb), max(effective_n(nb, means), fitted + 2.0))
     se = float(math.sqrt((scatter ** 2).sum() / (nb - fitted) / n_eff))
     if se <= 0:
         return m, 0.0, 0.0 if m == 0 else math.copysign(math.inf, m)
@@ -159,16 +147,14 @@ def _paired_blocks(base, ext, block: int, same: float, s=None):
 def evidence_basis(base, ext, s, block: int = 4, same: float = SAME, share: float = 0.5) -> dict:
     """What a paired gain (`paired_improvement` of base - ext, (W,) costs on the windows centred
     at arc lengths s (W,) [m]) rests on: the windows and blocks it counts (blocks where the two
-    agree on every window left out, as there), their effective number as the test counts it
-    (`_about_line_n`: the lag-1 correlation of the block means' scatter about their line along
-    the drive; below 4 the test shows nothing), and the fewest blocks
+    agree on every window left out, as there), their effective number (`effective_n` of the
+    block means, not floored: the test floors it, a reader should not), and the fewest blocks
     whose gains hold `share` of the summed positive gain, as spans of arc length [m] (touching
     blocks merged). Returns {windows, blocks, n_eff, carrier_blocks, carriers: [[s0, s1], ...]}."""
     _, blocks, kept, spans = _paired_blocks(base, ext, block, same, s)
     means, spans = blocks[kept].mean(1), spans[kept]
-    place = np.flatnonzero(kept).astype(np.float64)
     out = {"windows": int(kept.sum()) * block, "blocks": int(kept.sum()),
-           "n_eff": _about_line_n(means, place)[2] if len(means) else 0.0,
+           "n_eff": effective_n(len(means), means, floor=0.0) if len(means) else 0.0,
            "carrier_blocks": 0, "carriers": []}
     gain = np.maximum(means, 0.0)
     if gain.sum() <= 0:
