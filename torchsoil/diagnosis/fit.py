@@ -299,18 +299,16 @@ def own_fit_screen(pair, est: EstimatorConfig, sim: SimConfig, exts: list[Extens
     ref = section_cost(pair, est, sim, sec, 3, None, shared, cache)[2] if exts else None
     out = {}
     for ext in exts:
-        sides = trial_sides(ext)
-        p, text = 1.0, "own fit: none scored"
+        sides, scored = trial_sides(ext), []
         for side in sides:
             res = section_cost(pair, est, sim, sec, 3, models[ext.id, side[0]], shared, cache)[2]
             d = (ref - res)[np.isfinite(ref) & np.isfinite(res)] if ref.shape == res.shape else np.zeros(0)
             sd = float(np.std(d, ddof=1)) if len(d) >= 3 else 0.0
-            if sd == 0.0:
-                continue
-            t = float(d.mean() / (sd / math.sqrt(len(d))))
-            q = float(stats.t.sf(t, len(d) - 1))
-            if q < p or text.endswith("none scored"):
-                p, text = q, f"own fit at {ext.parameter} {side[0]:g}: t = {t:+.2f} over {len(d)} windows"
+            if sd > 0.0:
+                t = float(d.mean() / (sd / math.sqrt(len(d))))
+                scored.append((float(stats.t.sf(t, len(d) - 1)),
+                               f"own fit at {ext.parameter} {side[0]:g}: t = {t:+.2f} over {len(d)} windows"))
+        p, text = min(scored, default=(1.0, "own fit: none scored"))
         out[ext.id] = {"p": float(min(1.0, len(sides) * p)), "statistic": text}
     return out
 
@@ -451,19 +449,13 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                         held_z=held_z, effects=effects)
 
 
-def trial_ks(ext: Extension) -> list[float]:
-    """The coefficients `fit_extension` may try first: ext.trials within ext.bounds, but 0 (the
-    base model's pass)."""
-    ks = dict.fromkeys(float(np.clip(k, *ext.bounds)) for k in ext.trials)
-    return [k for k in ks if abs(k) >= 1e-9]
-
-
 def trial_sides(ext: Extension) -> list[list[float]]:
-    """`trial_ks` by sign, each side in the order `fit_extension` runs them: outward from 0.
-    It stops a side at the first coefficient whose mean held-out cost is no lower than the one
+    """The coefficients `fit_extension` may try first (ext.trials within ext.bounds, but 0:
+    the base model's pass) by sign, each side in the order it runs them: outward from 0. It
+    stops a side at the first coefficient whose mean held-out cost is no lower than the one
     before (the base model's for the first): past a rise the cost of a one-coefficient term
     rises on, and the refinement only looks at the best coefficient and its neighbours."""
-    ks = trial_ks(ext)
+    ks = [k for k in dict.fromkeys(float(np.clip(k, *ext.bounds)) for k in ext.trials) if abs(k) >= 1e-9]
     return [s for s in (sorted(k for k in ks if k > 0), sorted((k for k in ks if k < 0), reverse=True)) if s]
 
 
