@@ -121,6 +121,20 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance_or_nothing_
     assert used[1] == pytest.approx(level_z(0.01))
 
 
+def test_of_two_accepted_terms_the_larger_held_out_gain_is_named_not_the_steadier():
+    from types import SimpleNamespace
+
+    from torchsoil.diagnosis.run import by_gain
+
+    # a wider footprint (gain 0.67 mm at z 3.4) and walls (0.45 mm at z 3.7) both accepted on
+    # one rut: the footprint accounts for more of the mismatch; a refused term is never listed
+    walls = SimpleNamespace(z=3.7, improvement=0.45e-3, accepted=True)
+    width = SimpleNamespace(z=3.4, improvement=0.67e-3, accepted=True)
+    speed = SimpleNamespace(z=1.0, improvement=0.9e-3, accepted=False)
+    assert by_gain([walls, speed, width]) == [width, walls]
+    assert by_gain([speed]) == []
+
+
 def test_level_z_by_hand():
     # two signs: Q (1 - Q) = 0.025, Q = (1 - sqrt(0.9)) / 2 = 0.025658, z = 1.9488; one sign:
     # Q = (1 - sqrt(0.8)) / 2 = 0.052786, z = 1.6184 (normal table)

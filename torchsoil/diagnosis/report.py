@@ -182,6 +182,15 @@ def basis_text(basis: dict | None) -> str:
             f"evidence as {basis['n_eff']:.1f} independent blocks{half}.")
 
 
+def runner_up_text(pairwise: dict | None) -> str:
+    """A sentence on the other accepted term, where there is one (the evidence's `pairwise`:
+    the named term's held-out gain over it [m], its se and z)."""
+    if not pairwise:
+        return ""
+    return (f" {pairwise['runner_up']} passed its test too; the named term predicts the held-out ground better "
+            f"by {_mm(pairwise['improvement'])} +- {_mm(pairwise['se'])} (z = {pairwise['z']:.1f}).")
+
+
 def _explain(diag) -> str:
     s, ev = diag.summary, diag.evidence
     before, after = s["cost_before"], s["cost_after"]
@@ -202,7 +211,8 @@ def _explain(diag) -> str:
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
                 f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "
                 f"allowed by noise; coefficient chosen on other "
-                f"windows than those it is scored on).{effect_text(f)}{basis_text(ev.get('basis'))} The mismatch "
+                f"windows than those it is scored on).{effect_text(f)}{basis_text(ev.get('basis'))}"
+                f"{runner_up_text(ev.get('pairwise'))} The mismatch "
                 f"lies on the "
                 f"{where['cross_track'].replace('_', ' ')}"
                 f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "

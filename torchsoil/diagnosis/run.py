@@ -128,6 +128,16 @@ def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead
     return used
 
 
+def by_gain(fits: list) -> list:
+    """The accepted fits, the one that predicts the held-out ground best first (largest mean
+    improvement over the base model, `CandidateFit.improvement`): terms that each passed their
+    own test are told apart as cross-validation tells models apart. Two shape terms can both
+    pass on one rut (a wider footprint and walls that stand both widen it at the rim); the
+    steadier gain (higher z) need not be the larger one, and the cause is the term that
+    accounts for more of the mismatch."""
+    return sorted((f for f in fits if f.accepted), key=lambda f: -f.improvement)
+
+
 def strongest_line(by_side: np.ndarray, dx: float) -> dict:
     """The most significant spectral line on the rut floors (2, S): left, right, or both
     summed (a tread marks both ruts, not necessarily in phase nor at one wavelength when the
@@ -412,11 +422,11 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
                       strict=True))
-    accepted = sorted((f for f in fits if f.accepted), key=lambda f: -f.z)
+    accepted = by_gain(fits)
     best = accepted[0] if accepted else None
     pairwise = None
     if len(accepted) > 1:
-        m, se, z = paired_improvement(accepted[1].prediction, best.prediction)
+        m, se, z = paired_improvement(accepted[1].held_out, best.held_out)
         pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z}
 
     # ---- location tests (family-wise alpha_locate over N_LOCATE_TESTS tests)

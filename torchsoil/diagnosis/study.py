@@ -32,7 +32,7 @@ from torchsoil.diagnosis.catalogue import CATALOGUE, signs
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
 from torchsoil.diagnosis.locate import SAME, term_test
 from torchsoil.diagnosis.report import mean_sinkage
-from torchsoil.diagnosis.run import accept_in_order, diagnose, gain_material
+from torchsoil.diagnosis.run import accept_in_order, by_gain, diagnose, gain_material
 from torchsoil.settings import DiagnosisConfig, Settings
 from torchsoil.synth.scenario import make_terrain_pair
 from torchsoil.terrain import TerrainPair
@@ -156,8 +156,8 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
                              [signs(CATALOGUE[t["id"]]) for t in out], effect_materiality)
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
-    named = [t for t in out if t["accepted"]]
-    return out, max(named, key=lambda t: t["z"])["id"] if named else None
+    named = by_gain(fits)
+    return out, next(t["id"] for t, f in zip(out, fits) if f is named[0]) if named else None
 
 
 def study_case(case: tuple, settings: Settings) -> dict:
