@@ -157,7 +157,7 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
     named = by_gain(fits)
-    return out, next(t["id"] for t, f in zip(out, fits) if f is named[0]) if named else None
+    return out, next(t["id"] for t, f in zip(out, fits, strict=True) if f is named[0]) if named else None
 
 
 def study_case(case: tuple, settings: Settings) -> dict:
