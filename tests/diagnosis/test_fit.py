@@ -339,6 +339,31 @@ def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, 
     assert f.k == pytest.approx(k)
 
 
+@pytest.mark.parametrize("best, refined, nearest", [(0.2, 0.2, 0.15), (-0.25, -0.25, -0.2), (0.4, 0.45, 0.3)])
+def test_a_refinement_keeps_the_section_of_the_nearest_coefficient_tried(monkeypatch, best, refined, nearest):
+    """Trial passes search their own tyre section (none given); a refinement is run under the
+    section its nearest trial found (each fake trial finds a section of its own: f = |k|)."""
+    from torchsoil.diagnosis import fit as fit_mod
+
+    n, given = 12, {}
+    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * 1e-3)      # noqa: E731
+
+    def fake_pass(pair, est, sim, ext, k, *a, section=None, **kw):
+        given[round(k, 5)] = section
+        c = cost(k)
+        return fit_mod.Pass(k, [], c, c, c), (abs(k), 1.0) if section is None else section
+
+    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
+    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
+    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
+    est = type("E", (), {"stride": 0.4})()
+    f = fit_mod.fit_extension(pair, est, None, CATALOGUE["footprint_width"], None, base, refine_steps=2)
+    trials = {k for side in fit_mod.trial_sides(CATALOGUE["footprint_width"]) for k in side}
+    assert all(given[k] is None for k in given if k in trials)
+    kept = f.sections[min(f.sections, key=lambda q: abs(q - refined))]
+    assert given[refined] == (abs(nearest), 1.0) and kept == (abs(nearest), 1.0)
+
+
 @pytest.fixture(scope="module")
 def two_angle_drives():
     """Base passes over the same 8 m drive in two-angle soil (loose 22 deg, intact 31 deg; the

@@ -400,22 +400,25 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     outward from 0 while the cost falls), `refine_steps` parabolic refinements, then two-fold
     cross-validated held-out costs and the paired comparison with the base pass (which must
     have been scored with the same `offsets`). sections: tyre sections (f, e) (`fit_section`)
-    a footprint or wall term's passes choose their own from (the pair's is the base model's):
-    a wider footprint and a fuller section both widen the rut, and steeper walls and a rounder
-    section trade off (a flat tread's rut relaxed at the soil's angle looks like a rounder
-    tyre's standing). cache: where finished passes are kept and read back
+    a footprint or wall term's passes at its trial coefficients choose their own from (the
+    pair's is the base model's): a wider footprint and a fuller section both widen the rut, and
+    steeper walls and a rounder section trade off (a flat tread's rut relaxed at the soil's
+    angle looks like a rounder tyre's standing). A refinement, a step between coefficients
+    tried, keeps the section of the nearest one tried (not 0, the base model's, when there is
+    another): the search costs as much as the pass itself. cache: where finished passes are kept and read back
     (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
     sec: dict[float, Section] = {0.0: section_of(pair)}
     counts = PassCounts()
 
-    def run(k: float) -> None:
+    def run(k: float, search: bool = True) -> None:
         if any(abs(k - q) < 1e-9 for q in passes):
             return
         if progress is not None:
             progress.set_postfix_str(f"{ext.id} k={k:+.3g}")
+        near = None if search else sec[min(sec, key=lambda q: (q == 0.0, abs(q - k)))]
         passes[k], sec[k] = candidate_pass(pair, est, sim, ext, k, drive, base, theta0, offsets, sections, cache,
-                                           counts)
+                                           counts, section=near)
         if progress is not None:
             progress.update(1)
 
@@ -431,8 +434,8 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
-        if new is not None:
-            run(float(np.clip(new, *ext.bounds)))
+        if new is not None:               # under the section of the nearest coefficient tried
+            run(float(np.clip(new, *ext.bounds)), search=False)
     ks = sorted(passes)
     lab = folds(len(base.prediction), int(round(block_m / est.stride)))
     k_fold = fold_choice({k: passes[k].held_out for k in ks}, lab)
@@ -461,17 +464,19 @@ def trial_sides(ext: Extension) -> list[list[float]]:
 
 def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k: float, drive: DriveSignals,
                    base: Pass, theta0=None, offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
-                   cache: PassCache | None = None, counts: PassCounts | None = None) -> tuple[Pass, Section]:
+                   cache: PassCache | None = None, counts: PassCounts | None = None, section: Section | None = None
+                   ) -> tuple[Pass, Section]:
     """One pass of `fit_extension`: the extension at coefficient k (within its bounds), under
-    the pair's tyre section or, for a footprint or wall term given `sections`, the one of
-    them that fits best with it (`fit_section`); read back from or kept in `cache`. base: the
+    `section` where it is given, else the pair's tyre section or, for a footprint or wall term
+    given `sections`, the one of them that fits best with it (`fit_section`); read back from or
+    kept in `cache`. base: the
     base model's pass (its shared index, nuisance, view, store and surfaces). counts: the
     hardening term's pass counts kept across a candidate's passes. Returns (the pass, its
     section (f, e))."""
     shared = shared_of(base)
     model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts or PassCounts())
-    sec = section_of(pair)
-    if ext.kind in ("radius", "wall") and sections:
+    sec = section_of(pair) if section is None else section
+    if section is None and ext.kind in ("radius", "wall") and sections:
         sec = fit_section(pair, est, sim, sections, model=model, shared=shared, cache=cache)[0]
     done = run_pass(with_section(pair, sec), est, sim, model, profiles=True, theta0=theta0, offsets=offsets,
                     cache=cache, **shared)
