@@ -339,10 +339,11 @@ def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, 
     assert f.k == pytest.approx(k)
 
 
-@pytest.mark.parametrize("best, refined, nearest", [(0.2, 0.2, 0.15), (-0.25, -0.25, -0.2), (0.4, 0.45, 0.3)])
+@pytest.mark.parametrize("best, refined, nearest", [(0.2, 0.2, 0.15), (-0.25, -0.25, -0.2), (0.4, 0.45, None)])
 def test_a_refinement_keeps_the_section_of_the_nearest_coefficient_tried(monkeypatch, best, refined, nearest):
-    """Trial passes search their own tyre section (none given); a refinement is run under the
-    section its nearest trial found (each fake trial finds a section of its own: f = |k|)."""
+    """Trial passes search their own tyre section (none given); a refinement between two tried
+    coefficients is run under the section the nearer found (each fake search finds f = |k|),
+    a step beyond them (0.45 past 0.3) searches its own."""
     from torchsoil.diagnosis import fit as fit_mod
 
     n, given = 12, {}
@@ -361,7 +362,10 @@ def test_a_refinement_keeps_the_section_of_the_nearest_coefficient_tried(monkeyp
     trials = {k for side in fit_mod.trial_sides(CATALOGUE["footprint_width"]) for k in side}
     assert all(given[k] is None for k in given if k in trials)
     kept = f.sections[min(f.sections, key=lambda q: abs(q - refined))]
-    assert given[refined] == (abs(nearest), 1.0) and kept == (abs(nearest), 1.0)
+    if nearest is None:
+        assert given[refined] is None and kept == pytest.approx((abs(refined), 1.0))
+    else:
+        assert given[refined] == (abs(nearest), 1.0) and kept == (abs(nearest), 1.0)
 
 
 @pytest.fixture(scope="module")

@@ -403,10 +403,10 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     a footprint or wall term's passes at its trial coefficients choose their own from (the
     pair's is the base model's): a wider footprint and a fuller section both widen the rut, and
     steeper walls and a rounder section trade off (a flat tread's rut relaxed at the soil's
-    angle looks like a rounder tyre's standing). A refinement, a step between coefficients
-    tried, keeps the section of the nearest one tried (not 0, the base model's, when there is
-    another): the search costs as much as the pass itself. cache: where finished passes are kept and read back
-    (checkpoint.PassCache)."""
+    angle looks like a rounder tyre's standing). A refinement between coefficients tried
+    keeps the section of the nearer one (not 0, the base model's, when there is another): the
+    search costs as much as the pass itself; a step beyond them is a trial of its own. cache:
+    where finished passes are kept and read back (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
     sec: dict[float, Section] = {0.0: section_of(pair)}
     counts = PassCounts()
@@ -434,8 +434,9 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
-        if new is not None:               # under the section of the nearest coefficient tried
-            run(float(np.clip(new, *ext.bounds)), search=False)
+        if new is not None:               # between two tried: under the section of the nearer
+            k = float(np.clip(new, *ext.bounds))
+            run(k, search=not min(passes) < k < max(passes))
     ks = sorted(passes)
     lab = folds(len(base.prediction), int(round(block_m / est.stride)))
     k_fold = fold_choice({k: passes[k].held_out for k in ks}, lab)
