@@ -122,7 +122,7 @@ def test_the_sinkage_pass_by_pass_reads_each_pass_in_turn():
 
 
 def test_the_revisit_section_tables_the_sinkage_of_every_pass():
-    rev = {"z_visible": 2.6, "z_level": 1.96, "windows": 20, "cost_before": 0.0046, "noise_floor": 0.0035,
+    rev = {"z": 2.9, "z_visible": 2.6, "z_level": 1.96, "windows": 20, "cost_before": 0.0046, "noise_floor": 0.0035,
            "g": 0.667, "g_folds": [0.68, 0.66], "gain": 0.001, "cost_after": 0.0035, "accepted": True,
            "rut": {"measured": 0.0036, "simulated_without_law": 0.0093, "simulated_with_law": 0.0033},
            "laws": {"geometric": {"coefficient": 0.667, "cost": 0.0035}}, "shape": None, "per_pass": _per_pass()}

@@ -105,12 +105,19 @@ def test_hardening_across_visits_names_a_law_only_where_the_first_visits_soil_mi
     assert hard["cost_before"] > hard["noise_floor"] == pytest.approx(hard["cost_after"], rel=1e-3)
     assert hard["rut"]["simulated_with_law"] == pytest.approx(hard["rut"]["measured"], rel=0.02)
     assert hard["parameter"] == "g_pass" and hard["shape"] is None
-    # the same law's best factor, but the first visit's soil already predicts within the noise
-    near = {k: {**v, "cost": 0.003 * (0.8 + 0.1 * (v["factor"] - 0.9) ** 2)}
-            for k, v in later_visits(0.36, 1.0).items()}
-    assert not hardening_across_visits(VisitPass([], near), 0.025, 0.05, 2.4, 2)["accepted"]
+    # a steady gain, but each pass sinks 2 % less (two passes: factor 0.96): not material
+    small = hardening_across_visits(VisitPass([], later_visits(0.96, 1.0)), 0.025, 0.05, 2.4, 2)
+    assert not small["accepted"] and small["g"] == pytest.approx(0.98, abs=0.005) and small["z"] > 3
     # soil that does not harden: best at factor 1
     assert not hardening_across_visits(VisitPass([], later_visits(1.0, 1.2)), 0.025, 0.05, 2.4, 2)["accepted"]
+    # a gain that noise makes: windows best at 0.5 or 1 in turn, by blocks of 2.4 m (as the
+    # folds are), so g chosen on one fold never helps the other
+    rng = np.random.default_rng(3)
+    mixed = {k: {**v, "cost": v["cost"] + 0.0005 * rng.standard_normal()} for k, v in later_visits(1.0, 1.0).items()}
+    for (s, _), v in mixed.items():
+        if int(s // 2.4) % 2:
+            v["cost"] = 0.003 * (1.0 + 4 * (v["factor"] - 0.5) ** 2)
+    assert not hardening_across_visits(VisitPass([], mixed), 0.025, 0.05, 2.4, 2)["accepted"]
 
 
 @pytest.fixture(scope="module")
@@ -137,7 +144,7 @@ def test_a_reference_model_drive_with_a_known_law_recovers_its_coefficient(out_a
 
 def test_a_reference_model_drive_that_does_not_harden_names_nothing(out_and_back_runs):
     rev = hardening_across_visits(out_and_back_runs["none"], 0.025, 0.05, 2.4, 2)
-    assert not rev["accepted"] and rev["z_visible"] < rev["z_level"]
+    assert not rev["accepted"] and rev["z"] < rev["z_level"]
     assert rev["sinkage_ratios"]["g"] == pytest.approx(1.0, abs=0.05)
 
 
@@ -177,3 +184,23 @@ def test_sinkage_pass_by_pass_is_recovered_where_every_wheel_pass_sinks_less():
         assert d == pytest.approx(D0 * 0.6**n, abs=0.003), (n, d)
     print(pp["rut"])
     assert pp["rut"]["simulated"] == pytest.approx(pp["rut"]["measured"], rel=0.2)
+
+
+def test_the_gain_on_ground_driven_again_counts_windows_that_share_no_ground():
+    """Windows of 0.8 m at a 0.4 m stride: centres two strides apart share no ground. By hand,
+    t with 2 degrees of freedom has the tail 1/2 - t / (2 sqrt(2 + t^2))."""
+    from scipy import stats
+
+    from torchsoil.diagnosis.revisits import spaced_z
+
+    s = np.array([0.0, 0.4, 0.8, 1.2, 1.6, 2.0])
+    gain = np.array([1.0, 2.0, 2.0, 2.0, 3.0, 5.0])        # even centres 1, 2, 3 (t 3.46); odd 2, 2, 5 (t 3.0)
+
+    def z(t):
+        return stats.norm.isf(0.5 - t / (2 * np.sqrt(2 + t * t)))
+
+    assert spaced_z(s, gain, 0.4) == pytest.approx(z(3.0), rel=1e-6)
+    # the visits of one window count once: a second visit at 0.4 m with gain 4 makes it 3
+    assert spaced_z(np.r_[s, 0.4], np.r_[gain, 4.0], 0.4) == pytest.approx(z(2.0 / (1.0 / np.sqrt(3.0))), rel=1e-6)
+    assert spaced_z(s[:5], gain[:5], 0.4) == 0.0                               # odd centres: two windows
+    assert spaced_z(s, -gain, 0.4) < -1.5

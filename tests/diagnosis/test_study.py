@@ -285,10 +285,10 @@ def test_a_study_record_keeps_the_hardening_test_in_brief():
 
     from torchsoil.diagnosis.study import revisit_test
 
-    rev = {"accepted": True, "windows": 11, "z_visible": 2.5, "z_level": 1.96, "g": 0.62, "g_folds": [0.6, 0.64],
-           "laws": {}, "s": [1.0, 1.4], "per_pass": {"g": 0.54, "visits": []}}
+    rev = {"accepted": True, "windows": 11, "z": 2.8, "z_visible": 2.5, "z_level": 1.96, "g": 0.62,
+           "g_folds": [0.6, 0.64], "laws": {}, "s": [1.0, 1.4], "per_pass": {"g": 0.54, "visits": []}}
     brief = revisit_test(SimpleNamespace(evidence={"revisits": rev}))
-    assert brief == {"accepted": True, "windows": 11, "z_visible": 2.5, "z_level": 1.96, "g": 0.62,
+    assert brief == {"accepted": True, "windows": 11, "z": 2.8, "z_visible": 2.5, "z_level": 1.96, "g": 0.62,
                      "g_folds": [0.6, 0.64], "g_per_pass": 0.54}
     assert "g_per_pass" not in revisit_test(SimpleNamespace(evidence={"revisits": {**rev, "per_pass": None}}))
     assert revisit_test(SimpleNamespace(evidence={"revisits": None})) is None

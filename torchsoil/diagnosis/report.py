@@ -135,13 +135,14 @@ def revisit_text(rev: dict, s: dict, span: str) -> str:
     return (f"The base model leaves out: each later pass over the same ground sinks less than the first "
             f"(multi_pass_hardening), named on the ground driven more than once. {len(rev['s'])} windows were "
             f"fitted visit by visit; the first visit's soil predicts the later visits' ground at "
-            f"{_mm(rev['cost_before'])} against their noise floor {_mm(rev['noise_floor'])} (paired over windows, "
-            f"z = {rev['z_visible']:.1f} against {rev['z_level']:.1f}), and sinking less by {how} brings it to "
-            f"{_mm(rev['cost_after'])} (g chosen on the other fold of blocks: {rev['g_folds'][0]:.3g}, "
-            f"{rev['g_folds'][1]:.3g}). Each pass sinks {100 * rev['effect']:.0f} % less than the one before. The "
-            f"later visits dug ruts of {_mm(rut['measured'])}; the first visit's soil would dig "
-            f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}. The mismatch "
-            f"lies on the rut floor and follows the passes; it matters at {span}." + per_pass_text(rev.get("per_pass")))
+            f"{_mm(rev['cost_before'])} against their noise floor {_mm(rev['noise_floor'])}, and sinking less by "
+            f"{how} brings it to {_mm(rev['cost_after'])} (g chosen on the other fold of blocks: "
+            f"{rev['g_folds'][0]:.3g}, {rev['g_folds'][1]:.3g}; the gain over windows that share no ground: "
+            f"z = {rev['z']:.1f} against {rev['z_level']:.1f}). Each pass sinks {100 * rev['effect']:.0f} % less "
+            f"than the one before. The later visits dug ruts of {_mm(rut['measured'])}; the first visit's soil "
+            f"would dig {_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}. The "
+            f"mismatch lies on the rut floor and follows the passes; it matters at {span}."
+            + per_pass_text(rev.get("per_pass")))
 
 
 def _main_groups(pp: dict) -> list[dict]:
@@ -373,14 +374,15 @@ def fig_costs(diag, path: Path) -> Path:
 
 def revisit_markdown(rev: dict) -> str:
     """The per-visit hardening test (revisits.hardening_across_visits) as Markdown."""
-    if "z_visible" not in rev:
+    if "z" not in rev:
         return f"Not tested: {rev.get('reason', 'no later visits')}."
     rut = rev["rut"]
     lines = [f"Each later visit of {rev['windows']} windows simulated from its own start with the first visit's "
              f"soil: cost {_mm(rev['cost_before'])} against a noise floor of {_mm(rev['noise_floor'])} (z = "
-             f"{rev['z_visible']:.2f}, needed {rev['z_level']:.2f}); with each pass sinking g = {rev['g']:.3g} "
-             f"times the one before (folds {rev['g_folds'][0]:.3g}, {rev['g_folds'][1]:.3g}; mean gain "
-             f"{_mm(rev['gain'])}): {_mm(rev['cost_after'])}. Accepted: {rev['accepted']}.", "",
+             f"{rev['z_visible']:.2f}); with each pass sinking g = {rev['g']:.3g} times the one before (folds "
+             f"{rev['g_folds'][0]:.3g}, {rev['g_folds'][1]:.3g}; mean gain {_mm(rev['gain'])}, z = {rev['z']:.2f} "
+             f"over windows that share no ground, needed {rev['z_level']:.2f}): {_mm(rev['cost_after'])}. "
+             f"Accepted: {rev['accepted']}.", "",
              f"Rut the later visits added: measured {_mm(rut['measured'])}, simulated from the first visit's soil "
              f"{_mm(rut['simulated_without_law'])}, with the law {_mm(rut['simulated_with_law'])}.", "",
              "| law | coefficient | cross-visit cost |", "| --- | --- | --- |"]

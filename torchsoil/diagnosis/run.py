@@ -313,7 +313,8 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
     vp = kept(cache, "visits", (section_of(pair), sim.dig_order), lambda: run_visits(pair, est, sim, **kw))
     if progress is not None:
         progress.update(1)
-    rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks)
+    rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks, est.stride,
+                                  max(1, int(round(est.window / est.stride))))
     if rev["accepted"]:
         rev["per_pass"] = kept(cache, "per_pass", (section_of(pair), rev["g"]),
                                lambda: per_pass_fit(pair, est, sim, rev["g"], **kw))

@@ -70,7 +70,7 @@ def revisit_test(diag) -> dict | None:
     rev = diag.evidence.get("revisits")
     if rev is None:
         return None
-    keys = ("accepted", "windows", "z_visible", "z_level", "g", "g_folds", "reason")
+    keys = ("accepted", "windows", "z", "z_visible", "z_level", "g", "g_folds", "reason")
     out = {k: rev[k] for k in keys if k in rev}
     if "g" in (rev.get("per_pass") or {}):
         out["g_per_pass"] = rev["per_pass"]["g"]
