@@ -470,10 +470,9 @@ def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k
     """One pass of `fit_extension`: the extension at coefficient k (within its bounds), under
     `section` where it is given, else the pair's tyre section or, for a footprint or wall term
     given `sections`, the one of them that fits best with it (`fit_section`); read back from or
-    kept in `cache`. base: the
-    base model's pass (its shared index, nuisance, view, store and surfaces). counts: the
-    hardening term's pass counts kept across a candidate's passes. Returns (the pass, its
-    section (f, e))."""
+    kept in `cache`. base: the base model's pass (its shared index, nuisance, view, store and
+    surfaces). counts: the hardening term's pass counts kept across a candidate's passes.
+    Returns (the pass, its section (f, e))."""
     shared = shared_of(base)
     model = ExtensionModel(ext, k, drive, pair.robot, base.view or "last_visit", sim.dig_order, counts or PassCounts())
     sec = section_of(pair) if section is None else section
