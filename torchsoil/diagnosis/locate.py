@@ -45,6 +45,12 @@ def lag1(x: np.ndarray) -> float:
     return float((x[1:] * x[:-1]).sum() / den) if den > 0 else 0.0
 
 
+def t_z(t: float, dof: float) -> float:
+    """The normal z of the same one-sided p as Student's t with dof degrees of freedom."""
+    p = float(stats.t.sf(t, dof))
+    return float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
+
+
 def effective_n(n: int, *series: np.ndarray, floor: float = 3.0) -> float:
     """Effective sample size of n autocorrelated values: n (1 - r) / (1 + r) with r the product
     of the series' lag-1 autocorrelations (one series: its own), floored at `floor`."""
@@ -124,8 +130,7 @@ def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[f
     se = float(math.sqrt((scatter ** 2).sum() / (nb - fitted) / n_eff))
     if se <= 0:
         return m, 0.0, 0.0 if m == 0 else math.copysign(math.inf, m)
-    p = float(stats.t.sf(m / se, max(n_eff - fitted, 1.0)))
-    return m, se, float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
+    return m, se, t_z(m / se, max(n_eff - fitted, 1.0))
 
 
 def _paired_blocks(base, ext, block: int, same: float, s=None):

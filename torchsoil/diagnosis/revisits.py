@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import interpolate, optimize, stats
 
-from torchsoil.diagnosis.locate import effective_n
+from torchsoil.diagnosis.locate import effective_n, t_z
 from torchsoil.sim.simulate import Modifiers
 
 LAWS = ("geometric", "hyperbolic", "power")
@@ -303,8 +303,7 @@ def spaced_z(s, gain, stride: float, apart: int = 2) -> float:
         if sd == 0:
             zs.append(0.0 if x.mean() == 0 else math.copysign(math.inf, x.mean()))
             continue
-        p = float(stats.t.sf(x.mean() / (sd / math.sqrt(len(x))), len(x) - 1))
-        zs.append(float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16))))
+        zs.append(t_z(x.mean() / (sd / math.sqrt(len(x))), len(x) - 1))
     return min(zs)
 
 
