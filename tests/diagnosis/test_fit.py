@@ -315,7 +315,7 @@ def test_trial_coefficients_go_outward_from_zero_on_each_side():
 @pytest.mark.parametrize("best, runs, k", [
     (0.0, [0.15, -0.2], 0.0),                    # both sides rise at their first trial
     (0.2, [0.15, 0.3, -0.2, 0.2], 0.2),          # rises at 0.3: the parabola's vertex
-    (0.4, [0.15, 0.3, -0.2, 0.45], 0.45),        # falls to the last trial: a step beyond, to the bound
+    (0.4, [0.15, 0.3, 0.45, -0.2], 0.45),        # falls to the last trial: on, twice it clipped to the bound
     (-0.25, [0.15, -0.2, -0.4, -0.25], -0.25)])  # the other side: a step beyond, then the vertex
 def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, runs, k):
     """Fake passes whose held-out cost is a parabola in k about `best`: each side runs its
@@ -337,6 +337,32 @@ def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, 
     f = fit_mod.fit_extension(pair, est, None, CATALOGUE["footprint_width"], None, base, refine_steps=2)
     assert ran == runs
     assert f.k == pytest.approx(k)
+
+
+@pytest.mark.parametrize("best, runs", [
+    (19.0, [4.0, 8.0, 16.0, 20.0]),              # still falling at 8: on to 16, then the bound
+    (10.0, [4.0, 8.0, 16.0]),                    # rises at 16: the side stops there
+    (6.0, [4.0, 8.0])])                          # rises at the last trial: nothing beyond it
+def test_a_side_still_falling_at_its_last_trial_goes_on_doubling_to_the_bound(monkeypatch, best, runs):
+    """Slip's trials end at 8 in a bound of 20: a convex law on a drive that never comes near
+    no traction needs a larger linear coefficient, which the side reaches by doubling."""
+    from torchsoil.diagnosis import fit as fit_mod
+
+    n, ran = 12, []
+    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * 1e-5)      # noqa: E731
+
+    def fake_pass(pair, est, sim, ext, k, *a, **kw):
+        ran.append(round(k, 5))
+        c = cost(k)
+        return fit_mod.Pass(k, [], c, c, c), (0.0, 1.0)
+
+    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
+    monkeypatch.setattr(fit_mod, "effect_size", lambda ext, k, *a: abs(k))     # no drive signals here
+    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
+    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
+    est = type("E", (), {"stride": 0.4})()
+    fit_mod.fit_extension(pair, est, None, CATALOGUE["slip_sinkage"], None, base, refine_steps=0)
+    assert ran == runs
 
 
 @pytest.mark.parametrize("best, refined, nearest", [(0.2, 0.2, 0.15), (-0.25, -0.25, -0.2), (0.4, 0.45, None)])

@@ -33,6 +33,19 @@ def test_reference_height_of_plane_is_plane(a, b, c, radius, dx):
     assert torch.allclose(ref[inner], h[inner], atol=1e-12)  # symmetric disc: the mean is the centre
 
 
+@pytest.mark.parametrize("radius_cells", [0.9, 1.5, 2.3, 3.5])
+def test_reference_height_is_the_mean_of_the_cells_within_the_radius_that_exist(radius_cells):
+    """Cell by cell with a plain loop: near the edge the mean is over the cells inside the map."""
+    g = torch.Generator().manual_seed(3)
+    h = torch.randn(2, 9, 7, dtype=torch.float64, generator=g)
+    ref = reference_height(h, radius_cells * 0.02, 0.02)
+    for x in range(9):
+        for y in range(7):
+            near = [(i, j) for i in range(9) for j in range(7) if (i - x) ** 2 + (j - y) ** 2 <= radius_cells ** 2]
+            want = torch.stack([h[:, i, j] for i, j in near]).mean(0)
+            assert torch.allclose(ref[:, x, y], want, atol=1e-12), (x, y)
+
+
 def test_disc_offsets_symmetric():
     off = set(disc_offsets(1.75))
     assert (0, 0) in off and (1, 1) in off and (2, 0) not in off

@@ -397,7 +397,10 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                   offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
                   cache: PassCache | None = None) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients (`trial_sides`:
-    outward from 0 while the cost falls), `refine_steps` parabolic refinements, then two-fold
+    outward from 0 while the cost falls; where it still falls at a side's last trial, on at
+    twice that coefficient, up to the bound: a law of another shape than the term's, a convex
+    one on a drive whose covariate never comes near 0, needs a coefficient beyond the
+    trials), `refine_steps` parabolic refinements, then two-fold
     cross-validated held-out costs and the paired comparison with the base pass (which must
     have been scored with the same `offsets`). sections: tyre sections (f, e) (`fit_section`)
     a footprint or wall term's passes at its trial coefficients choose their own from (the
@@ -424,13 +427,18 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
 
     every = np.ones(len(base.prediction), bool)
     for side in trial_sides(ext):        # outward from 0 on each side, while the cost falls
-        last = _mean(base.held_out, every)
-        for k in side:
+        last, queue = _mean(base.held_out, every), list(side)
+        while queue:
+            k = queue.pop(0)
             run(k)
             cost = _mean(passes[k].held_out, every)
             if not cost < last:
                 break
             last = cost
+            if not queue:                 # still falling at the last trial: on, doubling, to the bound
+                on = float(np.clip(2.0 * k, *ext.bounds))
+                if abs(on) > abs(k) + 1e-9:
+                    queue.append(on)
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)

@@ -39,7 +39,8 @@ BOUNDS = {"geometric": (1e-3, 2.0), "hyperbolic": (-0.5, 50.0), "power": (-8.0, 
 
 
 def law_factor(shape: str, c: float, n) -> np.ndarray:
-    """d_n / d_0 under law `shape` with coefficient c after n (any shape) earlier passes."""
+    """d_n / d_0 under law `shape` with coefficient c after n earlier passes (c and n: floats or
+    arrays that broadcast together)."""
     n = np.asarray(n, np.float64)
     if shape == "geometric":
         return c ** n
@@ -239,23 +240,36 @@ def cross_costs(later: dict, g: float, shape: str = "geometric") -> np.ndarray:
     return np.array([at_factor(v, "cost", float(law_factor(shape, g, v["passes"]))) for v in later.values()])
 
 
+def _curve(visit: dict, key: str):
+    """A later visit's `key` curve over its sinkage factors: (cubic spline, lowest factor,
+    highest factor)."""
+    order = np.argsort(visit["factor"])
+    x = np.asarray(visit["factor"], np.float64)[order]
+    return interpolate.CubicSpline(x, np.asarray(visit[key], np.float64)[order]), x[0], x[-1]
+
+
 def at_factor(visit: dict, key: str, f: float) -> float:
     """A later visit's `key` curve ("cost" or "rut", over its sinkage factors) at factor f
     (cubic spline: a minimum may lie between two factors; f clipped to the factors simulated)."""
-    order = np.argsort(visit["factor"])
-    x = np.asarray(visit["factor"], np.float64)[order]
-    return float(interpolate.CubicSpline(x, np.asarray(visit[key], np.float64)[order])(np.clip(f, x[0], x[-1])))
+    spline, lo, hi = _curve(visit, key)
+    return float(spline(np.clip(f, lo, hi)))
 
 
 def fit_cost_law(later: dict, shape: str = "geometric") -> float:
     """The law's coefficient at which the first visits' soil predicts the later visits best
-    (least mean cross-visit cost, `cross_costs`); g in (0, 1] for the geometric law."""
+    (least mean cross-visit cost, `cross_costs`, over a grid of 401 coefficients); g in
+    (0, 1] for the geometric law."""
     if not later:
         return 1.0
     lo, hi = {"geometric": (0.05, 1.0), "hyperbolic": (0.0, 20.0), "power": (-4.0, 0.0)}[shape]
     grid = np.linspace(lo, hi, 401)
-    c = [float(np.nanmean(cross_costs(later, g, shape))) for g in grid]
-    return float(grid[int(np.nanargmin(c))])
+    n = np.array([v["passes"] for v in later.values()], np.float64)
+    f = law_factor(shape, grid[:, None], n[None])                         # (G, L)
+    cost = np.empty_like(f)
+    for i, v in enumerate(later.values()):          # one spline per visit, at every coefficient
+        spline, a, b = _curve(v, "cost")
+        cost[:, i] = spline(np.clip(f[:, i], a, b))
+    return float(grid[int(np.nanargmin(np.nanmean(cost, 1)))])
 
 
 def _shapes(later: dict, level: float, min_windows: int = 4) -> tuple[dict, str | None]:

@@ -32,6 +32,16 @@ def disc_offsets(radius_cells: float) -> list[tuple[int, int]]:
             if i * i + j * j <= radius_cells**2 + 1e-9]
 
 
+def _disc_sum(hp: torch.Tensor, half: dict[int, int], r: int, X: int, Y: int) -> torch.Tensor:
+    """Sum of hp (B, X + 2r, Y + 2r), padded by r, over a disc given row by row: row offset i
+    spans columns -half[i]..half[i]. A run of width 2w + 1 is the run of width 2w - 1 and its
+    two ends, so the disc takes about 4r additions where a shift per cell took about 3r^2."""
+    runs = [hp[:, :, r:r + Y]]
+    for w in range(1, max(half.values()) + 1):
+        runs.append(runs[-1] + hp[:, :, r - w:r - w + Y] + hp[:, :, r + w:r + w + Y])
+    return sum(runs[w][:, r + i:r + i + X] for i, w in half.items())
+
+
 def reference_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
     """Local reference height h~: mean of h over a disc of `radius` [m] around each cell.
 
@@ -41,12 +51,13 @@ def reference_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
     r = max(max(abs(i), abs(j)) for i, j in offsets)
     if r == 0:
         return h
+    half: dict[int, int] = {}
+    for i, j in offsets:
+        half[i] = max(half.get(i, 0), abs(j))
     X, Y = h.shape[1:]
     hp = F.pad(h[:, None], (r, r, r, r))[:, 0]
     ones = F.pad(torch.ones_like(h[:1, None]), (r, r, r, r))[:, 0]
-    num = sum(hp[:, r + i:r + i + X, r + j:r + j + Y] for i, j in offsets)
-    den = sum(ones[:, r + i:r + i + X, r + j:r + j + Y] for i, j in offsets)
-    return num / den
+    return _disc_sum(hp, half, r, X, Y) / _disc_sum(ones, half, r, X, Y)
 
 
 def contact_height(h: torch.Tensor, radius: float, dx: float) -> torch.Tensor:
