@@ -363,6 +363,7 @@ def test_a_side_still_falling_at_its_last_trial_goes_on_doubling_to_the_bound(mo
     est = type("E", (), {"stride": 0.4})()
     fit_mod.fit_extension(pair, est, None, CATALOGUE["slip_sinkage"], None, base, refine_steps=0)
     assert ran == runs
+    assert len(ran) <= fit_mod.most_trials(CATALOGUE["slip_sinkage"]) == 4        # 4, 8, 16, 20
 
 
 @pytest.mark.parametrize("best, refined, nearest", [(0.2, 0.2, 0.15), (-0.25, -0.25, -0.2), (0.4, 0.45, None)])

@@ -471,6 +471,17 @@ def trial_sides(ext: Extension) -> list[list[float]]:
     return [s for s in (sorted(k for k in ks if k > 0), sorted((k for k in ks if k < 0), reverse=True)) if s]
 
 
+def most_trials(ext: Extension) -> int:
+    """The most trial passes `fit_extension` may run for ext: every side's trial coefficients
+    and the doublings past its last one up to the bound (refinements not counted)."""
+    n = 0
+    for side in trial_sides(ext):
+        k, n = side[-1], n + len(side)
+        while abs(on := float(np.clip(2.0 * k, *ext.bounds))) > abs(k) + 1e-9:
+            k, n = on, n + 1
+    return n
+
+
 def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k: float, drive: DriveSignals,
                    base: Pass, theta0=None, offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
                    cache: PassCache | None = None, counts: PassCounts | None = None, section: Section | None = None

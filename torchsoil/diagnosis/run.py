@@ -18,6 +18,7 @@ from torchsoil.diagnosis.fit import (
     accept,
     fit_extension,
     fit_section,
+    most_trials,
     own_fit_screen,
     paired_z,
     run_pass,
@@ -523,7 +524,8 @@ def n_steps(cfg: DiagnosisConfig | None = None) -> int:
     """Upper bound on the estimator passes of one diagnosis (for a progress bar; one per visit
     pass on a pair with visit layers)."""
     cfg = cfg or DiagnosisConfig()
-    return 2 + bool(cfg.sections) + cfg.n_fit * (3 + cfg.refine_steps)   # + the per-visit pass
+    trials = max(most_trials(e) for e in catalogue.CATALOGUE.values())
+    return 2 + bool(cfg.sections) + cfg.n_fit * (trials + cfg.refine_steps)   # + the per-visit pass
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]
