@@ -15,6 +15,7 @@ from torchsoil.grid import Grid
 from torchsoil.robot import paper_platform
 from torchsoil.sim import ParamSpec, SimConfig, simulate, wheel_geometry
 from torchsoil.sim.relaxation import relax
+from torchsoil.sim.sinkage import reference_height
 
 WINDOW = 0.8  # m
 
@@ -35,6 +36,10 @@ def paper_window(dx: float, seed: int = 0, noise: float = 0.003):
 def _forward_backward(h, geom, theta, cfg):
     theta = theta.clone().requires_grad_(True)
     simulate(h, geom, theta, cfg).h.sum().backward()
+
+
+def _reference_backward(h, radius, dx):
+    reference_height(h, radius, dx).sum().backward()
 
 
 def _median_ms(fn, repeat: int) -> float:
@@ -88,6 +93,11 @@ def _run(quick: bool) -> dict[str, float]:
                 wheel_cfg = SimConfig(dig_order="wheel")          # axles dig in turn
                 out[f"sim_forward_wheel_order_ms_{key}"] = _median_ms(
                     partial(simulate, h, geom, theta, wheel_cfg), repeat)
+                out[f"sim_forward_backward_wheel_order_ms_{key}"] = _median_ms(
+                    partial(_forward_backward, h, geom, theta, wheel_cfg), repeat)
+                hb = h.expand(B, -1, -1).clone().requires_grad_(True)  # a trailing wheel's reference, with its gradient
+                out[f"sim_reference_height_ms_{key}"] = _median_ms(
+                    partial(_reference_backward, hb, robot.wheel_width / 2, dx), repeat)
     grid, poses, robot, h = paper_window(0.02)
     geom = wheel_geometry(grid, poses, robot, dtype=torch.float64)
     for deg in (20, 30, 45):
