@@ -196,6 +196,21 @@ def test_one_fit_over_both_visits_takes_them_for_one_soil(visits_pair):
     assert all(abs(r["d1"] - D1) > 0.004 for r in rows)
 
 
+def test_windows_whose_ground_a_later_stretch_drove_again_say_so(visits_pair):
+    """On the way out the ground belongs to the way back (its windows fit both visits): those
+    windows are flagged driven_again, not empty; a drive that never comes back has none."""
+    s = settings()
+    est = Estimator(visits_pair, s.estimator, s.sim, per_visit=True)
+    out = [k for k, w in enumerate(est.windows) if w.s1 < LENGTH - 1.0]      # clear of the turn
+    rows = [o.row for o in est.run(start=out[0], stop=out[-1] + 1)]
+    assert rows and all(r["flags"] == "driven_again" for r in rows), [(r["s"], r["flags"]) for r in rows if r["flags"] != "driven_again"]
+    data, _ = two_visit_pair(seed=2)
+    keep = data["poses"][:, 0] <= LENGTH                     # the way out alone, no visit layers
+    once = {k: v for k, v in data.items() if not k.startswith("visit_")} | {"poses": data["poses"][keep]}
+    est = Estimator(TerrainPair.from_mapping(once), s.estimator, s.sim)
+    assert all("driven_again" not in est._no_ground(w) for w in est.windows)
+
+
 def test_a_single_visit_layer_gives_the_rows_of_a_pair_without_layers():
     data, _ = two_visit_pair(seed=1)
     plain = {k: v for k, v in data.items() if not k.startswith("visit_")}

@@ -302,7 +302,7 @@ class Estimator:
         t0: perf_counter time at which its work began."""
         reference = {"signal": math.nan, "floor": math.nan}
         if wd is None or "few_valid" in wd.flags:
-            flags = ("empty",) if wd is None else wd.flags
+            flags = (self._no_ground(spec),) if wd is None else wd.flags
             return WindowOutput(self._row(spec, wd, None, math.nan, math.nan, 0, time.perf_counter() - t0,
                                           flags, visit), reference, wd, None, None)
         res = self.fit_window(wd, theta)
@@ -318,6 +318,19 @@ class Estimator:
         row = self._row(spec, wd, theta, residual, prediction, res.iterations, time.perf_counter() - t0,
                         tuple(flags), visit)
         return WindowOutput(row, reference, wd, h_sim, res)
+
+    def _no_ground(self, spec: WindowSpec) -> str:
+        """Why window `spec` holds no ground: "driven_again" where the cells under its stretch
+        of the path belong to a later stretch (the drive came back over them: their window
+        there fits every visit of that ground, on a pair with visit layers this window's as
+        its visit 0), else "empty"."""
+        arc = self.index.arc
+        on = (arc >= spec.s0) & (arc < spec.s1)
+        ij = self.pair.grid.index(self.pair.poses[on, 1:3]) if on.any() else np.zeros((0, 2), np.int64)
+        X, Y = self.index.s.shape
+        ij = ij[(ij[:, 0] >= 0) & (ij[:, 0] < X) & (ij[:, 1] >= 0) & (ij[:, 1] < Y)]
+        later = self.index.s[ij[:, 0], ij[:, 1]] >= spec.s1
+        return "driven_again" if later.any() else "empty"
 
     # ------------------------------------------------------------------ visits
     def visit_data(self, k: int) -> dict[int, WindowData | None]:

@@ -208,7 +208,10 @@ def write_summary(path: Path, rows: list[dict], reference: list[dict], meta: dic
                  "mean ± standard deviation over windows (multipass.png; passes per cell and cumulative rut depth "
                  "in passes.npz, passes.png).", "", meta["multipass"], ""]
     if flagged:
-        text += ["Flagged windows:", ""] + [f"- s = {r['s']:.2f} m{_visit(r)}: {r['flags']}" for r in flagged[:50]]
+        text += ["Flagged windows:", ""] + flag_runs(flagged, float(meta.get("stride", 0.4)))[:50]
+        if any("driven_again" in r["flags"] for r in flagged):
+            text += ["", "driven_again: the drive came back over this ground; the window of the later stretch "
+                         "fits it (on a pair with visit layers, every visit; docs/visits.md)."]
     Path(path).write_text("\n".join(text) + "\n")
     return Path(path)
 
@@ -263,6 +266,22 @@ def pass_maps(pair, layers: dict, path: Path) -> Path:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     return path
+
+
+def flag_runs(flagged: list[dict], stride: float) -> list[str]:
+    """summary.md's lines for flagged rows, visit by visit along the drive: consecutive
+    windows (`stride` m apart) with the same flags as one line, "- s = a-b m (n windows): flags"."""
+    runs: list[list[dict]] = []
+    for r in sorted(flagged, key=lambda r: (int(r.get("visit", 0) or 0), r["s"])):
+        last = runs[-1][-1] if runs else None
+        if (last is not None and last["flags"] == r["flags"] and _visit(last) == _visit(r)
+                and 0 < r["s"] - last["s"] <= 1.5 * stride):
+            runs[-1].append(r)
+        else:
+            runs.append([r])
+    return [f"- s = {g[0]['s']:.2f} m{_visit(g[0])}: {g[0]['flags']}" if len(g) == 1 else
+            f"- s = {g[0]['s']:.2f}-{g[-1]['s']:.2f} m{_visit(g[0])} ({len(g)} windows): {g[0]['flags']}"
+            for g in runs]
 
 
 def _visit(row: dict) -> str:
