@@ -312,6 +312,28 @@ def test_trial_coefficients_go_outward_from_zero_on_each_side():
     assert trial_sides(CATALOGUE["multi_pass_hardening"]) == [[-0.3, -0.6]]
 
 
+def fake_fit(monkeypatch, ext_id: str, best: float, curvature: float, refine_steps: int, found=None):
+    """fit_extension over fake passes whose held-out cost is a parabola in k about `best`
+    (the base pass's at k 0): returns (the fit, {k run: the section it was given}, in run
+    order). found(k, section): the section a pass reports (default (0, 1))."""
+    from torchsoil.diagnosis import fit as fit_mod
+
+    n, given = 12, {}
+    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * curvature)      # noqa: E731
+
+    def fake_pass(pair, est, sim, ext, k, *a, section=None, **kw):
+        given[round(k, 5)] = section
+        c = cost(k)
+        return fit_mod.Pass(k, [], c, c, c), (0.0, 1.0) if found is None else found(k, section)
+
+    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
+    monkeypatch.setattr(fit_mod, "effect_size", lambda ext, k, *a: abs(k))     # no drive signals here
+    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
+    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
+    est = type("E", (), {"stride": 0.4})()
+    return fit_mod.fit_extension(pair, est, None, CATALOGUE[ext_id], None, base, refine_steps=refine_steps), given
+
+
 @pytest.mark.parametrize("best, runs, k", [
     (0.0, [0.15, -0.2], 0.0),                    # both sides rise at their first trial
     (0.2, [0.15, 0.3, -0.2, 0.2], 0.2),          # rises at 0.3: the parabola's vertex
@@ -320,22 +342,8 @@ def test_trial_coefficients_go_outward_from_zero_on_each_side():
 def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, runs, k):
     """Fake passes whose held-out cost is a parabola in k about `best`: each side runs its
     trials until the cost rises, then the refinements go to the vertex (cost in the base pass: k 0)."""
-    from torchsoil.diagnosis import fit as fit_mod
-
-    n, ran = 12, []
-    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * 1e-3)      # noqa: E731
-
-    def fake_pass(pair, est, sim, ext, k, *a, **kw):
-        ran.append(round(k, 5))
-        c = cost(k)
-        return fit_mod.Pass(k, [], c, c, c), (0.0, 1.0)
-
-    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
-    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
-    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
-    est = type("E", (), {"stride": 0.4})()
-    f = fit_mod.fit_extension(pair, est, None, CATALOGUE["footprint_width"], None, base, refine_steps=2)
-    assert ran == runs
+    f, given = fake_fit(monkeypatch, "footprint_width", best, 1e-3, 2)
+    assert list(given) == runs
     assert f.k == pytest.approx(k)
 
 
@@ -346,24 +354,12 @@ def test_a_side_stops_at_the_first_rise_of_the_held_out_cost(monkeypatch, best, 
 def test_a_side_still_falling_at_its_last_trial_goes_on_doubling_to_the_bound(monkeypatch, best, runs):
     """Slip's trials end at 8 in a bound of 20: a convex law on a drive that never comes near
     no traction needs a larger linear coefficient, which the side reaches by doubling."""
-    from torchsoil.diagnosis import fit as fit_mod
+    from torchsoil.diagnosis.fit import most_trials
 
-    n, ran = 12, []
-    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * 1e-5)      # noqa: E731
-
-    def fake_pass(pair, est, sim, ext, k, *a, **kw):
-        ran.append(round(k, 5))
-        c = cost(k)
-        return fit_mod.Pass(k, [], c, c, c), (0.0, 1.0)
-
-    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
-    monkeypatch.setattr(fit_mod, "effect_size", lambda ext, k, *a: abs(k))     # no drive signals here
-    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
-    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
-    est = type("E", (), {"stride": 0.4})()
-    fit_mod.fit_extension(pair, est, None, CATALOGUE["slip_sinkage"], None, base, refine_steps=0)
+    _, given = fake_fit(monkeypatch, "slip_sinkage", best, 1e-5, 0)
+    ran = list(given)
     assert ran == runs
-    assert len(ran) <= fit_mod.most_trials(CATALOGUE["slip_sinkage"]) == 4        # 4, 8, 16, 20
+    assert len(ran) <= most_trials(CATALOGUE["slip_sinkage"]) == 4        # 4, 8, 16, 20
 
 
 @pytest.mark.parametrize("best, refined, nearest", [(0.2, 0.2, 0.15), (-0.25, -0.25, -0.2), (0.4, 0.45, None)])
@@ -373,19 +369,8 @@ def test_a_refinement_keeps_the_section_of_the_nearest_coefficient_tried(monkeyp
     a step beyond them (0.45 past 0.3) searches its own."""
     from torchsoil.diagnosis import fit as fit_mod
 
-    n, given = 12, {}
-    cost = lambda k: np.full(n, 1e-3 + (k - best) ** 2 * 1e-3)      # noqa: E731
-
-    def fake_pass(pair, est, sim, ext, k, *a, section=None, **kw):
-        given[round(k, 5)] = section
-        c = cost(k)
-        return fit_mod.Pass(k, [], c, c, c), (abs(k), 1.0) if section is None else section
-
-    monkeypatch.setattr(fit_mod, "candidate_pass", fake_pass)
-    base = fit_mod.Pass(0.0, [], cost(0.0), cost(0.0), cost(0.0))
-    pair = type("P", (), {"robot": None, "wheel_flat_fraction": 0.0, "wheel_section_exponent": 1.0})()
-    est = type("E", (), {"stride": 0.4})()
-    f = fit_mod.fit_extension(pair, est, None, CATALOGUE["footprint_width"], None, base, refine_steps=2)
+    f, given = fake_fit(monkeypatch, "footprint_width", best, 1e-3, 2,
+                        found=lambda k, section: (abs(k), 1.0) if section is None else section)
     trials = {k for side in fit_mod.trial_sides(CATALOGUE["footprint_width"]) for k in side}
     assert all(given[k] is None for k in given if k in trials)
     kept = f.sections[min(f.sections, key=lambda q: abs(q - refined))]

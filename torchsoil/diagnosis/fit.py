@@ -435,10 +435,8 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
             if not cost < last:
                 break
             last = cost
-            if not queue:                 # still falling at the last trial: on, doubling, to the bound
-                on = float(np.clip(2.0 * k, *ext.bounds))
-                if abs(on) > abs(k) + 1e-9:
-                    queue.append(on)
+            if not queue and (on := onward(ext, k)) is not None:    # still falling at the last trial
+                queue.append(on)
     for _ in range(refine_steps):
         ks = sorted(passes)
         new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
@@ -471,14 +469,21 @@ def trial_sides(ext: Extension) -> list[list[float]]:
     return [s for s in (sorted(k for k in ks if k > 0), sorted((k for k in ks if k < 0), reverse=True)) if s]
 
 
+def onward(ext: Extension, k: float) -> float | None:
+    """The coefficient `fit_extension` tries after k when a side's cost still falls at its last
+    trial: twice k within the bound, None when k is at the bound."""
+    on = float(np.clip(2.0 * k, *ext.bounds))
+    return on if abs(on) > abs(k) + 1e-9 else None
+
+
 def most_trials(ext: Extension) -> int:
     """The most trial passes `fit_extension` may run for ext: every side's trial coefficients
-    and the doublings past its last one up to the bound (refinements not counted)."""
+    and the doublings past its last one up to the bound (`onward`; refinements not counted)."""
     n = 0
     for side in trial_sides(ext):
         k, n = side[-1], n + len(side)
-        while abs(on := float(np.clip(2.0 * k, *ext.bounds))) > abs(k) + 1e-9:
-            k, n = on, n + 1
+        while (k := onward(ext, k)) is not None:
+            n += 1
     return n
 
 

@@ -303,14 +303,14 @@ def spaced_z(s, gain, stride: float, apart: int = 2) -> float:
     along the drive (a drive's middle gains more than its ends), so block means about a line
     along the drive would count the gain's own shape as noise. 0 where a set has fewer than
     3 windows."""
-    s, gain = np.asarray(s, np.float64), np.asarray(gain, np.float64)
+    s, gain, apart = np.asarray(s, np.float64), np.asarray(gain, np.float64), max(1, apart)
     ok = np.isfinite(gain)
     at = np.round(s[ok] / stride).astype(np.int64)
     cells, inv = np.unique(at, return_inverse=True)
     per = np.bincount(inv, weights=gain[ok]) / np.bincount(inv)
     zs = []
-    for r in range(max(1, apart)):
-        x = per[cells % max(1, apart) == r]
+    for r in range(apart):
+        x = per[cells % apart == r]
         if len(x) < 3:
             return 0.0
         sd = float(np.std(x, ddof=1))
