@@ -115,3 +115,23 @@ def test_the_recording_options_reach_the_pipeline_of_every_command(tmp_path, cap
     assert main(["process-bag", str(bag), "--robot", "paper_platform", "--out", str(tmp_path / "x"),
                  "--extrinsic", "lidar_front", "1", "0", "1", "0", "0", "yaw"]) == 2
     assert "--extrinsic lidar_front: X Y Z ROLL PITCH YAW must be numbers" in capsys.readouterr().err
+
+
+def test_pass_workers_default_to_what_the_cores_and_memory_hold(monkeypatch):
+    from types import SimpleNamespace
+
+    import torchsoil.fleet as fleet
+    from torchsoil import cli
+    from torchsoil.settings import Settings
+
+    s = Settings()
+    monkeypatch.setattr(fleet.os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
+    monkeypatch.setattr(fleet, "available_mb", lambda: 64000.0)
+    given = SimpleNamespace(pass_workers=None, pass_engine="local")
+    assert cli._pass_workers(given, s) == cli.MAX_PASS_WORKERS        # 16 cores: capped
+    monkeypatch.setattr(fleet, "available_mb", lambda: 5000.0)        # 2000 MiB a task: two fit
+    assert cli._pass_workers(given, s) == 2
+    monkeypatch.setattr(fleet.os, "sched_getaffinity", lambda _: {0}, raising=False)
+    assert cli._pass_workers(given, s) == 1                          # one core: all in this process
+    assert cli._pass_workers(SimpleNamespace(pass_workers=3, pass_engine="local"), s) == 3
+    assert cli._pass_workers(SimpleNamespace(pass_workers=None, pass_engine="ray"), s) == 1

@@ -137,10 +137,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--n-fit", type=int, help="= --set diagnosis.n_fit=N")
     p.add_argument("--resume", action="store_true", help="continue the interrupted diagnosis in --out: its finished "
                                                          "passes (OUT/passes) are read back, not run again")
-    p.add_argument("--pass-workers", type=int, default=1, metavar="N",
+    p.add_argument("--pass-workers", type=int, default=None, metavar="N",
                    help="one recording: run its independent passes (tyre sections, dig orders, candidates) as N "
                         "tasks at once on a local process pool (same results; each worker holds the drive's "
-                        "maps too); with --pass-engine ray, on RAY_ADDRESS's cluster or a local Ray instance")
+                        "maps too; 1: all in this process; default: as many as the cores and memory hold "
+                        "(fleet settings), at most 4); with --pass-engine ray, on RAY_ADDRESS's cluster or a "
+                        "local Ray instance")
     p.add_argument("--pass-engine", choices=["local", "ray"], default="local",
                    help="where --pass-workers' tasks run (default local; ray needs pip install 'torchsoil[fleet]' "
                         "and a folder --out that every node reads and writes)")
@@ -410,10 +412,26 @@ def cmd_diagnose(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     summary = diagnose_input(source, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
                              overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads or 1,
-                             extrinsics=given, resume=args.resume, workers=args.pass_workers,
+                             extrinsics=given, resume=args.resume, workers=_pass_workers(args, settings),
                              engine=args.pass_engine)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
+
+
+def _pass_workers(args, settings) -> int:
+    """--pass-workers, or by default the local workers the cores and memory hold (at most
+    MAX_PASS_WORKERS: a diagnosis has a few tens of independent passes, each worker holds the
+    drive's maps); on Ray, as given (default 1 there: the cluster's own)."""
+    if args.pass_workers is not None:
+        return args.pass_workers
+    if args.pass_engine != "local":
+        return 1
+    from torchsoil.fleet import default_workers
+
+    return min(MAX_PASS_WORKERS, default_workers(settings.fleet))
+
+
+MAX_PASS_WORKERS = 4
 
 
 def cmd_record(args) -> int:
