@@ -135,6 +135,35 @@ def test_of_two_accepted_terms_the_larger_held_out_gain_is_named_not_the_steadie
     assert by_gain([speed]) == []
 
 
+def test_once_a_shape_term_passes_the_other_shape_terms_are_told_apart_by_their_gain():
+    from types import SimpleNamespace
+
+    from torchsoil.diagnosis import catalogue
+    from torchsoil.diagnosis.run import by_gain
+
+    def term(ext_id, z, gain, k_fold, accepted, own_z=1.7, effect=0.3):
+        return SimpleNamespace(ext=catalogue.get(ext_id), z=z, improvement=gain, k_fold=k_fold, own_z=own_z,
+                               effect=effect, accepted=accepted)
+
+    # walls pass (z 2.5, 0.18 mm); a wider footprint falls short of its level (z 2.0) but gains
+    # 0.46 mm with one sign on both folds: the rut's shape needs a term, and it is the footprint
+    walls = term("cohesive_walls", 2.5, 0.18e-3, (1.4, 1.0), True)
+    width = term("footprint_width", 2.0, 0.46e-3, (0.3, 0.3), False)
+    assert by_gain([walls, width], effect=0.05) == [width, walls]
+    # a footprint that fails any other condition stays out: folds of two signs, no gain, a
+    # negligible effect, its own windows fitted worse
+    for bad in (term("footprint_width", 2.0, 0.46e-3, (0.3, -0.2), False),
+                term("footprint_width", -0.5, 0.46e-3, (0.3, 0.3), False),
+                term("footprint_width", 2.0, 0.46e-3, (0.3, 0.3), False, effect=0.01),
+                term("footprint_width", 2.0, 0.46e-3, (0.3, 0.3), False, own_z=-0.5)):
+        assert by_gain([walls, bad], effect=0.05, own_z=0.0) == [walls]
+    # no shape term passed: nothing joins, whatever its gain (a covariate term's pass is no
+    # evidence about the rut's shape)
+    slip = term("slip_sinkage", 2.4, 0.1e-3, (8.0, 8.0), True)
+    assert by_gain([slip, width], effect=0.05) == [slip]
+    assert by_gain([term("cohesive_walls", 1.0, 0.18e-3, (1.4, 1.0), False), width], effect=0.05) == []
+
+
 def test_level_z_by_hand():
     # two signs: Q (1 - Q) = 0.025, Q = (1 - sqrt(0.9)) / 2 = 0.025658, z = 1.9488; one sign:
     # Q = (1 - sqrt(0.8)) / 2 = 0.052786, z = 1.6184 (normal table)

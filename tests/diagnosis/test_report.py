@@ -3,7 +3,14 @@
 from types import SimpleNamespace
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.report import basis_text, effect_text, explain, per_pass_text, revisit_markdown
+from torchsoil.diagnosis.report import (
+    basis_text,
+    effect_text,
+    explain,
+    per_pass_text,
+    revisit_markdown,
+    runner_up_text,
+)
 
 
 def _adequate(fits, z_accept):
@@ -139,3 +146,16 @@ def test_a_named_term_says_what_its_gain_rests_on():
     assert "48 windows in 12 blocks" in text and "2.5 independent blocks" in text
     assert "half of it comes from 2 of them (3.2-6.0 m)" in text
     assert basis_text(None) == "" and basis_text({**basis, "blocks": 0}) == ""
+
+
+def test_the_runner_up_sentence_says_which_term_passed_its_own_test():
+    both = {"runner_up": "cohesive_walls", "improvement": 2.8e-4, "se": 1.5e-4, "z": 1.87}
+    assert "cohesive_walls passed its test too" in runner_up_text(both)
+    assert "by 0.28 mm +- 0.15 mm (z = 1.9)" in runner_up_text(both)
+    joined = {**both, "named_passed": False, "runner_up_passed": True}
+    text = runner_up_text(joined)
+    assert "cohesive_walls passed its test, so the rut's shape needs a term" in text
+    assert "meets every condition but its own level" in text
+    short = {**both, "named_passed": True, "runner_up_passed": False}
+    assert "short of its own level; the named term does better" in runner_up_text(short)
+    assert runner_up_text(None) == ""

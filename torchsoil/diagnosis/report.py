@@ -184,12 +184,20 @@ def basis_text(basis: dict | None) -> str:
 
 
 def runner_up_text(pairwise: dict | None) -> str:
-    """A sentence on the other accepted term, where there is one (the evidence's `pairwise`:
-    the named term's held-out gain over it [m], its se and z)."""
+    """A sentence on the runner-up, where there is one (the evidence's `pairwise`: the named
+    term's held-out gain over it [m], its se and z, and which of the two passed its own test:
+    a shape term may be named short of its level once another shape term passed, `run.by_gain`)."""
     if not pairwise:
         return ""
-    return (f" {pairwise['runner_up']} passed its test too; the named term predicts the held-out ground better "
-            f"by {_mm(pairwise['improvement'])} +- {_mm(pairwise['se'])} (z = {pairwise['z']:.1f}).")
+    by = f"by {_mm(pairwise['improvement'])} +- {_mm(pairwise['se'])} (z = {pairwise['z']:.1f})"
+    if not pairwise.get("named_passed", True):
+        return (f" {pairwise['runner_up']} passed its test, so the rut's shape needs a term; of the shape terms the "
+                f"named one predicts the held-out ground better, {by}, and it meets every condition but its own "
+                f"level.")
+    if not pairwise.get("runner_up_passed", True):
+        return (f" {pairwise['runner_up']} also predicts the held-out ground better than the base model, short of "
+                f"its own level; the named term does better, {by}.")
+    return f" {pairwise['runner_up']} passed its test too; the named term predicts the held-out ground better {by}."
 
 
 def _explain(diag) -> str:
@@ -210,8 +218,10 @@ def _explain(diag) -> str:
         return (f"The base model leaves out: {f.ext.description} ({f.ext.id}). Adding it with {k} = {v} "
                 f"lowers the cost of predicting the next window from {_mm(before['prediction'])} to "
                 f"{_mm(after['prediction'])} (paired over windows: {_mm(f.improvement)} +- {_mm(f.se)}, "
-                f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, against {ev['z_accept'][f.ext.id]:.1f} "
-                f"allowed by noise; coefficient chosen on other "
+                f"z = {f.held_z:.1f}; {f.z:.1f} with the windows' own fits, "
+                + (f"against {ev['z_accept'][f.ext.id]:.1f} allowed by noise" if f.accepted else
+                   f"short of its own level of {ev['z_accept'][f.ext.id]:.1f}")
+                + "; coefficient chosen on other "
                 f"windows than those it is scored on).{effect_text(f)}{basis_text(ev.get('basis'))}"
                 f"{runner_up_text(ev.get('pairwise'))} The mismatch "
                 f"lies on the "

@@ -129,14 +129,28 @@ def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead
     return used
 
 
-def by_gain(fits: list) -> list:
-    """The accepted fits, the one that predicts the held-out ground best first (largest mean
-    improvement over the base model, `CandidateFit.improvement`): terms that each passed their
-    own test are told apart as cross-validation tells models apart. Two shape terms can both
-    pass on one rut (a wider footprint and walls that stand both widen it at the rim); the
-    steadier gain (higher z) need not be the larger one, and the cause is the term that
-    accounts for more of the mismatch."""
-    return sorted((f for f in fits if f.accepted), key=lambda f: -f.improvement)
+def by_gain(fits: list, material: float = 0.0, own_z: float = -math.inf, effect: float = 0.0) -> list:
+    """The terms a diagnosis names from, the one that predicts the held-out ground best first
+    (largest mean improvement over the base model, `CandidateFit.improvement`): terms that each
+    passed their own test are told apart as cross-validation tells models apart. Two shape
+    terms can both pass on one rut (a wider footprint and walls that stand both widen it at the
+    rim); the steadier gain (higher z) need not be the larger one, and the cause is the term
+    that accounts for more of the mismatch.
+
+    Once a shape term (one without a covariate: cohesive_walls, footprint_width) is accepted,
+    the other shape terms join the accepted ones when they meet every other condition of
+    `fit.accept` (material gain and effect, both folds' coefficients of one sign, own fit no
+    worse: `material`, `effect`, `own_z`) with a positive z, short of their own level: the shape
+    terms share their location evidence (the rut's profile), the accepted one has shown that
+    the rut's shape needs a term, and which one it needs is again a choice between models, not
+    a test against the base model. Nothing joins on a drive without an accepted shape term, so
+    the family-wise level of naming a term at all is that of `accept_in_order`."""
+    def shape(f) -> bool:
+        return getattr(f, "ext", None) is not None and f.ext.covariate is None
+
+    established = any(f.accepted and shape(f) for f in fits)
+    named = [f for f in fits if f.accepted or (established and shape(f) and accept(f, 0.0, material, own_z, effect))]
+    return sorted(named, key=lambda f: -f.improvement)
 
 
 def strongest_line(by_side: np.ndarray, dx: float) -> dict:
@@ -424,12 +438,13 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
                       strict=True))
-    accepted = by_gain(fits)
+    accepted = by_gain(fits, gain_min, -cfg.own_fit_z, cfg.effect_materiality)
     best = accepted[0] if accepted else None
     pairwise = None
     if len(accepted) > 1:
         m, se, z = paired_improvement(accepted[1].held_out, best.held_out)
-        pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z}
+        pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z,
+                    "named_passed": bool(best.accepted), "runner_up_passed": bool(accepted[1].accepted)}
 
     # ---- location tests (family-wise alpha_locate over N_LOCATE_TESTS tests)
     sig_zones = [zn for zn in LOCATED_ZONES

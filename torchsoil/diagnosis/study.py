@@ -150,13 +150,13 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
         out.append({**t, "k_fold": list(k_fold), "z": z, "held_z": held_z, "gain_mm": gain, "own_z": own_z,
                     "effect": effect})
     fits = [SimpleNamespace(z=t["z"], k_fold=t["k_fold"], improvement=t["gain_mm"], own_z=t["own_z"],
-                            effect=t["effect"], accepted=False) for t in out]
+                            effect=t["effect"], accepted=False, ext=CATALOGUE[t["id"]]) for t in out]
     material = gain_material(gain_materiality, base)
     levels = accept_in_order(fits, [t["p_location"] for t in out], alpha, lead_share, material, -own_fit_z,
                              [signs(CATALOGUE[t["id"]]) for t in out], effect_materiality)
     for t, f, level in zip(out, fits, levels, strict=True):
         t.update(z_needed=level, accepted=f.accepted)
-    named = by_gain(fits)
+    named = by_gain(fits, material, -own_fit_z, effect_materiality)
     return out, next(t["id"] for t, f in zip(out, fits, strict=True) if f is named[0]) if named else None
 
 
