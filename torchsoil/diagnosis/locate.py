@@ -15,6 +15,7 @@ Three kinds of evidence, each with honest statistics:
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -433,7 +434,10 @@ class Profiles:
             seg = np.where(n > 0, v / n, np.nan)
         cnt = np.isfinite(seg).sum(0)
         mean = np.nanmean(np.where(cnt[None] > 0, seg, 0.0), 0)
-        sd = np.nanstd(np.where(cnt[None] > 0, seg, 0.0), 0, ddof=1) if len(seg) > 1 else np.full(len(cnt), np.inf)
+        with warnings.catch_warnings():       # a bin one segment covers: no spread (NaN), dropped below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            sd = (np.nanstd(np.where(cnt[None] > 0, seg, 0.0), 0, ddof=1) if len(seg) > 1
+                  else np.full(len(cnt), np.inf))
         with np.errstate(invalid="ignore", divide="ignore"):
             se = sd / np.sqrt(np.maximum(cnt, 1))
         mean[cnt < 3] = np.nan

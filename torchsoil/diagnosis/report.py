@@ -183,6 +183,19 @@ def basis_text(basis: dict | None) -> str:
             f"evidence as {basis['n_eff']:.1f} independent blocks{half}.")
 
 
+def _across(zone: str) -> str:
+    """Where across the rut a mismatch lies, in words (a zone, or `mixed`)."""
+    return "across the rut (floor, walls and berms)" if zone == "mixed" else f"on the {zone.replace('_', ' ')}"
+
+
+def _accepted_cell(f, diag) -> str:
+    """The candidates table's `accepted` entry: whether the term passed its own test, and for a
+    shape term named without (`run.by_gain`) that it was named as the better shape term."""
+    if not f.accepted and getattr(diag, "best", None) is f:
+        return "False; named: the better of the shape terms"
+    return str(f.accepted)
+
+
 def runner_up_text(pairwise: dict | None) -> str:
     """A sentence on the runner-up, where there is one (the evidence's `pairwise`: the named
     term's held-out gain over it [m], its se and z, and which of the two passed its own test:
@@ -224,8 +237,7 @@ def _explain(diag) -> str:
                 + "; coefficient chosen on other "
                 f"windows than those it is scored on).{effect_text(f)}{basis_text(ev.get('basis'))}"
                 f"{runner_up_text(ev.get('pairwise'))} The mismatch "
-                f"lies on the "
-                f"{where['cross_track'].replace('_', ' ')}"
+                f"lies {_across(where['cross_track'])}"
                 f" and follows {where['covariate'] or 'the shape of the rut'}; it matters most at {span}. "
                 f"Noise floor {_mm(s['noise_floor'])}.")
     if s["verdict"] == "unexplained":
@@ -442,7 +454,7 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
                      + (f"{f.ext.parameter} = {f.k:.3g} (folds {f.k_fold[0]:.3g}, {f.k_fold[1]:.3g}) | "
                         f"{_mm(float(np.nanmean(f.prediction)))} | {f.held_z:.2f}, {f.own_z:.2f} -> {f.z:.2f} "
                         f"({ev['z_accept'][i]:.2f}) | "
-                        f"{f.accepted} |" if f else
+                        f"{_accepted_cell(f, diag)} |" if f else
                         "not fitted | | | |"))
     lines += ["", "Acceptance: the paired per-window improvement of the held-out costs (each window's fit "
               "scored on its neighbours' ground) and of the windows' own fits, combined as Stouffer's z with "
@@ -452,7 +464,9 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
               "an accepted candidate's level passes to the next, and so does that of a candidate left at 0 "
               "on both folds (the base model itself: nothing to test). A coefficient free to take either sign "
               "(speed, footprint width) is held to a higher z at the same level: each fold takes the sign its "
-              "neighbours favoured, so on noise the folds agree twice as often as a one-signed term's.",
+              "neighbours favoured, so on noise the folds agree twice as often as a one-signed term's. Once a "
+              "shape term (walls, footprint) is accepted, the other joins the choice by held-out gain when it "
+              "meets every condition but its level: the rut's shape needs a term, and the two share that evidence.",
               "", "## Costs", "",
               f"- before: residual {_mm(s['cost_before']['residual'])}, "
               f"prediction {_mm(s['cost_before']['prediction'])}",
