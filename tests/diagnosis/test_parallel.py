@@ -66,3 +66,25 @@ def test_failed_tasks_are_run_here_instead(tmp_path, short_drive, straight, caps
 def test_a_pool_needs_a_cache_to_keep_its_passes_in():
     with pytest.raises(ValueError, match="PassCache"), pass_pool(2, "local", None):
         pass
+
+
+def test_the_per_visit_pass_runs_on_the_pool_beside_the_candidates(tmp_path, monkeypatch):
+    """On a pair with visit layers the hardening test's per-visit pass is a task of the pool too:
+    the diagnosis reads it back instead of fitting the visits itself, and tests the same."""
+    from tests.test_visits import two_visit_pair
+    from torchsoil.diagnosis import run as run_module
+
+    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
+    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
+    here = []
+    original = run_module.run_visits
+    monkeypatch.setattr(run_module, "run_visits", lambda *a, **k: here.append(1) or original(*a, **k))
+    cache = PassCache(tmp_path / "passes", {"input": "two visits"})
+    with pass_pool(2, "local", cache) as pool:
+        pooled = diagnose(pair, cfg, cache=cache, pool=pool)
+        assert not pool.failed
+    assert not here                                       # read back, not fitted in this process
+    assert pooled.revisits is not None and list((tmp_path / "passes").glob("visits-*.pkl"))
+    alone = diagnose(pair, cfg)
+    assert here and pooled.summary == alone.summary
+    assert pooled.revisits["z"] == alone.revisits["z"]

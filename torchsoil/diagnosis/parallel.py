@@ -38,7 +38,8 @@ def _load(files: tuple[str, ...]) -> tuple:
 
 def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
     """In a worker: one section score (`fit.section_cost`), one candidate pass
-    (`fit.candidate_pass`) or the rest of one candidate's fit (`fit.fit_extension`), kept in the
+    (`fit.candidate_pass`), the rest of one candidate's fit (`fit.fit_extension`) or the
+    per-visit pass of the hardening test on ground driven again (`run.visit_pass`), kept in the
     cache at cache_dir."""
     from torchsoil.diagnosis import catalogue
     from torchsoil.diagnosis.covariates import DriveSignals
@@ -50,6 +51,12 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
     if kind == "section":
         est, sim, sec, every, model = args
         section_cost(pair, est, sim, sec, every, model, shared, cache)
+        return
+    if kind == "visits":
+        from torchsoil.diagnosis.run import visit_pass
+
+        est, sim = args
+        visit_pass(pair, est, sim, base, cache)
         return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)
@@ -92,20 +99,22 @@ class PassPool:
                 Path(old).unlink(missing_ok=True)
         self.files = files
 
-    def run(self, kind: str, jobs: list[tuple]) -> None:
-        """Each job's arguments (`_pass_task`) as a task; failed ones are noted in `failed` (the
+    def run(self, kind: str, jobs: list[tuple], others: list[tuple[str, tuple]] = ()) -> None:
+        """Each job's arguments (`_pass_task`) as a task, and each of `others` ((kind, arguments):
+        tasks of other kinds to run beside them, first); failed ones are noted in `failed` (the
         diagnosis runs those passes itself)."""
-        if not jobs:
+        if not jobs and not others:
             return
         if self.files is None:
             raise RuntimeError("PassPool.share first")
-        calls = [(self.files, str(self.cache.dir), self.cache.every, kind, a) for a in jobs]
+        tasks = [*others, *((kind, a) for a in jobs)]
+        calls = [(self.files, str(self.cache.dir), self.cache.every, k, a) for k, a in tasks]
         for n, (_, out) in enumerate(self.engine.imap(_pass_task, calls), start=1):
             if out.error:
                 self.failed.append(out.error)
                 print(f"a parallel pass failed (run here instead): {out.error}", file=sys.stderr)
             if self.progress is not None:
-                self.progress.set_postfix_str(f"{kind} tasks {n}/{len(jobs)}")
+                self.progress.set_postfix_str(f"{kind} tasks {n}/{len(calls)}")
 
     def close(self) -> None:
         for path in self.files or ():

@@ -325,7 +325,7 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
         return cfg.alpha_accept, None
     alpha = cfg.alpha_accept / 2
     kw = dict(nuisance=base.nuisance, index=base.index)
-    vp = kept(cache, "visits", (section_of(pair), sim.dig_order), lambda: run_visits(pair, est, sim, **kw))
+    vp = visit_pass(pair, est, sim, base, cache)
     if progress is not None:
         progress.update(1)
     rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks, est.stride,
@@ -334,6 +334,14 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
         rev["per_pass"] = kept(cache, "per_pass", (section_of(pair), rev["g"]),
                                lambda: per_pass_fit(pair, est, sim, rev["g"], **kw))
     return alpha, rev
+
+
+def visit_pass(pair, est: EstimatorConfig, sim: SimConfig, base: Pass, cache: PassCache | None = None):
+    """The per-visit pass of the hardening test (revisits.run_visits) on the base pass's map
+    nuisance and path index, kept in and read back from `cache`; a parallel.PassPool runs it
+    beside the candidates' passes."""
+    return kept(cache, "visits", (section_of(pair), sim.dig_order),
+                lambda: run_visits(pair, est, sim, nuisance=base.nuisance, index=base.index))
 
 
 def _named_on_visits(revisit: dict | None, best) -> bool:
@@ -422,10 +430,12 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     _screen_shapes(ev, pair, cfg, est, sim, drive, base, progress, cache, pool)
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
-    if pool is not None and ranked:        # every candidate's first trial passes, then the rest of its fit, as tasks
+    if pool is not None:    # every candidate's first trial passes (and the per-visit pass), then the rest, as tasks
         head = (est, sim, section_of(pair))
         tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
-        pool.run("pass", [(*head, i, side[0], *tail) for i in ranked for side in trial_sides(catalogue.get(i))])
+        visits = [("visits", (est, sim))] if getattr(pair, "visit_front", None) is not None else []
+        pool.run("pass", [(*head, i, side[0], *tail) for i in ranked for side in trial_sides(catalogue.get(i))],
+                 others=visits)
         pool.run("refine", [(*head, i, None, *tail) for i in ranked])
     fits: list[CandidateFit] = []
     for ext_id in ranked:
