@@ -418,6 +418,9 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+MAX_PASS_WORKERS = 4     # a diagnosis's default local pass workers at most
+
+
 def _pass_workers(args, settings) -> int:
     """--pass-workers, or by default the local workers the cores and memory hold (at most
     MAX_PASS_WORKERS: a diagnosis has a few tens of independent passes, each worker holds the
@@ -430,8 +433,6 @@ def _pass_workers(args, settings) -> int:
 
     return min(MAX_PASS_WORKERS, default_workers(settings.fleet))
 
-
-MAX_PASS_WORKERS = 4
 
 
 def cmd_record(args) -> int:
