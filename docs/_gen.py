@@ -59,10 +59,10 @@ def benchmarks_page(bench_dir: Path) -> str:
              "Figures of the last `torchsoil bench` run kept with the manual (`docs/bench/`), "
              f"measured on {meta['machine']}, {meta['date']}, command `{meta['command']}`. "
              "This page is generated from that run's `bench.json` when the manual is built; run "
-             "`torchsoil bench` (a source checkout: the benchmarks are not installed) to measure your "
+             "`torchsoil bench` (the benchmarks are `torchsoil.bench`, one module per group) to measure your "
              "machine, `--only online estimator` for some groups, `--quick` for fewer sizes and repeats.", ""]
     for name, keys in meta["modules"].items():
-        doc = module_docstring(ROOT / "benchmarks" / f"{name}.py")
+        doc = module_docstring(ROOT / "torchsoil" / "bench" / f"{name}.py")
         lines += [f"## {name}", "", doc, "", "| figure | value |", "| --- | --- |"]
         lines += [f"| `{k}` | {figures[k]:.4g} |" for k in keys if k in figures]
         lines.append("")

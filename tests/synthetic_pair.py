@@ -9,9 +9,9 @@ import torch
 from scipy import ndimage
 
 from torchsoil.grid import Grid
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.robot import paper_platform
 from torchsoil.sim import ParamSpec, simulate, wheel_geometry
-from torchsoil.terrain import TerrainPair
 
 
 def sim_pair(length=4.0, d1=0.03, d2=0.025, chi=0.8, beta_deg=35.0, noise=0.003, seed=0, dx=0.02,

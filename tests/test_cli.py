@@ -120,7 +120,7 @@ def test_the_recording_options_reach_the_pipeline_of_every_command(tmp_path, cap
 def test_pass_workers_default_to_what_the_cores_and_memory_hold(monkeypatch):
     from types import SimpleNamespace
 
-    import torchsoil.fleet as fleet
+    import torchsoil.jobs.fleet as fleet
     from torchsoil import cli
     from torchsoil.settings import Settings
 

@@ -15,6 +15,6 @@ __version__ = "0.1.0"
 __all__ = ["Grid", "Robot", "Settings", "load_robot", "load_settings"]
 
 if "gymnasium" in sys.modules:  # gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0") imports this module
-    from envs import register_envs
+    from envs.registration import register_envs
 
     register_envs()

@@ -64,7 +64,7 @@ def _job_options(p: argparse.ArgumentParser) -> None:
 
 
 def _engine_options(p: argparse.ArgumentParser):
-    """Where the tasks of many recordings (or study drives) run (torchsoil.fleet); returns the
+    """Where the tasks of many recordings (or study drives) run (torchsoil.jobs.fleet); returns the
     option group."""
     g = p.add_argument_group("many recordings", "one task per recording, each writing OUT/<name>/ as a single run "
                                                 "would, and OUT/fleet.csv (manual: docs/fleet.md)")
@@ -226,9 +226,9 @@ def main(argv: list[str] | None = None) -> int:
     # before torch or numba start their OpenMP runtimes: threads that spin while waiting starve
     # the other pool (3-10x slower on 2 busy cores)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    from torchsoil.fleet import EngineError
-    from torchsoil.logging import DiskFull
-    from torchsoil.provenance import OutputMismatch
+    from torchsoil.engines import EngineError
+    from torchsoil.estimate.outputs import DiskFull
+    from torchsoil.jobs.provenance import OutputMismatch
     from torchsoil.settings import SettingsError
 
     try:
@@ -285,9 +285,9 @@ def _many(args) -> bool:
 
 
 def _run_many(job: str, args, extra: list[str], out: str) -> int:
-    """`job` on every recording of args.input and --manifest (torchsoil.fleet.run_fleet);
+    """`job` on every recording of args.input and --manifest (torchsoil.jobs.fleet.run_fleet);
     exit status 1 when some failed (their errors are in OUT/fleet.csv)."""
-    from torchsoil.fleet import recordings, run_fleet
+    from torchsoil.jobs.fleet import recordings, run_fleet
 
     if getattr(args, "resume", False) or getattr(args, "realtime", False):
         raise ValueError("--resume and --realtime take one recording (many recordings: a rerun of the same command "
@@ -329,7 +329,7 @@ def find_demo() -> Path | None:
 
 
 def cmd_estimate(args) -> int:
-    from torchsoil.runner import estimate
+    from torchsoil.jobs.estimate import estimate
 
     extra = [f"estimator.grad={args.grad}"] if args.grad else []
     extra += ["estimator.merged_sinkage=true"] if args.merged_sinkage else []
@@ -360,9 +360,10 @@ def cmd_estimate(args) -> int:
 def cmd_process_bag(args) -> int:
     import shutil
 
+    from torchsoil.io.extrinsics import pipeline_settings
+    from torchsoil.pipeline.outputs import write_outputs
     from torchsoil.pipeline.resume import Checkpoints
-    from torchsoil.pipeline.run import process_bag, write_outputs
-    from torchsoil.runner import pipeline_settings
+    from torchsoil.pipeline.run import process_bag
 
     extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
     settings, given = _bag_settings(args, extra)
@@ -399,7 +400,7 @@ def cmd_process_bag(args) -> int:
 
 
 def cmd_diagnose(args) -> int:
-    from torchsoil.diagnosis.job import diagnose_input
+    from torchsoil.jobs.diagnose import diagnose_input
 
     extra = [f"diagnosis.n_fit={args.n_fit}"] if args.n_fit is not None else []
     if _many(args):
@@ -429,7 +430,7 @@ def _pass_workers(args, settings) -> int:
         return args.pass_workers
     if args.pass_engine != "local":
         return 1
-    from torchsoil.fleet import default_workers
+    from torchsoil.engines import default_workers
 
     return min(MAX_PASS_WORKERS, default_workers(settings.fleet))
 
@@ -515,8 +516,8 @@ def _import_benchmarks():
 
 
 def cmd_ablation(args) -> int:
-    from torchsoil.ablation import VARIANTS, ablation_table
-    from torchsoil.runner import estimate
+    from torchsoil.jobs.ablation import VARIANTS, ablation_table
+    from torchsoil.jobs.estimate import estimate
 
     runs = {}
     for name, overrides in VARIANTS.items():
@@ -535,8 +536,8 @@ def cmd_study(args) -> int:
 
     from torchsoil.diagnosis.study import run_foreign, run_study
     from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases, revisit_cases
-    from torchsoil.fleet import make_engine
-    from torchsoil.runner import torch_threads
+    from torchsoil.engines import make_engine
+    from torchsoil.jobs.common import torch_threads
 
     if args.revisits and args.randomized is None:
         raise ValueError("--revisits selects among --randomized N drives")

@@ -85,7 +85,7 @@ class InitialParams(Section):
 
 
 class NuisanceConfig(Section):
-    """Offset and tilt of H_b relative to H_f (torchsoil.nuisance), fitted on untouched ground
+    """Offset and tilt of H_b relative to H_f (torchsoil.estimate.nuisance), fitted on untouched ground
     (estimator.floor_inner wheel widths or more from every wheel path) and removed from H_b."""
 
     offset: bool = Field(True, description="fit and remove a vertical offset between the maps")
@@ -97,7 +97,7 @@ class NuisanceConfig(Section):
 
 
 class OnlineConfig(Section):
-    """Estimation while the robot drives (torchsoil.live): when a window's ground is complete."""
+    """Estimation while the robot drives (torchsoil.estimate.live): when a window's ground is complete."""
 
     lag: float = Field(2.0, ge=0, description="a window is fitted once the back lidar has rasterized the ground "
                                               "this far behind the rear wheels' margin past the window and the "
@@ -642,7 +642,7 @@ class SynthConfig(Section):
 
 # ---------------------------------------------------------------------------- many recordings
 class FleetConfig(Section):
-    """What each task of a many-recordings run (torchsoil.fleet) asks of a machine: one task per
+    """What each task of a many-recordings run (torchsoil.jobs.fleet) asks of a machine: one task per
     recording (or per study drive). A Ray cluster schedules tasks by these requests; the local
     engine starts at most as many workers as the cores and available memory hold."""
 

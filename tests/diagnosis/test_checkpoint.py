@@ -12,8 +12,8 @@ from torchsoil.diagnosis import DiagnosisConfig, diagnose
 from torchsoil.diagnosis import fit as fit_module
 from torchsoil.diagnosis.checkpoint import KEY_FILE, PassCache
 from torchsoil.diagnosis.study_cases import scenario
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.synth.scenario import make_terrain_pair
-from torchsoil.terrain import TerrainPair
 
 
 def test_kept_values_read_back_under_their_own_name_only(tmp_path):
@@ -90,7 +90,7 @@ def test_an_interrupted_diagnosis_resumes_and_ends_as_one_run_straight_through(t
 
 
 def test_the_command_run_again_into_its_folder_reads_every_pass_back(tmp_path, short_drive, monkeypatch):
-    from torchsoil.diagnosis.job import diagnose_input
+    from torchsoil.jobs.diagnose import diagnose_input
     from torchsoil.settings import load_settings
 
     short_drive.save(tmp_path / "short.npz")
@@ -178,8 +178,8 @@ def test_the_per_visit_pass_is_kept_and_read_back(tmp_path, monkeypatch):
     others: a diagnosis run again does not fit the visits again, and tests the same."""
     from types import SimpleNamespace
 
-    from tests.test_visits import two_visit_pair
-    from torchsoil.diagnosis import run as run_module
+    from tests.estimate.test_visits import two_visit_pair
+    from torchsoil.diagnosis import phases as run_module
     from torchsoil.settings import Settings
 
     pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])

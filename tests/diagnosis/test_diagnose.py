@@ -17,8 +17,8 @@ import pytest
 from torchsoil.diagnosis import DiagnosisConfig, diagnose
 from torchsoil.diagnosis.report import KEYS, validate_summary, write_all
 from torchsoil.diagnosis.study_cases import TRUTH, scenario
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.synth.scenario import make_terrain_pair
-from torchsoil.terrain import TerrainPair
 
 ROOT = Path(__file__).resolve().parents[2]
 CFG = DiagnosisConfig(n_fit=2)

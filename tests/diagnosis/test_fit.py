@@ -59,7 +59,7 @@ def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
     soil that a steeper wall keeps in place is missing beside the rut. A shape term is fitted
     when any of floor, wall or berm shows a residual beyond z_locate and materiality, and the
     held-out test (not this gate) decides."""
-    from torchsoil.diagnosis.run import evidence_for
+    from torchsoil.diagnosis.phases import evidence_for
     from torchsoil.settings import DiagnosisConfig
 
     def zones(berm_z, berm_mean):
@@ -78,7 +78,7 @@ def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
 def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance_or_nothing_to_test():
     from types import SimpleNamespace
 
-    from torchsoil.diagnosis.run import accept_in_order, level_z, thresholds
+    from torchsoil.diagnosis.phases import accept_in_order, level_z, thresholds
 
     levels = thresholds([1e-5, 1e-3, 0.01, 0.2], 0.05, 0.6)
     assert sum(levels) == pytest.approx(0.05) and levels[0] == pytest.approx(0.03)
@@ -124,7 +124,7 @@ def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance_or_nothing_
 def test_of_two_accepted_terms_the_larger_held_out_gain_is_named_not_the_steadier():
     from types import SimpleNamespace
 
-    from torchsoil.diagnosis.run import by_gain
+    from torchsoil.diagnosis.phases import by_gain
 
     # a wider footprint (gain 0.67 mm at z 3.4) and walls (0.45 mm at z 3.7) both accepted on
     # one rut: the footprint accounts for more of the mismatch; a refused term is never listed
@@ -139,7 +139,7 @@ def test_once_a_shape_term_passes_the_other_shape_terms_are_told_apart_by_their_
     from types import SimpleNamespace
 
     from torchsoil.diagnosis import catalogue
-    from torchsoil.diagnosis.run import by_gain
+    from torchsoil.diagnosis.phases import by_gain
 
     def term(ext_id, z, gain, k_fold, accepted, own_z=1.7, effect=0.3):
         return SimpleNamespace(ext=catalogue.get(ext_id), z=z, improvement=gain, k_fold=k_fold, own_z=own_z,
@@ -167,7 +167,7 @@ def test_once_a_shape_term_passes_the_other_shape_terms_are_told_apart_by_their_
 def test_level_z_by_hand():
     # two signs: Q (1 - Q) = 0.025, Q = (1 - sqrt(0.9)) / 2 = 0.025658, z = 1.9488; one sign:
     # Q = (1 - sqrt(0.8)) / 2 = 0.052786, z = 1.6184 (normal table)
-    from torchsoil.diagnosis.run import level_z
+    from torchsoil.diagnosis.phases import level_z
 
     assert level_z(0.05, 2) == pytest.approx(1.9488, abs=2e-4)
     assert level_z(0.05, 1) == pytest.approx(1.6184, abs=2e-4)
@@ -182,7 +182,7 @@ def test_the_fold_procedure_holds_its_level_on_noise(signs, trials):
     accepted (`accept`) at `level_z`: the false alarms stay at the level; at the normal
     quantile a two-signed term's nearly double."""
     from torchsoil.diagnosis.catalogue import get
-    from torchsoil.diagnosis.run import level_z
+    from torchsoil.diagnosis.phases import level_z
 
     rng = np.random.default_rng(7)
     lab = folds(48, 6)
@@ -203,8 +203,8 @@ def test_the_fold_procedure_holds_its_level_on_noise(signs, trials):
 
 
 def _straight_pair(section):
+    from torchsoil.io.terrain_pair import TerrainPair
     from torchsoil.synth.scenario import make_terrain_pair
-    from torchsoil.terrain import TerrainPair
 
     scn = {"trajectory": {"segments": [{"straight": 5.0, "speed": 1.0}]},
            "soil": {"base": {"d": 0.035, "chi": 0.2, "beta_deg": 30.0}},
@@ -269,7 +269,7 @@ def test_the_robots_own_section_under_another_dig_order_is_kept_when_it_fits_as_
     standing in for the other order; under "wheel" the robot's own section fits within the
 XX with the robot's section. Where the
     robot's section under "wheel" is worse on every window (z 15.5), the best pair stays."""
-    from torchsoil.diagnosis.run import plainest
+    from torchsoil.diagnosis.phases import plainest
 
     own, crowned = (0.5, 1.0), (0.0, 0.5)
     best = np.array([2.90, 3.00, 2.80, 2.95, 2.85])
@@ -289,9 +289,9 @@ def test_dig_order_told_from_the_drive(dig):
     sinkage is each wheel's (the truth's d), where "robot" needs about twice as much."""
     from tests.reference_model import straight_drive_pair
     from torchsoil.diagnosis.fit import run_pass
-    from torchsoil.diagnosis.run import DiagnosisConfig, fit_nuisance_model
+    from torchsoil.diagnosis.phases import DiagnosisConfig, fit_nuisance_model
+    from torchsoil.io.terrain_pair import TerrainPair
     from torchsoil.settings import EstimatorConfig, SimConfig
-    from torchsoil.terrain import TerrainPair
 
     data, _ = straight_drive_pair(d=(0.02, 0.02), chi=0.5, beta_deg=35.0, length=4.0, flat=0.5, dig=dig, seed=4)
     pair = TerrainPair.from_mapping(data)
@@ -315,9 +315,9 @@ def test_a_wall_term_chooses_its_own_tyre_section():
     from torchsoil.diagnosis.catalogue import CATALOGUE
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import fit_extension, run_pass
+    from torchsoil.io.terrain_pair import TerrainPair
     from torchsoil.settings import EstimatorConfig, SimConfig
     from torchsoil.synth.scenario import make_terrain_pair
-    from torchsoil.terrain import TerrainPair
 
     scn = {"trajectory": {"segments": [{"straight": 5.0, "speed": 1.0}]},
            "soil": {"base": {"d": 0.05, "chi": 0.2, "beta_deg": 30.0, "moisture": 0.0}},
@@ -416,9 +416,9 @@ def two_angle_drives():
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import run_pass
     from torchsoil.diagnosis.study_cases import scenario
+    from torchsoil.io.terrain_pair import TerrainPair
     from torchsoil.settings import EstimatorConfig, SimConfig
     from torchsoil.synth.scenario import make_terrain_pair
-    from torchsoil.terrain import TerrainPair
 
     out = {}
     for name in ("two-angle", "one-angle"):

@@ -341,7 +341,7 @@ def test_each_rut_is_placed_along_its_own_track_on_a_turn():
     0.09 x 5 / 5.5 = 0.0818 m in the outer one (distances along concentric circles, by hand).
     Placed by base_link's arc the two ruts disagree; by their own tracks both give 0.09 m."""
     from torchsoil.diagnosis.covariates import side_arc
-    from torchsoil.diagnosis.run import strongest_line
+    from torchsoil.diagnosis.phases import strongest_line
 
     R, lam, dx = 5.0, 0.09, 0.02
     turn = np.linspace(0.0, 3.0, 3001)                      # rad: 15 m of base_link arc

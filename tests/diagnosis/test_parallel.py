@@ -9,9 +9,9 @@ from torchsoil.diagnosis import fit as fit_module
 from torchsoil.diagnosis.checkpoint import PassCache
 from torchsoil.diagnosis.parallel import PassPool, pass_pool
 from torchsoil.diagnosis.study_cases import scenario
-from torchsoil.fleet import Outcome
+from torchsoil.engines import Outcome
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.synth.scenario import make_terrain_pair
-from torchsoil.terrain import TerrainPair
 
 CFG = DiagnosisConfig(n_fit=2, sections=((0.3, 1.0), (0.0, 0.5)), dig_orders=("robot", "wheel"), refine_steps=1)
 
@@ -71,8 +71,8 @@ def test_a_pool_needs_a_cache_to_keep_its_passes_in():
 def test_the_per_visit_pass_runs_on_the_pool_beside_the_candidates(tmp_path, monkeypatch):
     """On a pair with visit layers the hardening test's per-visit pass is a task of the pool too:
     the diagnosis reads it back instead of fitting the visits itself, and tests the same."""
-    from tests.test_visits import two_visit_pair
-    from torchsoil.diagnosis import run as run_module
+    from tests.estimate.test_visits import two_visit_pair
+    from torchsoil.diagnosis import phases as run_module
 
     pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
     cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)

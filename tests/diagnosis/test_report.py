@@ -3,14 +3,7 @@
 from types import SimpleNamespace
 
 from torchsoil.diagnosis import catalogue
-from torchsoil.diagnosis.report import (
-    basis_text,
-    effect_text,
-    explain,
-    per_pass_text,
-    revisit_markdown,
-    runner_up_text,
-)
+from torchsoil.diagnosis.report import basis_text, effect_text, explain, per_pass_text, revisit_markdown, runner_up_text
 
 
 def _adequate(fits, z_accept):

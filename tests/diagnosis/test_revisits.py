@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from tests.test_visits import D0, two_visit_pair
+from tests.estimate.test_visits import D0, two_visit_pair
 from torchsoil.diagnosis.revisits import (
     FACTORS,
     VisitPass,
@@ -23,8 +23,8 @@ from torchsoil.diagnosis.revisits import (
     revisits,
     run_visits,
 )
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.settings import load_settings
-from torchsoil.terrain import TerrainPair
 
 
 def test_law_factors_by_hand():

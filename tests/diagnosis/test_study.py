@@ -8,21 +8,14 @@ import numpy as np
 import pytest
 
 from torchsoil.diagnosis import study_cases as sc
-from torchsoil.diagnosis.study import (
-    confusion,
-    error_rates,
-    model_error,
-    redraw_noise,
-    run_foreign,
-    truth_coefficients,
-)
+from torchsoil.diagnosis.study import confusion, error_rates, model_error, redraw_noise, run_foreign, truth_coefficients
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.robot import paper_platform
 from torchsoil.settings import Settings
 from torchsoil.synth import effects as fx
 from torchsoil.synth.scenario import load_scenario
 from torchsoil.synth.terrain import Relief
 from torchsoil.synth.trajectory import build_trajectory
-from torchsoil.terrain import TerrainPair
 
 
 def test_randomized_cases_have_the_nulls_and_every_id():

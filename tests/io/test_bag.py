@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from torchsoil.io.bag import BagError, read_recording, resolve_frames, xyzrpy_matrix
+from torchsoil.io.bag import BagError, read_recording
+from torchsoil.io.extrinsics import resolve_frames, xyzrpy_matrix
 from torchsoil.io.write import _typestore, encode, write_bag
 
 EXT = {"lidar_front": xyzrpy_matrix([0.9, 0.0, 0.8, 0.0, 0.3, 0.0]),

@@ -8,7 +8,8 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from scipy.spatial.transform import Rotation
 
 from torchsoil.io.bag import BagError, read_recording
-from torchsoil.pipeline.run import extrinsics_for, process_bag
+from torchsoil.io.extrinsics import extrinsics_for
+from torchsoil.pipeline.run import process_bag
 from torchsoil.robot import paper_platform
 from torchsoil.settings import PipelineConfig, ReadConfig
 
@@ -178,8 +179,8 @@ def test_per_topic_extrinsics_run_with_both_lidars_in_one_frame(tmp_path):
     front lidar's pose. With the poses given per topic (robot YAML keys) the run tracks the
     1 m/s drive; without them it is refused (above)."""
     from tests.pipeline.toyscene import ToyScene
+    from torchsoil.io.extrinsics import extrinsics_from_robot_yaml
     from torchsoil.io.write import write_bag
-    from torchsoil.pipeline.run import extrinsics_from_robot_yaml
 
     scene = ToyScene(columns=128)
     msgs = scene.messages(4.0)

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from torchsoil.estimator import Estimator
-from torchsoil.pipeline.run import process_bag, rows_to_poses
+from torchsoil.estimate.estimator import Estimator
+from torchsoil.io.trajectory import rows_to_poses
+from torchsoil.pipeline.run import process_bag
 from torchsoil.robot import Robot
 from torchsoil.settings import load_settings
 from torchsoil.synth.evaluate import truth_poses

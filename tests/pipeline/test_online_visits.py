@@ -4,10 +4,11 @@ every visit kept as its own layer, scored against the recorder's truth."""
 import numpy as np
 import pytest
 
-from torchsoil.pipeline.run import process_bag, write_outputs
+from torchsoil.estimate.visits import visit_counts
+from torchsoil.io.terrain_pair import TerrainPair
+from torchsoil.pipeline.outputs import write_outputs
+from torchsoil.pipeline.run import process_bag
 from torchsoil.robot import Robot
-from torchsoil.terrain import TerrainPair
-from torchsoil.visits import visit_counts
 
 
 @pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES

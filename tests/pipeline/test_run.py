@@ -6,9 +6,10 @@ import pytest
 
 from tests.pipeline.toyscene import ToyScene
 from torchsoil.io.bag import BagError
+from torchsoil.io.trajectory import rows_to_poses
 from torchsoil.io.write import encode, write_bag
 from torchsoil.pipeline import mapping
-from torchsoil.pipeline.run import process_bag, rows_to_poses
+from torchsoil.pipeline.run import process_bag
 from torchsoil.robot import paper_platform
 from torchsoil.settings import PipelineConfig, SettingsError, load_settings
 
@@ -63,7 +64,7 @@ def test_a_drive_that_never_comes_back_has_no_visit_layers(moving_result):
 
 
 def test_terrain_pair_round_trips(moving_result, tmp_path):
-    from torchsoil.terrain import TerrainPair
+    from torchsoil.io.terrain_pair import TerrainPair
 
     tp = moving_result[0].terrain
     back = TerrainPair.load(tp.save(tmp_path / "t.npz"))
@@ -80,7 +81,7 @@ def test_missing_topic_stops_before_anything(moving_bag):
 def test_missing_extrinsic_is_named_and_can_be_given(tmp_path):
     from scipy.spatial.transform import Rotation
 
-    from torchsoil.pipeline.run import extrinsics_from_robot_yaml
+    from torchsoil.io.extrinsics import extrinsics_from_robot_yaml
 
     scene = ToyScene(columns=128)
     path = write_bag(tmp_path / "b", scene.messages(4.0))  # no /tf_static

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from tests.pipeline.toyscene import ToyScene
+from torchsoil.io.trajectory import rows_to_poses
 from torchsoil.pipeline import mapping
 from torchsoil.pipeline.mapping import _arc_motion, _motion_over, _velocity
-from torchsoil.pipeline.run import process_bag, rows_to_poses
+from torchsoil.pipeline.run import process_bag
 from torchsoil.robot import paper_platform
 from torchsoil.settings import PipelineConfig
 
@@ -109,8 +110,8 @@ def test_a_map_broken_between_visits_flags_the_later_visit():
     visit over that ground, and only those; the pair as made passes."""
     from pathlib import Path
 
-    from torchsoil.pipeline.run import check_visits
-    from torchsoil.terrain import TerrainPair
+    from torchsoil.io.terrain_pair import TerrainPair
+    from torchsoil.pipeline.checks import check_visits
 
     pair = TerrainPair.load(Path(__file__).resolve().parents[3] / "shared/foreign/multi_pass_hardening.npz")
     stamps = pair.poses[:, 0].copy()

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from torchsoil.io.bag import xyzrpy_matrix
+from torchsoil.io.extrinsics import xyzrpy_matrix
 
 
 @dataclass

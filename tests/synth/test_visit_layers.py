@@ -5,8 +5,8 @@ measurement noise, drawn per layer; in the truth without."""
 import numpy as np
 import pytest
 
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.synth.record import sidecar
-from torchsoil.terrain import TerrainPair
 
 
 @pytest.fixture(scope="module")

@@ -187,9 +187,9 @@ def test_a_revisit_is_one_more_pass_from_the_settled_surface(order):
     footprint (sim.sinkage.contact_height)."""
     import torch
 
+    from torchsoil.estimate.windows import path_arc
     from torchsoil.sim import ParamSpec, SimConfig, simulate_path
     from torchsoil.sim.sinkage import reference_height, revisit_reference
-    from torchsoil.windows import path_arc
 
     scn = scenario(LOOP, soil=SOIL_30)
     scn["world"] = {"dig_order": order}

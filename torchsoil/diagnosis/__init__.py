@@ -6,6 +6,6 @@ Modules: `covariates` (signals from the poses), `locate` (profiles and honest st
 `run` (the diagnosis and its verdict), `report` (diagnosis.json, report.md, figures).
 """
 
-from torchsoil.diagnosis.run import Diagnosis, DiagnosisConfig, diagnose
+from torchsoil.diagnosis.phases import Diagnosis, DiagnosisConfig, diagnose
 
 __all__ = ["Diagnosis", "DiagnosisConfig", "diagnose"]

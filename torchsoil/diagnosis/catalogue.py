@@ -230,7 +230,7 @@ class ExtensionModel:
     """An extension with a fixed coefficient, applied to the windows of one drive.
 
     `modifiers(wd, theta, geom)` returns the sim.Modifiers for window data wd
-    (torchsoil.windows), full parameters theta (B, P) [m, -, rad] and the visit simulated
+    (torchsoil.estimate.windows), full parameters theta (B, P) [m, -, rad] and the visit simulated
     (geom: wd.geom, the default, or one of wd.earlier); sinkage factors are cached per visit.
 
     view: what the pair's H_f holds on revisited ground (`windows.front_view`). With

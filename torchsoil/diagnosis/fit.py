@@ -23,10 +23,10 @@ from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts,
 from torchsoil.diagnosis.checkpoint import PassCache, kept, portable
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles, term_test
-from torchsoil.estimator import Estimator, Stitcher
+from torchsoil.estimate.estimator import Estimator, Stitcher
+from torchsoil.estimate.windows import WindowStore
 from torchsoil.memory import release
 from torchsoil.settings import EstimatorConfig, SimConfig
-from torchsoil.windows import WindowStore
 
 
 @dataclass

@@ -2,7 +2,7 @@
 
 Most of a diagnosis is estimator passes that do not depend on each other: the tyre sections and
 dig orders scored on the same windows, and every candidate at its first trial coefficients. `PassPool`
-runs them ahead of the diagnosis as tasks of a fleet engine (torchsoil.fleet: `local` process
+runs them ahead of the diagnosis as tasks of a fleet engine (torchsoil.jobs.fleet: `local` process
 pools or `ray`), each task keeping its result in the diagnosis's `PassCache`; the diagnosis then
 runs as it does in one process and reads them back there. Its results are those of a run in one
 process; a task that fails only costs time, as the diagnosis then runs that pass itself.
@@ -44,7 +44,7 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
     from torchsoil.diagnosis import catalogue
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import candidate_pass, fit_extension, section_cost, with_section
-    from torchsoil.windows import WindowStore
+    from torchsoil.estimate.windows import WindowStore
 
     pair, (shared, base) = _load(tuple(files))
     cache = PassCache.open(cache_dir, every)
@@ -53,7 +53,7 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
         section_cost(pair, est, sim, sec, every, model, shared, cache)
         return
     if kind == "visits":
-        from torchsoil.diagnosis.run import visit_pass
+        from torchsoil.diagnosis.phases import visit_pass
 
         est, sim = args
         visit_pass(pair, est, sim, base, cache)
@@ -70,7 +70,7 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
 
 
 class PassPool:
-    """Runs passes of one diagnosis on `engine` (torchsoil.fleet.LocalEngine or RayEngine,
+    """Runs passes of one diagnosis on `engine` (torchsoil.engines.LocalEngine or RayEngine,
     entered), keeping them in `cache` (a PassCache: for a Ray cluster, a folder every node
     reads and writes). progress: optional tqdm-like bar (its postfix tells the tasks done)."""
 
@@ -131,7 +131,7 @@ def pass_pool(workers: int = 1, engine: str = "local", cache: PassCache | None =
         return
     if cache is None:
         raise ValueError("passes run in parallel are kept in a PassCache: give diagnose() a cache")
-    from torchsoil.fleet import make_engine
+    from torchsoil.engines import make_engine
 
     with make_engine(engine, workers if workers > 1 else None) as eng:
         pool = PassPool(eng, cache, progress)

@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
-from torchsoil.figures import coarse, coarse_extent
+from torchsoil.plotting import coarse, coarse_extent
 
 KEYS = ("verdict", "missing_physics", "where", "explanation", "cost_before", "cost_after", "noise_floor",
         "extension_parameters", "candidates")

@@ -181,7 +181,7 @@ def window_floor(plain, wd) -> float:
     last (`plain`: an Estimator of the same pair without per_visit): the lidars' noise, measured
     on the window's untouched ground, where a visit's own maps hold none (a producer whose visit
     layers cover the wheels' reach alone, not the corridor of docs/formats.md section 3)."""
-    from torchsoil.cost import weighted_l1
+    from torchsoil.estimate.cost import weighted_l1
 
     k = wd.spec.index
     if k >= len(plain.windows) or abs(plain.windows[k].centre - wd.spec.centre) > 1e-9:
@@ -199,8 +199,8 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
     first visit's soil predicts for it, hardened by each factor). est, sim: settings sections."""
     import torch
 
-    from torchsoil.cost import weighted_l1
-    from torchsoil.estimator import Estimator, kind
+    from torchsoil.estimate.cost import weighted_l1
+    from torchsoil.estimate.estimator import Estimator, kind
 
     e = Estimator(pair, est, sim, per_visit=True, nuisance=nuisance, index=index)
     dmask = torch.tensor([kind(n) == "d" for n in e.free_names], device=e.theta0.device)
@@ -429,7 +429,7 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     fewer than 4 windows."""
     from torchsoil.diagnosis.catalogue import PassCounts
     from torchsoil.diagnosis.covariates import DriveSignals
-    from torchsoil.estimator import Estimator
+    from torchsoil.estimate.estimator import Estimator
 
     drive, counts = DriveSignals.from_poses(pair.poses, pair.robot), PassCounts()
     sim = sim.replace(dig_order="wheel")

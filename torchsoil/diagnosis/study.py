@@ -8,7 +8,7 @@
 
 Both append one JSON line per drive to OUT/cases.jsonl (drives already there are skipped:
 an interrupted study resumes) and write OUT/confusion.md. With an `engine`
-(torchsoil.fleet.make_engine: a local process pool or a Ray cluster) each drive is one task,
+(torchsoil.engines.make_engine: a local process pool or a Ray cluster) each drive is one task,
 its line appended as it finishes; a drive whose task fails is reported and left for the next
 run. The table lists the drives in the order of the cases, however they finished.
 """
@@ -31,11 +31,11 @@ import numpy as np
 from torchsoil.diagnosis.catalogue import CATALOGUE, signs
 from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
 from torchsoil.diagnosis.locate import SAME, term_test
+from torchsoil.diagnosis.phases import accept_in_order, by_gain, diagnose, gain_material
 from torchsoil.diagnosis.report import mean_sinkage
-from torchsoil.diagnosis.run import accept_in_order, by_gain, diagnose, gain_material
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.settings import DiagnosisConfig, Settings
 from torchsoil.synth.scenario import make_terrain_pair
-from torchsoil.terrain import TerrainPair
 
 CHANGED = 1e-3  # m: a cell's ground changed where the noise-free |H_b - H_f| exceeds this (model error zone)
 
@@ -202,7 +202,7 @@ def _in_order(done: dict[str, dict], names: list[str]) -> list[dict]:
 
 def run_study(cases, out: Path, settings: Settings | None = None, engine=None) -> str:
     """Diagnose every (name, scenario, seed, verdict, id) case (`study_case`), in this process
-    or as tasks of `engine` (torchsoil.fleet); append results to out/cases.jsonl (cases already
+    or as tasks of `engine` (torchsoil.jobs.fleet); append results to out/cases.jsonl (cases already
     there are skipped) and return the confusion table (markdown)."""
     out = Path(out)
     done = _resume(out)
@@ -313,7 +313,7 @@ def load_foreign(directory: Path, name: str) -> tuple[TerrainPair, TerrainPair |
 def simulated_back(pair: TerrainPair, settings: Settings) -> np.ndarray:
     """(X, Y) the estimator's simulated H_b over the drive [m]: every window fitted in turn,
     each cell from the window whose centre is nearest (NaN off the windows' ground)."""
-    from torchsoil.estimator import Estimator, Stitcher
+    from torchsoil.estimate.estimator import Estimator, Stitcher
 
     est = Estimator(pair, settings.estimator, settings.sim)
     stitch = Stitcher(pair.h_front.shape, est.index.s)

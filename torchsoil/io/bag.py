@@ -17,8 +17,8 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from torchsoil.io.extrinsics import frame_name, resolve_frames, tf_edges
 from torchsoil.io.pointcloud import LIVOX_CUSTOM, Cloud, parse_livox, register_livox
 from torchsoil.io.pointtime import PointTimeError, check_clock_domains
 from torchsoil.io.stream import SweepStream
@@ -49,11 +49,6 @@ class ImuData:
     topic: str
 
 
-def frame_name(frame_id: str) -> str:
-    """A frame id as tf2 compares it: without a leading slash (`/os_sensor` = `os_sensor`)."""
-    return str(frame_id).strip().lstrip("/")
-
-
 @dataclass
 class Recording:
     """Decoded sweeps of both lidars.
@@ -80,42 +75,6 @@ class Recording:
     @property
     def duration(self) -> float:
         return self.end - self.start
-
-
-def transform_matrix(translation, quaternion_xyzw) -> np.ndarray:
-    """(3,) translation [m] and (4,) quaternion (x, y, z, w) -> (4, 4) homogeneous transform."""
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(np.asarray(quaternion_xyzw, dtype=np.float64)).as_matrix()
-    T[:3, 3] = np.asarray(translation, dtype=np.float64)
-    return T
-
-
-def xyzrpy_matrix(xyzrpy) -> np.ndarray:
-    """(6,) x, y, z [m], roll, pitch, yaw [rad] -> (4, 4) transform."""
-    v = np.asarray(xyzrpy, dtype=np.float64)
-    if v.shape != (6,) or not np.all(np.isfinite(v)):
-        raise ValueError(f"extrinsic must be 6 finite numbers x y z roll pitch yaw, got {v}")
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", v[3:]).as_matrix()
-    T[:3, 3] = v[:3]
-    return T
-
-
-def resolve_frames(edges: dict[str, tuple[str, np.ndarray]], base_frame: str) -> dict:
-    """Static transforms child -> (parent, parent_T_child) -> {frame: base_T_frame} (4, 4) for
-    every frame whose chain of parents reaches `base_frame` (base_link -> os_sensor ->
-    os_lidar composes to base_T_os_lidar)."""
-    out = {base_frame: np.eye(4)}
-    for frame in edges:
-        T, f, seen = np.eye(4), frame, set()
-        while f in edges and f != base_frame and f not in seen:
-            seen.add(f)
-            parent, P = edges[f]
-            T = P @ T
-            f = parent
-        if f == base_frame:
-            out[frame] = T
-    return out
 
 
 def _open(path: Path):
@@ -159,16 +118,6 @@ def _imu_connections(reader, path: Path, imu_topic: str | None) -> list:
         raise BagError(f"{path}: several IMU topics {topics}; choose one with pipeline.read.imu_topic "
                        "(--imu-topic) or none with imu_topic=none")
     return [c for c in reader.connections if topics and c.topic == topics[0]]
-
-
-def _edges(msg) -> dict[str, tuple[str, np.ndarray]]:
-    """TFMessage -> {child: (parent, parent_T_child)}, frame ids without leading slash."""
-    out = {}
-    for tr in msg.transforms:
-        q, p = tr.transform.rotation, tr.transform.translation
-        out[frame_name(tr.child_frame_id)] = (frame_name(tr.header.frame_id), transform_matrix(
-            (p.x, p.y, p.z), (q.x, q.y, q.z, q.w)))
-    return out
 
 
 class ImuSample(NamedTuple):
@@ -348,7 +297,7 @@ def _take_aux(reader, conn, raw, stamp: int, is_imu: bool, edges: dict, rec: Rec
                              (msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z),
                              (msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z),
                              frame_name(msg.header.frame_id), conn.topic)
-        for child, edge in _edges(msg).items():
+        for child, edge in tf_edges(msg).items():
             edges[conn.topic].setdefault(child, edge)
     except Exception as e:
         rec.problems.append(f"{conn.topic} message at t={stamp * 1e-9:.3f} s skipped: {e}")

@@ -23,6 +23,7 @@ import numpy as np
 
 from torchsoil.io.bag import ImuSample, Recording, imu_data
 from torchsoil.io.pointcloud import Cloud
+from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.pipeline import gravity, icp, mapping
 from torchsoil.pipeline.mapping import Mapper, Sweep
 from torchsoil.pipeline.raster import Heightmap, Tiles, corridor
@@ -30,7 +31,6 @@ from torchsoil.pipeline.reregister import register_sweep
 from torchsoil.pipeline.visit_tracker import VisitTracker, visit_gap, visit_reach
 from torchsoil.robot import Robot
 from torchsoil.settings import PipelineConfig
-from torchsoil.terrain import TerrainPair
 
 STREAMS = ("front", "back")
 REF_OK = ~(mapping.POOR_FIT | mapping.EMPTY)
@@ -142,7 +142,7 @@ class OnlinePipeline:
     def _resolve(self, final: bool) -> bool:
         """Both streams' extrinsics, once both have a sweep and the transforms are known;
         raises the reason when still unknown after 50 sweeps or at the end."""
-        from torchsoil.pipeline.run import extrinsics_for
+        from torchsoil.io.extrinsics import extrinsics_for
 
         if len(self.frames) < 2 and not final:
             return False
@@ -298,7 +298,7 @@ class OnlinePipeline:
 
     def _imu_pose(self, imu) -> np.ndarray:
         """(4, 4) the IMU's pose in base_link, looked up like a lidar's."""
-        from torchsoil.pipeline.run import extrinsics_for
+        from torchsoil.io.extrinsics import extrinsics_for
 
         return extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
 
@@ -464,7 +464,7 @@ class OnlinePipeline:
                   "measured_front": hf.measured, "measured_back": hb.measured,
                   "count_front": hf.count, "count_back": hb.count, "var_front": hf.var, "var_back": hb.var,
                   "scan_stamps": scan_stamps[keep], "scan_flags": flags[keep], "roi_mask": mask}
-        from torchsoil.pipeline.run import poses_to_rows
+        from torchsoil.io.trajectory import poses_to_rows
 
         return TerrainPair(grid.dx, np.array(grid.origin), hf.h, hb.h, poses_to_rows(stamps, poses),
                            self.robot.wheels, self.robot.wheel_width, self.robot.wheel_flat_fraction, extras,

@@ -11,7 +11,7 @@ import torch
 from numba import njit, prange
 
 from torchsoil.sim._relax_numba import compile_kernels, slope_adjoint
-from torchsoil.sim.relaxation import _EPS2, face_masks
+from torchsoil.sim.stencil import EPS2, face_masks
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -25,7 +25,7 @@ def _stencil(h, L, tl, ti, fx, fy, inv_dx, coef, gx, gy, nn, fi, fe, O, r):
         for j in range(Y):
             a = (h[i + 1, j] - h[i, j]) * inv_dx if fx[i, j] else 0.0
             c = (h[i, j + 1] - h[i, j]) * inv_dx if fy[i, j] else 0.0
-            n2 = a * a + c * c + _EPS2
+            n2 = a * a + c * c + EPS2
             t = tl[i, j]
             gx[i, j], gy[i, j] = a, c
             if n2 > t * t:     # above the loose angle (sqrt only here)

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from torchsoil.sim.relaxation import _EPS2, RelaxResult, face_masks
+from torchsoil.sim.stencil import EPS2, RelaxResult, face_masks
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -55,7 +55,7 @@ def _forward_py(h, tb, fx, fy, inv_dx, coef, tau, n_iter, fixed, done, iters, hi
                 for j in range(Y):
                     gx = (h[b, i + 1, j] - h[b, i, j]) * inv_dx if fx[i, j] else 0.0
                     gy = (h[b, i, j + 1] - h[b, i, j]) * inv_dx if fy[i, j] else 0.0
-                    n2 = gx * gx + gy * gy + _EPS2
+                    n2 = gx * gx + gy * gy + EPS2
                     t = tb[b, i, j]
                     if n2 > t * t:  # slope above the angle of repose: soil flows (sqrt only here)
                         n = math.sqrt(n2)
@@ -95,7 +95,7 @@ def _backward_py(hist, counts, lam, tbar, tb, fx, fy, inv_dx, coef):
                 for j in range(Y):
                     gx = (hist[b, it, i + 1, j] - hist[b, it, i, j]) * inv_dx if fx[i, j] else 0.0
                     gy = (hist[b, it, i, j + 1] - hist[b, it, i, j]) * inv_dx if fy[i, j] else 0.0
-                    n2 = gx * gx + gy * gy + _EPS2
+                    n2 = gx * gx + gy * gy + EPS2
                     if n2 > tb[b, i, j] * tb[b, i, j]:
                         n = math.sqrt(n2)
                         ex = n - tb[b, i, j]

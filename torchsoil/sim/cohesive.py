@@ -28,7 +28,7 @@ from typing import NamedTuple
 import torch
 import torch.nn.functional as F
 
-from torchsoil.sim.relaxation import _EPS2, _numba_ok, face_masks
+from torchsoil.sim.stencil import EPS2, face_masks, numba_ok
 
 
 class TwoAngleResult(NamedTuple):
@@ -72,7 +72,7 @@ def _terms(h, loose, tan_l, tan_i, fxs, fys, coef):
     beside an intact wall, which flows only through the stencil's slope across the wall)."""
     gx = _up(h, 1).sub(h) * fxs
     gy = _up(h, 2).sub(h) * fys
-    n = torch.sqrt(gx * gx + gy * gy + _EPS2)
+    n = torch.sqrt(gx * gx + gy * gy + EPS2)
     fi = torch.relu(n - tan_i) / n
     fl = torch.relu(n - tan_l) / n - fi
     lx, ly = fl * gx, fl * gy                      # loose flux above the intact failure
@@ -118,7 +118,7 @@ def relax_two_angle(h: torch.Tensor, loose: torch.Tensor, tan_beta_loose: torch.
         raise ValueError("need 0 < tan(beta_loose) <= tan(beta_intact): intact ground stands at least as "
                          "steep as moved soil settles")
     if backend == "auto":
-        backend = "numba" if h.device.type == "cpu" and _numba_ok() else "torch"
+        backend = "numba" if h.device.type == "cpu" and numba_ok() else "torch"
     if backend == "numba":
         from torchsoil.sim import _cohesive_numba
 

@@ -14,33 +14,10 @@ the loop) and `numba` (a fused CPU kernel with a hand-written adjoint for autogr
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 import torch.nn.functional as F
 
-_EPS2 = 1e-20  # m^2/m^2, keeps |grad h| differentiable at a flat cell
-
-
-class RelaxResult(NamedTuple):
-    """h: (B, X, Y) relaxed heights, m; iterations: (B,) int64 updates applied;
-    capped: (B,) bool, stopped by the iteration cap before converging."""
-
-    h: torch.Tensor
-    iterations: torch.Tensor
-    capped: torch.Tensor
-
-
-def face_masks(domain: torch.Tensor | None, shape, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """(X, Y) bool masks of the +x and +y faces that carry flux (both cells in the domain)."""
-    X, Y = shape
-    if domain is None:
-        domain = torch.ones(X, Y, dtype=torch.bool, device=device)
-    fx = torch.zeros(X, Y, dtype=torch.bool, device=device)
-    fy = torch.zeros(X, Y, dtype=torch.bool, device=device)
-    fx[:-1] = domain[:-1] & domain[1:]
-    fy[:, :-1] = domain[:, :-1] & domain[:, 1:]
-    return fx, fy
+from torchsoil.sim.stencil import EPS2, RelaxResult, face_masks, numba_ok
 
 
 def _step_terms(h, tan_beta, fx, fy):
@@ -48,7 +25,7 @@ def _step_terms(h, tan_beta, fx, fy):
     face masks divided by dx."""
     gx = F.pad((h[:, 1:] - h[:, :-1]), (0, 0, 0, 1)) * fx
     gy = F.pad((h[:, :, 1:] - h[:, :, :-1]), (0, 1)) * fy
-    n = torch.sqrt(gx * gx + gy * gy + _EPS2)
+    n = torch.sqrt(gx * gx + gy * gy + EPS2)
     excess = n - tan_beta
     f = torch.relu(excess) / n
     return f * gx, f * gy, excess
@@ -111,7 +88,7 @@ def relax(h: torch.Tensor, tan_beta: torch.Tensor, dx: float, domain: torch.Tens
     elif tan_beta.shape[-2:] != (1, 1):
         tan_beta = face_tan(tan_beta)
     if backend == "auto":
-        backend = "numba" if h.device.type == "cpu" and _numba_ok() else "torch"
+        backend = "numba" if h.device.type == "cpu" and numba_ok() else "torch"
     if backend == "torch":
         return relax_torch(h, tan_beta, dx, domain, tau, max_iter, fixed_iter, eps_scale)
     if backend != "numba":
@@ -134,16 +111,3 @@ def face_tan(tan_beta: torch.Tensor) -> torch.Tensor:
     return torch.maximum(t, torch.maximum(nx, ny))
 
 
-_NUMBA = None
-
-
-def _numba_ok() -> bool:
-    global _NUMBA
-    if _NUMBA is None:
-        try:
-            import numba  # noqa: F401
-
-            _NUMBA = True
-        except ImportError:
-            _NUMBA = False
-    return _NUMBA

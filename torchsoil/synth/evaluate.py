@@ -17,8 +17,8 @@ from torchsoil.synth.truthfile import TruthFile
 
 def truth_poses(truth: TruthFile, stamps: np.ndarray) -> np.ndarray:
     """(S, 4, 4) true base_link poses at bag times `stamps` (S,) [s], interpolated."""
+    from torchsoil.io.trajectory import rows_to_poses
     from torchsoil.pipeline.reregister import interpolate_poses
-    from torchsoil.pipeline.run import rows_to_poses
 
     tr = truth["poses"]
     return interpolate_poses(tr[:, 0], rows_to_poses(tr), np.asarray(stamps, np.float64) - truth.t0)
@@ -39,7 +39,7 @@ def pipeline_errors(terrain, truth: TruthFile) -> dict[str, float]:
     aligned), yaw_rms_deg, h_front_rms_m / h_back_rms_m (valid cells, first-pose aligned),
     h_front_plane_rms_m / h_back_plane_rms_m (after removing the best-fit plane),
     h_delta_mean_m / h_delta_std_m (all cells where both maps are valid)."""
-    from torchsoil.pipeline.run import rows_to_poses
+    from torchsoil.io.trajectory import rows_to_poses
 
     est = rows_to_poses(terrain.poses)
     true = truth_poses(truth, terrain.poses[:, 0])
@@ -86,7 +86,7 @@ def visit_errors(terrain, truth: TruthFile) -> dict[str, float]:
     visit_front_rms_m[v] (the surface before visit v, states[v]) and visit_back_rms_m[v] (after
     it, states[v + 1]), each net of its mean (a map offset is not a visit's error), m; and the
     cells compared. Where the pair has no visit layers: {}."""
-    from torchsoil.pipeline.run import rows_to_poses
+    from torchsoil.io.trajectory import rows_to_poses
 
     if getattr(terrain, "visit_front", None) is None:
         return {}
