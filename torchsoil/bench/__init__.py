@@ -1,2 +1,3 @@
 """Benchmarks of torchsoil (`torchsoil bench` or `python scripts/bench.py`): every module
-contributes its figures through `run(quick) -> dict`. Not part of the installed library."""
+contributes its figures through `run(quick) -> dict` (`torchsoil.jobs.bench` runs them and
+writes bench.json). Timings, not tests: the test suite never runs them."""

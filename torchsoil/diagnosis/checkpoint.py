@@ -19,6 +19,8 @@ import pickle
 import shutil
 from pathlib import Path
 
+from torchsoil.pipeline.resume import UNREADABLE
+
 KEY_FILE = "key.json"
 
 
@@ -63,8 +65,8 @@ class PassCache:
         try:
             with path.open("rb") as fh:
                 stored_what, value = pickle.load(fh)
-        except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ValueError):
-            return None                          # unreadable (written by another version): recompute
+        except UNREADABLE:
+            return None            # unreadable (written by another version, its classes moved): recompute
         if stored_what != repr(what):
             return None
         self.hits += 1

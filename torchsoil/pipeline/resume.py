@@ -23,6 +23,12 @@ from pathlib import Path
 
 FORMAT = 1
 
+# What unpickling a file another version of torchsoil wrote may raise: a class that moved to
+# another module (ImportError, ModuleNotFoundError) or was renamed (AttributeError), one whose
+# fields changed (TypeError, ValueError), a file cut short (EOFError, UnpicklingError). Such a
+# file is not resumed from: its work is done again.
+UNREADABLE = (OSError, EOFError, pickle.UnpicklingError, AttributeError, ImportError, TypeError, ValueError)
+
 
 def _link_tree(src: Path, dst: Path) -> None:
     """Hard-link every file under src into dst (same relative paths; copies across devices)."""
@@ -85,7 +91,7 @@ class Checkpoints:
         try:
             with (step / "state.pkl").open("rb") as fh:
                 state = pickle.load(fh)
-        except (OSError, EOFError, pickle.UnpicklingError, AttributeError, ValueError):
+        except UNREADABLE:
             return None
         if state.get("format") != FORMAT or state.get("key") != self.key:
             return None
