@@ -118,20 +118,17 @@ def test_the_recording_options_reach_the_pipeline_of_every_command(tmp_path, cap
 
 
 def test_pass_workers_default_to_what_the_cores_and_memory_hold(monkeypatch):
-    from types import SimpleNamespace
-
-    import torchsoil.jobs.fleet as fleet
-    from torchsoil import cli
+    import torchsoil.engines as engines
+    from torchsoil.jobs import diagnose
     from torchsoil.settings import Settings
 
-    s = Settings()
-    monkeypatch.setattr(fleet.os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
-    monkeypatch.setattr(fleet, "available_mb", lambda: 64000.0)
-    given = SimpleNamespace(pass_workers=None, pass_engine="local")
-    assert cli._pass_workers(given, s) == cli.MAX_PASS_WORKERS        # 16 cores: capped
-    monkeypatch.setattr(fleet, "available_mb", lambda: 5000.0)        # 2000 MiB a task: two fit
-    assert cli._pass_workers(given, s) == 2
-    monkeypatch.setattr(fleet.os, "sched_getaffinity", lambda _: {0}, raising=False)
-    assert cli._pass_workers(given, s) == 1                          # one core: all in this process
-    assert cli._pass_workers(SimpleNamespace(pass_workers=3, pass_engine="local"), s) == 3
-    assert cli._pass_workers(SimpleNamespace(pass_workers=None, pass_engine="ray"), s) == 1
+    s = Settings().fleet
+    monkeypatch.setattr(engines.os, "sched_getaffinity", lambda _: set(range(16)), raising=False)
+    monkeypatch.setattr(engines, "available_mb", lambda: 64000.0)
+    assert diagnose.pass_workers(None, "local", s) == diagnose.MAX_PASS_WORKERS        # 16 cores: capped
+    monkeypatch.setattr(engines, "available_mb", lambda: 5000.0)        # 2000 MiB a task: two fit
+    assert diagnose.pass_workers(None, "local", s) == 2
+    monkeypatch.setattr(engines.os, "sched_getaffinity", lambda _: {0}, raising=False)
+    assert diagnose.pass_workers(None, "local", s) == 1                          # one core: all in this process
+    assert diagnose.pass_workers(3, "local", s) == 3
+    assert diagnose.pass_workers(None, "ray", s) == 1

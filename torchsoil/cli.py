@@ -24,10 +24,7 @@ import errno
 import json
 import os
 import sys
-import time
 from pathlib import Path
-
-DEMO = Path("data") / "demo"  # the bundled demo recording, in a source checkout
 
 
 def _settings_options(p: argparse.ArgumentParser) -> None:
@@ -90,13 +87,7 @@ def _robot_option(p: argparse.ArgumentParser, required: bool = False, extra: str
                    help="robot description: a shipped name (paper_platform) or a YAML path" + extra)
 
 
-def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="torchsoil", description=__doc__,
-                                 epilog="The manual: docs/index.md of the source checkout (build it with "
-                                        "`python3 -m sphinx -b html docs out/docs`).",
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_estimate(sub) -> None:
     p = sub.add_parser("estimate", help="estimate soil parameters along a drive (sliding windows)",
                        description="Estimate (d_1..d_T, chi, beta) window by window. Writes OUT/params.csv, "
                                    "reference.csv, simulated.npz, summary.md, run.json, figures and TensorBoard "
@@ -118,6 +109,8 @@ def parser() -> argparse.ArgumentParser:
     _job_options(p)
     _fleet_options(p)
 
+
+def _add_process_bag(sub) -> None:
     p = sub.add_parser("process-bag", help="lidar pipeline: a recording in, terrain pair and trajectory out")
     p.add_argument("bag", type=Path, help="ROS 2 bag directory or ROS 1 .bag file")
     _robot_option(p, required=True)
@@ -128,6 +121,8 @@ def parser() -> argparse.ArgumentParser:
                                                          "its last checkpoint (OUT/checkpoint, every "
                                                          "pipeline.checkpoint_s)")
 
+
+def _add_diagnose(sub) -> None:
     p = sub.add_parser("diagnose", help="locate model mismatch, name the missing physics, show the fit improve")
     p.add_argument("input", nargs="*", help="terrain-pair .npz or recording (ROS 2 bag directory / ROS 1 .bag); "
                                             "several paths, globs or CSV manifests: one task each (--engine)")
@@ -149,6 +144,8 @@ def parser() -> argparse.ArgumentParser:
     _job_options(p)
     _fleet_options(p)
 
+
+def _add_record(sub) -> None:
     p = sub.add_parser("record", help="write a synthetic recording (bag + truth) or only its terrain pair")
     shipped = ", ".join(sorted(f.stem for f in (Path(__file__).parent / "configs" / "scenarios").glob("*.yaml")))
     p.add_argument("--scenario", required=True, help=f"shipped scenario ({shipped}) or YAML path (a synth section)")
@@ -168,6 +165,8 @@ def parser() -> argparse.ArgumentParser:
                         "robosense_start, robosense_end, livox, livox_custom, mixed (front ouster, back velodyne)")
     p.add_argument("--no-imu", action="store_true", help="no IMU topic (/imu/data) in the bag")
 
+
+def _add_rollout(sub) -> None:
     p = sub.add_parser("rollout", help="scripted policies on the soil-traverse environment (damage vs time)")
     p.add_argument("--config", default=None, help="env settings YAML (the env section)")
     p.add_argument("--out", default="out/rollout", help="output directory")
@@ -175,11 +174,15 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--speed", type=float, default=1.0, help="driving speed, m/s")
     p.add_argument("--detour-y", type=float, default=8.4, help="y of the detour's straight part, m")
 
+
+def _add_bench(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: print every figure and write OUT/bench.json")
     p.add_argument("--out", default="out/bench", help="directory for bench.json")
     p.add_argument("--only", nargs="*", help="benchmark modules to run (default: all)")
     p.add_argument("--quick", action="store_true", help="fewer sizes and repeats")
 
+
+def _add_ablation(sub) -> None:
     p = sub.add_parser("ablation", help="the paper's ablation table (proposed, merged sinkage, capped relaxation)")
     p.add_argument("input", help="rosbag or terrain-pair .npz")
     _robot_option(p)
@@ -187,6 +190,8 @@ def parser() -> argparse.ArgumentParser:
     _bag_options(p)
     p.add_argument("--threads", type=int, default=1)
 
+
+def _add_study(sub) -> None:
     p = sub.add_parser("study", help="confusion table of the diagnosis over drives with known truth (long: "
                                      "minutes per drive)",
                        description="Diagnose drives with known truth and print the confusion table (OUT/confusion.md; "
@@ -214,10 +219,23 @@ def parser() -> argparse.ArgumentParser:
                                                              "per drive, = --set fleet.cpus_per_task=N)")
     _engine_options(p)
 
+
+def _add_settings(sub) -> None:
     p = sub.add_parser("settings", help="print the effective settings as YAML (defaults + --config + --set)")
     p.add_argument("sections", nargs="*", help="only these sections (sim, estimator, pipeline, diagnosis, env, "
                                                "synth, fleet)")
     _settings_options(p)
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="torchsoil", description=__doc__,
+                                 epilog="The manual: docs/index.md of the source checkout (build it with "
+                                        "`python3 -m sphinx -b html docs out/docs`).",
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_estimate, _add_process_bag, _add_diagnose, _add_record, _add_rollout, _add_bench,
+                _add_ablation, _add_study, _add_settings):
+        add(sub)
     return ap
 
 
@@ -285,25 +303,17 @@ def _many(args) -> bool:
 
 
 def _run_many(job: str, args, extra: list[str], out: str) -> int:
-    """`job` on every recording of args.input and --manifest (torchsoil.jobs.fleet.run_fleet);
-    exit status 1 when some failed (their errors are in OUT/fleet.csv)."""
-    from torchsoil.jobs.fleet import recordings, run_fleet
+    """`job` on every recording of args.input and --manifest (torchsoil.jobs.fleet.run_many)."""
+    from torchsoil.jobs.fleet import run_many
 
     if getattr(args, "resume", False) or getattr(args, "realtime", False):
         raise ValueError("--resume and --realtime take one recording (many recordings: a rerun of the same command "
                          "skips the finished ones and runs the others again)")
-    recs = recordings(args.input, args.manifest)
-    if not recs:
-        raise FileNotFoundError("no recordings given (paths, globs, or --manifest CSV)")
     threads = [f"fleet.cpus_per_task={args.threads}"] if args.threads is not None else []
-    rows = run_fleet(job, recs, out, configs=args.config, overrides=[*args.set, *_topics(args), *extra, *threads],
-                     robot=args.robot, extrinsics=_extrinsics(args), engine=args.engine or "local",
-                     workers=args.workers, address=args.ray_address, tensorboard=not args.no_tensorboard,
-                     overwrite=args.overwrite)
-    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "skipped", "error")}
-    print(f"wrote {Path(out) / 'fleet.csv'}: {counts['ok']} done, {counts['skipped']} already complete (skipped), "
-          f"{counts['error']} failed")
-    return 1 if counts["error"] else 0
+    return run_many(job, args.input, args.manifest, out, configs=args.config,
+                    overrides=[*args.set, *_topics(args), *extra, *threads], robot=args.robot,
+                    extrinsics=_extrinsics(args), engine=args.engine or "local", workers=args.workers,
+                    address=args.ray_address, tensorboard=not args.no_tensorboard, overwrite=args.overwrite)
 
 
 def _robot(name_or_path):
@@ -318,18 +328,8 @@ def _robot_yaml(name_or_path):
     return robot_path(name_or_path) if name_or_path else None
 
 
-def find_demo() -> Path | None:
-    """The bundled demo recording: under the current directory or the source checkout."""
-    import torchsoil
-
-    for root in (Path.cwd(), Path(torchsoil.__file__).resolve().parents[1]):
-        if (root / DEMO / "demo").exists():
-            return root / DEMO
-    return None
-
-
 def cmd_estimate(args) -> int:
-    from torchsoil.jobs.estimate import estimate
+    from torchsoil.jobs.estimate import demo_input, estimate
 
     extra = [f"estimator.grad={args.grad}"] if args.grad else []
     extra += ["estimator.merged_sinkage=true"] if args.merged_sinkage else []
@@ -337,15 +337,11 @@ def cmd_estimate(args) -> int:
     if _many(args):
         return _run_many("estimate", args, extra, args.out or "out")
     settings, given = _bag_settings(args, extra)
-    robot_arg = args.robot
     if args.input:
-        source = Path(args.input[0])
+        source, robot_arg = Path(args.input[0]), args.robot
     else:
-        demo = find_demo()
-        if demo is None:
-            raise FileNotFoundError("no INPUT given and no bundled demo recording here (data/demo/demo of a "
-                                    "source checkout); give a bag or terrain-pair .npz")
-        source, robot_arg = demo / "demo", robot_arg or demo / "demo.robot.yaml"
+        source, demo_robot = demo_input()
+        robot_arg = args.robot or demo_robot
     if not source.exists():
         raise FileNotFoundError(f"input not found: {source}")
     out = Path(args.out) if args.out else Path("out") / (source.stem if args.input else "demo")
@@ -358,44 +354,11 @@ def cmd_estimate(args) -> int:
 
 
 def cmd_process_bag(args) -> int:
-    import shutil
+    from torchsoil.jobs.process_bag import process_bag_job
 
-    from torchsoil.io.extrinsics import pipeline_settings
-    from torchsoil.pipeline.outputs import write_outputs
-    from torchsoil.pipeline.resume import Checkpoints
-    from torchsoil.pipeline.run import process_bag
-
-    extra = ["pipeline.reregister.enabled=false"] if args.no_reregister else []
-    settings, given = _bag_settings(args, extra)
-    cfg = pipeline_settings(settings, _robot_yaml(args.robot), given)
-    out = Path(args.out)
-    key = (str(Path(args.bag).resolve()), cfg.replace(checkpoint_s=0).model_dump_json(), repr(_robot(args.robot)))
-    checkpoints = Checkpoints(out / "checkpoint", out / "tiles", cfg.checkpoint_s, key)
-    if not args.resume:
-        checkpoints.clear()
-        shutil.rmtree(out / "tiles", ignore_errors=True)
-    fresh = not out.exists()
-    try:
-        result = process_bag(args.bag, _robot(args.robot), cfg, progress=True, spill_dir=out / "tiles",
-                             checkpoints=checkpoints)
-    except Exception:          # an unusable recording: nothing left behind (an interrupt keeps the checkpoint)
-        checkpoints.clear()
-        shutil.rmtree(out / "tiles", ignore_errors=True)
-        if fresh and out.exists() and not any(out.iterdir()):
-            out.rmdir()
-        raise
-    for p in result.problems:
-        print(f"warning: {p}", file=sys.stderr)
-    if args.resume:
-        print(f"resumed from the checkpoint taken after {checkpoints.resumed} of the recording's messages"
-              if checkpoints.resumed is not None else f"note: {out} held no checkpoint of this recording and "
-              "settings to resume from: processed from the start", file=sys.stderr)
-    paths = write_outputs(result, args.out)
-    checkpoints.clear()
-    shutil.rmtree(out / "tiles", ignore_errors=True)
-    t = sum(result.timings.values())
-    print(f"processed {result.duration:.1f} s of recording in {t:.1f} s "
-          f"({t / max(result.duration, 1e-9):.2f} x real time); wrote " + ", ".join(str(p) for p in paths.values()))
+    settings, given = _bag_settings(args, ["pipeline.reregister.enabled=false"] if args.no_reregister else [])
+    print(process_bag_job(args.bag, args.out, settings, _robot(args.robot), _robot_yaml(args.robot), given,
+                          resume=args.resume))
     return 0
 
 
@@ -413,50 +376,18 @@ def cmd_diagnose(args) -> int:
         raise FileNotFoundError(f"input not found: {source}")
     summary = diagnose_input(source, args.out, settings, _robot(args.robot), tensorboard=not args.no_tensorboard,
                              overwrite=args.overwrite, robot_yaml=_robot_yaml(args.robot), threads=args.threads or 1,
-                             extrinsics=given, resume=args.resume, workers=_pass_workers(args, settings),
+                             extrinsics=given, resume=args.resume, workers=args.pass_workers,
                              engine=args.pass_engine)
     print(json.dumps({k: summary[k] for k in ("verdict", "missing_physics", "where")}, indent=1))
     return 0
 
 
-MAX_PASS_WORKERS = 4     # a diagnosis's default local pass workers at most
-
-
-def _pass_workers(args, settings) -> int:
-    """--pass-workers, or by default the local workers the cores and memory hold (at most
-    MAX_PASS_WORKERS: a diagnosis has a few tens of independent passes, each worker holds the
-    drive's maps); on Ray, as given (default 1 there: the cluster's own)."""
-    if args.pass_workers is not None:
-        return args.pass_workers
-    if args.pass_engine != "local":
-        return 1
-    from torchsoil.engines import default_workers
-
-    return min(MAX_PASS_WORKERS, default_workers(settings.fleet))
-
-
-
 def cmd_record(args) -> int:
-    if args.realistic and not args.pair_only:
-        raise ValueError("--realistic applies to --pair-only (the recorder's lidars have their own noise model)")
-    if args.pair_only:
-        import numpy as np
+    from torchsoil.jobs.record import record
 
-        from torchsoil.synth.scenario import load_scenario, make_terrain_pair
-
-        out = args.out if args.out.suffix == ".npz" else args.out.with_name(args.out.name + ".npz")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        scn = load_scenario(args.scenario)
-        np.savez_compressed(out, **make_terrain_pair(scn.realistic() if args.realistic else scn, args.seed, args.dx,
-                                                        visits=True))
-        print(f"wrote {out}")
-        return 0
-    from torchsoil.synth.record import make_recording
-
-    stats = make_recording(args.scenario, args.out, args.seed, args.dx, args.storage, not args.no_compress,
-                           args.duration, args.columns, args.organized or None, progress=True,
-                           convention=args.convention, imu=not args.no_imu)
-    print(json.dumps({k: round(v, 3) for k, v in stats.items()}))
+    print(record(args.scenario, args.out, args.seed, args.dx, pair_only=args.pair_only, realistic=args.realistic,
+                 storage=args.storage, compress=not args.no_compress, duration=args.duration, columns=args.columns,
+                 organized=args.organized or None, convention=args.convention, imu=not args.no_imu))
     return 0
 
 
@@ -468,96 +399,26 @@ def cmd_rollout(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    import importlib
-    import pkgutil
-    import platform
+    from torchsoil.bench import run_benchmarks
 
-    benchmarks = _import_benchmarks()
-    import torch
-
-    names = [m.name for m in pkgutil.iter_modules(benchmarks.__path__)]
-    names = [n for n in names if not args.only or n in args.only]
-    results: dict[str, float] = {}
-    modules: dict[str, list[str]] = {}
-    for name in names:
-        print(f"== {name}", flush=True)
-        figures = importlib.import_module(f"benchmarks.{name}").run(quick=args.quick)
-        for key, value in figures.items():
-            print(f"  {key:48s} {value:12.4g}")
-        results.update(figures)
-        modules[name] = list(figures)
-    results["torch_threads"] = torch.get_num_threads()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench.json").write_text(json.dumps(results, indent=1, sort_keys=True))
-    machine = (f"{os.cpu_count()} cores ({platform.processor() or platform.machine()}), python "
-               f"{sys.version.split()[0]}, torch {torch.__version__}")
-    meta = {"modules": modules, "machine": machine, "date": time.strftime("%Y-%m-%d"),
-            "command": "torchsoil bench" + (" --quick" if args.quick else "")
-                       + (" --only " + " ".join(args.only) if args.only else "")}
-    (out / "bench_meta.json").write_text(json.dumps(meta, indent=1))  # figure groups, for the manual
-    print(f"wrote {out / 'bench.json'} ({machine})")
+    run_benchmarks(args.out, args.only, args.quick)
     return 0
 
 
-def _import_benchmarks():
-    """The benchmarks package of the source checkout (it is not part of the installed library)."""
-    import importlib
-
-    import torchsoil
-
-    for root in (Path.cwd(), Path(torchsoil.__file__).resolve().parents[1]):
-        if (root / "benchmarks" / "__init__.py").exists():
-            if str(root) not in sys.path:
-                sys.path.insert(0, str(root))
-            return importlib.import_module("benchmarks")
-    raise FileNotFoundError("the benchmarks live in the source checkout (benchmarks/): run `torchsoil bench` "
-                            "from a clone of the repository")
-
-
 def cmd_ablation(args) -> int:
-    from torchsoil.jobs.ablation import VARIANTS, ablation_table
-    from torchsoil.jobs.estimate import estimate
+    from torchsoil.jobs.ablation import ablation
 
-    runs = {}
-    for name, overrides in VARIANTS.items():
-        settings, given = _bag_settings(args, overrides)
-        runs[name] = estimate(args.input, Path(args.out) / name, settings, robot=_robot(args.robot),
-                              tensorboard=False, robot_yaml=_robot_yaml(args.robot), threads=args.threads,
-                              overwrite=False, extrinsics=given)
-    table = ablation_table(runs)
-    (Path(args.out) / "ablation.md").write_text(table + "\n")
-    print(table)
+    print(ablation(args.input, args.out, args.config, [*args.set, *_topics(args)], _robot(args.robot),
+                   _robot_yaml(args.robot), args.threads, _extrinsics(args)))
     return 0
 
 
 def cmd_study(args) -> int:
-    from contextlib import nullcontext
+    from torchsoil.jobs.study import study
 
-    from torchsoil.diagnosis.study import run_foreign, run_study
-    from torchsoil.diagnosis.study_cases import STUDY_CASES, randomized_cases, revisit_cases
-    from torchsoil.engines import make_engine
-    from torchsoil.jobs.common import torch_threads
-
-    if args.revisits and args.randomized is None:
-        raise ValueError("--revisits selects among --randomized N drives")
-    if args.redraws < 0 or (args.redraws and args.foreign is None):
-        raise ValueError(f"--redraws {args.redraws}: a count >= 0, and only with --foreign")
-    on_engine = any(getattr(args, k) is not None for k in ("engine", "workers", "ray_address"))
-    settings = _settings(args, [f"fleet.cpus_per_task={args.threads}"] if on_engine and args.threads else [])
-    engine = make_engine(args.engine or "local", args.workers, args.ray_address, settings.fleet) if on_engine \
-        else nullcontext()
-    with torch_threads(args.threads or 1), engine as eng:
-        if args.foreign is not None:
-            print(run_foreign(args.foreign, Path(args.out or "out/diagnosis_study_foreign"), settings, engine=eng,
-                              redraws=args.redraws))
-        elif args.randomized is not None:
-            cases = randomized_cases(args.randomized, args.null, args.seed)
-            cases = revisit_cases(cases) if args.revisits else cases
-            print(run_study(cases, Path(args.out or "out/diagnosis_study_randomized"), settings, engine=eng))
-        else:
-            cases = STUDY_CASES[::3] if args.quick else STUDY_CASES
-            print(run_study(cases, Path(args.out or "out/diagnosis_study"), settings, engine=eng))
+    print(study(_settings(args), args.out, quick=args.quick, randomized=args.randomized, null=args.null,
+                seed=args.seed, revisits=args.revisits, foreign=args.foreign, redraws=args.redraws,
+                threads=args.threads, engine=args.engine, workers=args.workers, address=args.ray_address))
     return 0
 
 

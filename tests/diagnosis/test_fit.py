@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 
 from torchsoil.diagnosis.catalogue import CATALOGUE
-from torchsoil.diagnosis.fit import CandidateFit, accept, by_fold, fold_choice, folds, refine
-from torchsoil.diagnosis.locate import term_test
+from torchsoil.diagnosis.fit import CandidateFit, accept, refine
+from torchsoil.diagnosis.stats import by_fold, fold_choice, folds, term_test
 
 
 def test_refine_finds_the_vertex_of_a_parabola():
@@ -78,7 +78,8 @@ def test_shape_terms_are_tested_where_their_zones_show_a_material_residual():
 def test_fallback_levels_spend_alpha_once_and_carry_after_acceptance_or_nothing_to_test():
     from types import SimpleNamespace
 
-    from torchsoil.diagnosis.phases import accept_in_order, level_z, thresholds
+    from torchsoil.diagnosis.phases import accept_in_order
+    from torchsoil.diagnosis.stats import level_z, thresholds
 
     levels = thresholds([1e-5, 1e-3, 0.01, 0.2], 0.05, 0.6)
     assert sum(levels) == pytest.approx(0.05) and levels[0] == pytest.approx(0.03)
@@ -167,7 +168,7 @@ def test_once_a_shape_term_passes_the_other_shape_terms_are_told_apart_by_their_
 def test_level_z_by_hand():
     # two signs: Q (1 - Q) = 0.025, Q = (1 - sqrt(0.9)) / 2 = 0.025658, z = 1.9488; one sign:
     # Q = (1 - sqrt(0.8)) / 2 = 0.052786, z = 1.6184 (normal table)
-    from torchsoil.diagnosis.phases import level_z
+    from torchsoil.diagnosis.stats import level_z
 
     assert level_z(0.05, 2) == pytest.approx(1.9488, abs=2e-4)
     assert level_z(0.05, 1) == pytest.approx(1.6184, abs=2e-4)
@@ -182,7 +183,7 @@ def test_the_fold_procedure_holds_its_level_on_noise(signs, trials):
     accepted (`accept`) at `level_z`: the false alarms stay at the level; at the normal
     quantile a two-signed term's nearly double."""
     from torchsoil.diagnosis.catalogue import get
-    from torchsoil.diagnosis.phases import level_z
+    from torchsoil.diagnosis.stats import level_z
 
     rng = np.random.default_rng(7)
     lab = folds(48, 6)
@@ -235,7 +236,7 @@ def test_paired_z_by_hand():
     """base 3 mm on four windows, other 0.1, 0, 0.2, 0.1 mm lower: mean 0.1, sd
     sqrt(0.02 / 3) = 0.08165, z = 0.1 / (0.08165 / 2) = 2.449; fewer than 3 windows (or
     scores of different lengths) leave it to the means."""
-    from torchsoil.diagnosis.fit import paired_z
+    from torchsoil.diagnosis.stats import paired_z
 
     base = np.array([3.0, 3.0, 3.0, 3.0])
     assert paired_z(base, base - [0.1, 0.0, 0.2, 0.1]) == pytest.approx(2.449, abs=1e-3)

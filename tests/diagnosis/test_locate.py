@@ -6,18 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from torchsoil.diagnosis.locate import (
-    ZONES,
-    Profiles,
+from torchsoil.diagnosis.locate import ZONES, Profiles, line_zone, spectral_line, zone_of
+from torchsoil.diagnosis.stats import (
     combined_z,
     correlation,
     evidence_basis,
     gain_correlation,
     lag1,
-    line_zone,
     paired_improvement,
-    spectral_line,
-    zone_of,
 )
 
 

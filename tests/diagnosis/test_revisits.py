@@ -191,7 +191,7 @@ def test_the_gain_on_ground_driven_again_counts_windows_that_share_no_ground():
     t with 2 degrees of freedom has the tail 1/2 - t / (2 sqrt(2 + t^2))."""
     from scipy import stats
 
-    from torchsoil.diagnosis.revisits import spaced_z
+    from torchsoil.diagnosis.stats import spaced_z
 
     s = np.array([0.0, 0.4, 0.8, 1.2, 1.6, 2.0])
     gain = np.array([1.0, 2.0, 2.0, 2.0, 3.0, 5.0])        # even centres 1, 2, 3 (t 3.46); odd 2, 2, 5 (t 3.0)

@@ -242,8 +242,7 @@ def test_a_record_re_scores_a_term_that_left_ground_alone_as_the_diagnosis_did()
     blocks): the record keeps enough digits for the offline test to keep them too."""
     from types import SimpleNamespace
 
-    from torchsoil.diagnosis.fit import by_fold, fold_choice, folds
-    from torchsoil.diagnosis.locate import combined_z, gain_correlation, paired_improvement
+    from torchsoil.diagnosis.stats import by_fold, combined_z, fold_choice, folds, gain_correlation, paired_improvement
     from torchsoil.diagnosis.study import held_out_series, retest
 
     rng = np.random.default_rng(3)

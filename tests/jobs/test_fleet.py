@@ -12,11 +12,12 @@ import pytest
 
 from tests.jobs.fleet_tasks import kill_first_time, value_or_kill, where
 from tests.synthetic_pair import sim_pair
+from torchsoil import engines
 from torchsoil.cli import main
 from torchsoil.engines import LocalEngine, make_engine
 from torchsoil.jobs import fleet
 from torchsoil.jobs.estimate import estimate
-from torchsoil.jobs.fleet import FleetLog, Recording, Task, complete, recordings, run_fleet
+from torchsoil.jobs.fleet import FleetInput, FleetLog, Task, complete, recordings, run_fleet
 from torchsoil.settings import load_settings
 
 FAST = ["estimator.max_iter=8"]                  # short relaxations: the outputs are compared, not judged
@@ -82,7 +83,7 @@ def test_inputs_from_paths_globs_and_a_manifest(tmp_path):
                         "robot_a/may01.npz,first,paper_platform,soft.yaml,estimator.stride=0.5; sim.tau=0.02\n"
                         "robot_b/*.npz,,robots/b.yaml,,\n")
     first, second = fleet.read_manifest(manifest)
-    assert first == Recording(str(tmp_path / "robot_a/may01.npz"), "first", "paper_platform",
+    assert first == FleetInput(str(tmp_path / "robot_a/may01.npz"), "first", "paper_platform",
                               (str(tmp_path / "soft.yaml"),), ("estimator.stride=0.5", "sim.tau=0.02"))
     assert second.name == "may01" and second.robot == str(tmp_path / "robots/b.yaml")
     assert recordings([manifest]) == recordings(manifest=manifest)
@@ -149,7 +150,7 @@ def test_a_failed_attempt_is_replaced_but_a_finished_run_is_not(drives, tmp_path
     shutil.copytree(single["north"], out / "north")
     log = FleetLog(out / "fleet.csv")
     log.start([{"name": "north", "status": "error", "error": "OutputMismatch: ..."}], running=[])
-    rec = [Recording(str(root / "north.npz"), "north")]
+    rec = [FleetInput(str(root / "north.npz"), "north")]
 
     def planned(overrides):
         return plan("estimate", rec, out, log, [], overrides, None, None, False, False)
@@ -219,7 +220,7 @@ def test_diagnose_many_on_the_local_engine(tmp_path):
     base = []
     one = diagnose_input(tmp_path / "long.npz", tmp_path / "single", load_settings(overrides=settings),
                          progress=False, tensorboard=False, threads=1, rows=base)
-    recs = [Recording(str(tmp_path / "long.npz"), "long"), Recording(str(tmp_path / "gone.npz"), "gone")]
+    recs = [FleetInput(str(tmp_path / "long.npz"), "long"), FleetInput(str(tmp_path / "gone.npz"), "gone")]
     got = {r["name"]: r for r in run_fleet("diagnose", recs, tmp_path / "out", overrides=settings,
                                            tensorboard=False, workers=1, echo=lambda s: None)}
     assert json.loads((tmp_path / "out" / "long" / "diagnosis.json").read_text()) == json.loads(json.dumps(one))
@@ -286,7 +287,7 @@ def test_ray_engine_without_ray_says_how_to_get_it(monkeypatch):
 
     monkeypatch.setitem(sys.modules, "ray", None)
     with pytest.raises(Exception, match=r"torchsoil\[fleet\]"):
-        fleet.import_ray()
+        engines.import_ray()
 
 
 # ---------------------------------------------------------------------------- the study

@@ -14,10 +14,10 @@ from pathlib import Path
 
 
 def drives(root: Path, n: int, length: float) -> list:
-    """n terrain pairs of straight drives `length` m long (seeds 0..n-1), as fleet Recordings."""
+    """n terrain pairs of straight drives `length` m long (seeds 0..n-1), as fleet inputs (FleetInput)."""
     import numpy as np
 
-    from torchsoil.jobs.fleet import Recording
+    from torchsoil.jobs.fleet import FleetInput
     from torchsoil.synth.scenario import make_terrain_pair
 
     doc = {"name": "bench", "trajectory": {"segments": [{"straight": length, "speed": 1.0}]},
@@ -26,7 +26,7 @@ def drives(root: Path, n: int, length: float) -> list:
     for k in range(n):
         path = root / f"drive{k}.npz"
         np.savez_compressed(path, **make_terrain_pair(doc, seed=k))
-        recs.append(Recording(str(path), path.stem))
+        recs.append(FleetInput(str(path), path.stem))
     return recs
 
 

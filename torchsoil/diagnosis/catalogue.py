@@ -110,7 +110,7 @@ def signs(ext: Extension) -> int:
     """How many signs the term's coefficient may take: 2 where its bounds hold both (speed,
     footprint width: either way is physical), else 1. A two-signed term's sign is chosen per
     fold on the other fold's windows, which doubles its chance of a false alarm at a given z
-    (`run.level_z`)."""
+    (`stats.level_z`)."""
     lo, hi = ext.bounds
     return 2 if lo < 0 < hi else 1
 

@@ -22,7 +22,8 @@ from scipy import stats
 from torchsoil.diagnosis.catalogue import Extension, ExtensionModel, PassCounts, effect_size
 from torchsoil.diagnosis.checkpoint import PassCache, kept, portable
 from torchsoil.diagnosis.covariates import DriveSignals
-from torchsoil.diagnosis.locate import Profiles, term_test
+from torchsoil.diagnosis.locate import Profiles
+from torchsoil.diagnosis.stats import by_fold, finite_mean, fold_choice, folds, paired_z, term_test
 from torchsoil.estimate.estimator import Estimator, Stitcher
 from torchsoil.estimate.windows import WindowStore
 from torchsoil.memory import release
@@ -199,22 +200,22 @@ class Partial:
             self.cache.drop(self.label, self.what)
 
 
-Section = tuple[float, float]
+TyreSection = tuple[float, float]   # a tyre section: flat fraction f, taper exponent e (sim.sinkage.taper)
 
 
-def section_of(pair) -> Section:
+def section_of(pair) -> TyreSection:
     """The pair's tyre section (flat fraction f, taper exponent e) (sim.sinkage.taper)."""
     return float(pair.wheel_flat_fraction), float(pair.wheel_section_exponent)
 
 
-def with_section(pair, section: Section):
+def with_section(pair, section: TyreSection):
     """A copy of the pair whose robot has the tyre section (f, e)."""
     return dataclasses.replace(pair, wheel_flat_fraction=section[0], wheel_section_exponent=section[1])
 
 
 def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int = 3, progress=None,
                 model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None,
-                z: float = 1.96) -> tuple[Section, dict[Section, float], dict, dict[Section, np.ndarray]]:
+                z: float = 1.96) -> tuple[TyreSection, dict[TyreSection, float], dict, dict[TyreSection, np.ndarray]]:
     """The tyre section as a nuisance: the footprint taper (flat fraction f, exponent e;
     sim.sinkage.taper) that fits the drive best.
 
@@ -226,7 +227,7 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     per candidate (f, e), the robot's own and `sections`; two numbers for the whole drive
     against hundreds of cells per window, so the windows' own residual (m) decides. The
     robot's own section stays unless another fits those windows better at a paired z of
-    `z` (`paired_z`): on noisy maps sections that fit alike are told apart by the noise
+    `z` (`stats.paired_z`): on noisy maps sections that fit alike are told apart by the noise
     alone, and a section taken on noise moves d (a crowned tyre for the flat one of a
     recording made elsewhere fitted its first-pass d 4 mm deep). model: an
     extension with a fixed coefficient to fit the section under (a wider footprint and a
@@ -238,7 +239,7 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     windows' residuals (W,), m})."""
     own = section_of(pair)
     candidates = section_candidates(pair, sections)
-    costs: dict[Section, float] = {}
+    costs: dict[TyreSection, float] = {}
     shared = dict(shared or {})
     shared.setdefault("store", WindowStore())
     windows = {}
@@ -255,12 +256,12 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     return best, costs, shared, windows
 
 
-def section_candidates(pair, sections) -> list[Section]:
+def section_candidates(pair, sections) -> list[TyreSection]:
     """The sections `fit_section` tries: the pair's own first, then `sections`, each once."""
     return list(dict.fromkeys([section_of(pair), *((float(f), float(e)) for f, e in sections)]))
 
 
-def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: Section, every: int = 3,
+def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: TyreSection, every: int = 3,
                  model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
                  ) -> tuple[float, dict, np.ndarray]:
     """One tyre section's score for `fit_section`: the mean window residual [m] of every
@@ -313,25 +314,6 @@ def own_fit_screen(pair, est: EstimatorConfig, sim: SimConfig, exts: list[Extens
     return out
 
 
-def paired_z(base: np.ndarray, other: np.ndarray) -> float:
-    """How much better `other` fits than `base` (W,) window by window [m]: the mean of base -
-    other over the windows both fitted, over its standard error (windows that do not overlap
-    taken as independent). With fewer than 3 such windows (or a score kept by an older
-    version) the means decide: +-inf."""
-    base, other = np.asarray(base, np.float64), np.asarray(other, np.float64)
-    both = np.isfinite(base) & np.isfinite(other) if base.shape == other.shape else np.zeros(0, bool)
-    diff = (base - other)[both] if both.any() else np.zeros(0)
-    sd = float(np.std(diff, ddof=1)) if len(diff) >= 3 else 0.0
-    if sd == 0.0:
-        return math.inf if np.nanmean(other) < np.nanmean(base) else -math.inf
-    return float(diff.mean() / (sd / math.sqrt(len(diff))))
-
-
-def folds(n: int, block: int) -> np.ndarray:
-    """(n,) fold label 0/1 of each window: alternating blocks of `block` windows."""
-    return (np.arange(n) // max(1, block)) % 2
-
-
 @dataclass
 class CandidateFit:
     """Result of fitting one extension.
@@ -345,7 +327,7 @@ class CandidateFit:
     the improvement of the windows' own residuals (by fold) over the base model's: a
     term that predicts the neighbouring ground better while it fits its own windows worse is
     standing in for something else that changes along the drive, such as the soil.
-    z: the two tests' evidence together (`locate.combined_z`), the statistic it is accepted
+    z: the two tests' evidence together (`stats.combined_z`), the statistic it is accepted
     on. effects: the term's effect size at each coefficient run (`catalogue.effect_size`, a
     fraction); effect: at the fold coefficients, the smaller of the two."""
 
@@ -360,7 +342,7 @@ class CandidateFit:
     passes: dict[float, Pass]
     held_out: np.ndarray | None = None
     accepted: bool = False
-    sections: dict[float, Section] | None = None
+    sections: dict[float, TyreSection] | None = None
     own_z: float = 0.0
     held_z: float = 0.0
     effects: dict[float, float] | None = None
@@ -370,11 +352,6 @@ class CandidateFit:
         if self.effects is None:
             return math.inf
         return min(self.effects.get(float(k), math.inf) for k in self.k_fold)
-
-
-def _mean(x: np.ndarray, sel: np.ndarray) -> float:
-    v = x[sel & np.isfinite(x)]
-    return float(v.mean()) if len(v) else math.inf
 
 
 def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> float | None:
@@ -394,7 +371,7 @@ def refine(ks: list[float], costs: list[float], bounds: tuple[float, float]) -> 
 
 def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, drive: DriveSignals, base: Pass,
                   block_m: float = 2.4, refine_steps: int = 1, theta0=None, progress=None,
-                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
+                  offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[TyreSection, ...] = (),
                   cache: PassCache | None = None) -> CandidateFit:
     """Fit one extension's coefficient: passes at its trial coefficients (`trial_sides`:
     outward from 0 while the cost falls; where it still falls at a side's last trial, on at
@@ -411,7 +388,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     search costs as much as the pass itself; a step beyond them is a trial of its own. cache:
     where finished passes are kept and read back (checkpoint.PassCache)."""
     passes: dict[float, Pass] = {0.0: base}
-    sec: dict[float, Section] = {0.0: section_of(pair)}
+    sec: dict[float, TyreSection] = {0.0: section_of(pair)}
     counts = PassCounts()
 
     def run(k: float, search: bool = True) -> None:
@@ -427,11 +404,11 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
 
     every = np.ones(len(base.prediction), bool)
     for side in trial_sides(ext):        # outward from 0 on each side, while the cost falls
-        last, queue = _mean(base.held_out, every), list(side)
+        last, queue = finite_mean(base.held_out, every), list(side)
         while queue:
             k = queue.pop(0)
             run(k)
-            cost = _mean(passes[k].held_out, every)
+            cost = finite_mean(passes[k].held_out, every)
             if not cost < last:
                 break
             last = cost
@@ -439,7 +416,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
                 queue.append(on)
     for _ in range(refine_steps):
         ks = sorted(passes)
-        new = refine(ks, [_mean(passes[k].held_out, every) for k in ks], ext.bounds)
+        new = refine(ks, [finite_mean(passes[k].held_out, every) for k in ks], ext.bounds)
         if new is not None:               # between two tried: under the section of the nearer
             k = float(np.clip(new, *ext.bounds))
             run(k, search=not min(passes) < k < max(passes))
@@ -448,7 +425,7 @@ def fit_extension(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, dr
     k_fold = fold_choice({k: passes[k].held_out for k in ks}, lab)
     pred, held, res = (by_fold({k: getattr(passes[k], name) for k in ks}, k_fold, lab)
                        for name in ("prediction", "held_out", "residual"))
-    k_all = min(ks, key=lambda k: (_mean(passes[k].held_out, every), abs(k)))
+    k_all = min(ks, key=lambda k: (finite_mean(passes[k].held_out, every), abs(k)))
     shown = min(passes, key=lambda q: abs(q - k_all))     # the report's cross-sections: this pass's profiles
     for k in ks:                                          # the others' would grow with the drive, unused
         if k != 0.0 and k != shown:
@@ -488,9 +465,9 @@ def most_trials(ext: Extension) -> int:
 
 
 def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k: float, drive: DriveSignals,
-                   base: Pass, theta0=None, offsets: tuple[int, ...] = (2, 4, 6), sections: tuple[Section, ...] = (),
-                   cache: PassCache | None = None, counts: PassCounts | None = None, section: Section | None = None
-                   ) -> tuple[Pass, Section]:
+                   base: Pass, theta0=None, offsets: tuple[int, ...] = (2, 4, 6),
+                   sections: tuple[TyreSection, ...] = (), cache: PassCache | None = None,
+                   counts: PassCounts | None = None, section: TyreSection | None = None) -> tuple[Pass, TyreSection]:
     """One pass of `fit_extension`: the extension at coefficient k (within its bounds), under
     `section` where it is given, else the pair's tyre section or, for a footprint or wall term
     given `sections`, the one of them that fits best with it (`fit_section`); read back from or
@@ -505,22 +482,6 @@ def candidate_pass(pair, est: EstimatorConfig, sim: SimConfig, ext: Extension, k
     done = run_pass(with_section(pair, sec), est, sim, model, profiles=True, theta0=theta0, offsets=offsets,
                     cache=cache, **shared)
     return done, sec
-
-
-def fold_choice(held: dict[float, np.ndarray], lab: np.ndarray) -> tuple[float, float]:
-    """The coefficient each fold is scored with: the one whose (W,) held-out cost [m] is
-    lowest on the other fold's windows (lab: (W,) fold labels, `folds`); the smaller |k| on a
-    tie, so the base model (0) wins one."""
-    f0, f1 = (min(held, key=lambda k: (_mean(held[k], lab != f), abs(k))) for f in (0, 1))
-    return f0, f1
-
-
-def by_fold(series: dict[float, np.ndarray], k_fold: tuple[float, float], lab: np.ndarray) -> np.ndarray:
-    """(W,) each window's value from the series of the coefficient its fold was scored with."""
-    out = np.full(len(lab), np.nan)
-    for f, k in enumerate(k_fold):
-        out[lab == f] = np.asarray(series[k])[lab == f]
-    return out
 
 
 def accept(fit: CandidateFit, z_crit: float, material: float = 0.0, own_z: float = -math.inf,

@@ -1,6 +1,6 @@
 """Where simulation and recording disagree, and what the disagreement follows.
 
-Three kinds of evidence, each with honest statistics:
+Three kinds of evidence, each with honest statistics (those of arrays alone in `stats`):
 
 * cross-track residual profiles: simulated minus measured H_b binned by the signed lateral
   offset from the nearest wheel's centre line (outward positive, one cell per bin), averaged
@@ -9,7 +9,8 @@ Three kinds of evidence, each with honest statistics:
 * along-track rut-floor residual: one value per cell of arc length; a periodic pattern shows
   as a line in its periodogram, tested against the local spectral background.
 * per-window series (fitted parameters, costs) against covariates from the poses: Pearson
-  correlation with an effective sample size corrected for the autocorrelation of both series.
+  correlation with an effective sample size corrected for the autocorrelation of both series
+  (`stats.correlation`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import stats
+
+from torchsoil.diagnosis.stats import effective_n
 
 ZONES = ("rut_floor", "rut_wall", "berm", "outside")
 
@@ -32,200 +35,7 @@ def zone_of(offset: np.ndarray, radius: float, dx: float) -> np.ndarray:
     return np.select([a < radius / 2, a <= radius + dx / 2, a <= radius + 3.5 * dx], [0, 1, 2], 3)
 
 
-# ------------------------------------------------------------------ statistics
-SAME = 1e-9  # [m] two costs this close are the same: the term changed nothing there
-
-
-def lag1(x: np.ndarray) -> float:
-    """Lag-1 autocorrelation of a series (0 for fewer than 4 values or no variance)."""
-    x = np.asarray(x, np.float64)
-    if len(x) < 4:
-        return 0.0
-    x = x - x.mean()
-    den = float((x * x).sum())
-    return float((x[1:] * x[:-1]).sum() / den) if den > 0 else 0.0
-
-
-def t_z(t: float, dof: float) -> float:
-    """The normal z of the same one-sided p as Student's t with dof degrees of freedom."""
-    p = float(stats.t.sf(t, dof))
-    return float(stats.norm.isf(min(max(p, 1e-300), 1 - 1e-16)))
-
-
-def effective_n(n: int, *series: np.ndarray, floor: float = 3.0) -> float:
-    """Effective sample size of n autocorrelated values: n (1 - r) / (1 + r) with r the product
-    of the series' lag-1 autocorrelations (one series: its own), floored at `floor`."""
-    r = float(np.prod([max(lag1(s), 0.0) for s in series])) if len(series) > 1 else max(lag1(series[0]), 0.0)
-    r = min(r, 0.95)
-    return float(max(floor, n * (1 - r) / (1 + r)))
-
-
-@dataclass(frozen=True)
-class Correlation:
-    """Pearson r of y on x over n values, its effective sample size and two-sided p-value."""
-
-    r: float
-    n: int
-    n_eff: float
-    p: float
-
-
-def correlation(x, y) -> Correlation:
-    """Correlation of two per-window series with the effective-sample-size correction.
-
-    NaN entries (in either) are dropped. p = 1 when x or y does not vary."""
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    if x.shape != y.shape:
-        raise ValueError(f"correlation: series of different shapes {x.shape} and {y.shape}")
-    ok = np.isfinite(x) & np.isfinite(y)
-    x, y = x[ok], y[ok]
-    n = len(x)
-    if n < 4 or np.std(x) < 1e-12 or np.std(y) < 1e-12:
-        return Correlation(0.0, n, float(n), 1.0)
-    r = float(np.corrcoef(x, y)[0, 1])
-    ne = effective_n(n, x, y)
-    dof = max(ne - 2.0, 1.0)
-    t = r * math.sqrt(dof / max(1e-12, 1 - r * r))
-    return Correlation(r, n, ne, float(2 * stats.t.sf(abs(t), dof)))
-
-
-def _about_line(means: np.ndarray, place: np.ndarray) -> np.ndarray:
-    """Block means (n,) about the line through them along the drive (place: their block
-    numbers), or about their mean with fewer than 5 blocks."""
-    m = means - means.mean()
-    if len(m) < 5:
-        return m
-    x = place - place.mean()
-    return m - x * float((x * m).sum() / (x * x).sum())
-
-
-def paired_improvement(base, ext, block: int = 4, same: float = SAME) -> tuple[float, float, float]:
-    """Per-window improvement base - ext [m] of two cost series on the same windows.
-
-    Neighbouring windows share ground (and held-out costs reach several windows), so the
-    differences are averaged over consecutive blocks of `block` windows. A real term's gain
-    follows the size of its effect, which changes along the drive with the soil and the
-    covariate (a footprint term gains most where the ruts are deepest), so the block means are
-    regressed on their place along the drive: the mean gain is tested against their scatter
-    about that line, with the effective-sample-size correction for the block means' own lag-1
-    correlation (a trend only raises it: the correction errs on the cautious side), as a t
-    statistic with n_eff - 2 degrees of freedom, returned as the normal z of the same one-sided
-    p. Without an effect the line costs one degree of freedom and the test keeps its level;
-    with one, a steady trend in the gain is no longer counted as its noise. With
-    fewer than 5 blocks the spread about the mean is used instead (n_eff - 1 degrees of
-    freedom). Windows where either cost is NaN are dropped, and so are blocks where the two
-    series agree to `same` [m] on every window: a term that acts only on some ground (a pass
-    count on revisited ground) leaves the others' costs exactly as they were, and such blocks
-    say nothing about the noise of the difference; counted as samples of it, they would cap z
-    near the square root of the number of blocks the term touches, however large and steady
-    its gain there. Returns (mean over the blocks kept, se, z)."""
-    d, blocks, kept, _ = _paired_blocks(base, ext, block, same)
-    blocks, place = blocks[kept], np.flatnonzero(kept).astype(np.float64)
-    nb = len(blocks)
-    if nb < 3:
-        return (float(d.mean()) if len(d) else 0.0), math.inf, 0.0
-    means = blocks.mean(1)
-    m = float(means.mean())
-    scatter, fitted = _about_line(means, place), 2 if nb >= 5 else 1
-    n_eff = min(float(nb), max(effective_n(nb, means), fitted + 2.0))
-    se = float(math.sqrt((scatter ** 2).sum() / (nb - fitted) / n_eff))
-    if se <= 0:
-        return m, 0.0, 0.0 if m == 0 else math.copysign(math.inf, m)
-    return m, se, t_z(m / se, max(n_eff - fitted, 1.0))
-
-
-def _paired_blocks(base, ext, block: int, same: float, s=None):
-    """The differences base - ext over the windows where both are finite (D,); their blocks of
-    `block` consecutive ones (nb, block) and which blocks to keep (nb,) bool (those where the
-    two series differ by more than `same` somewhere); and s (W,) of the same windows in the
-    same blocks (nb, block), or None."""
-    b, e = np.asarray(base, np.float64), np.asarray(ext, np.float64)
-    if b.shape != e.shape:
-        raise ValueError(f"paired costs must cover the same windows, got {b.shape} and {e.shape}")
-    ok = np.isfinite(b) & np.isfinite(e)
-    d = b[ok] - e[ok]
-    nb = len(d) // max(1, block)
-    blocks = d[: nb * block].reshape(nb, block)
-    at = None if s is None else np.asarray(s, np.float64)[ok][: nb * block].reshape(nb, block)
-    return d, blocks, np.abs(blocks).max(1) > same, at
-
-
-def evidence_basis(base, ext, s, block: int = 4, same: float = SAME, share: float = 0.5) -> dict:
-    """What a paired gain (`paired_improvement` of base - ext, (W,) costs on the windows centred
-    at arc lengths s (W,) [m]) rests on: the windows and blocks it counts (blocks where the two
-    agree on every window left out, as there), their effective number (`effective_n` of the
-    block means, not floored: the test floors it, a reader should not), and the fewest blocks
-    whose gains hold `share` of the summed positive gain, as spans of arc length [m] (touching
-    blocks merged). Returns {windows, blocks, n_eff, carrier_blocks, carriers: [[s0, s1], ...]}."""
-    _, blocks, kept, spans = _paired_blocks(base, ext, block, same, s)
-    means, spans = blocks[kept].mean(1), spans[kept]
-    out = {"windows": int(kept.sum()) * block, "blocks": int(kept.sum()),
-           "n_eff": effective_n(len(means), means, floor=0.0) if len(means) else 0.0,
-           "carrier_blocks": 0, "carriers": []}
-    gain = np.maximum(means, 0.0)
-    if gain.sum() <= 0:
-        return out
-    order = np.argsort(-gain)
-    n = int(np.searchsorted(np.cumsum(gain[order]), share * gain.sum()) + 1)
-    carriers: list[list[float]] = []
-    for i in sorted(order[:n]):
-        lo, hi = float(spans[i].min()), float(spans[i].max())
-        if carriers and lo - carriers[-1][1] <= 1.5 * (hi - lo) / max(block - 1, 1):
-            carriers[-1][1] = hi
-        else:
-            carriers.append([lo, hi])
-    return {**out, "carrier_blocks": n, "carriers": carriers}
-
-
-def gain_correlation(base_a, ext_a, base_b, ext_b, block: int = 4, same: float = SAME) -> float:
-    """Correlation, clipped to [0, 1], of two paired gains (base - ext, each on the same (W,)
-    windows) along the drive, as `paired_improvement` sees them: the block means, on the
-    windows where all four costs are measured, about a line through them (about their mean
-    with fewer than 5 blocks), over the blocks where either term changed a cost by more than
-    `same`. 1 (nothing gained by combining) with fewer than 3 such blocks or no scatter."""
-    a = np.asarray(base_a, np.float64) - np.asarray(ext_a, np.float64)
-    b = np.asarray(base_b, np.float64) - np.asarray(ext_b, np.float64)
-    ok = np.isfinite(a) & np.isfinite(b)
-    a, b = a[ok], b[ok]
-    nb = len(a) // max(1, block)
-    ba, bb = a[: nb * block].reshape(nb, block), b[: nb * block].reshape(nb, block)
-    keep = (np.abs(ba).max(1, initial=0.0) > same) | (np.abs(bb).max(1, initial=0.0) > same)
-    if keep.sum() < 3:
-        return 1.0
-    place = np.flatnonzero(keep).astype(np.float64)
-    sa, sb = _about_line(ba[keep].mean(1), place), _about_line(bb[keep].mean(1), place)
-    den = math.sqrt(float((sa * sa).sum() * (sb * sb).sum()))
-    return float(np.clip((sa * sb).sum() / den, 0.0, 1.0)) if den > 0 else 1.0
-
-
-def combined_z(z_held: float, z_own: float, rho: float) -> float:
-    """Stouffer's z of two one-sided paired tests of one term on the same windows, whose
-    statistics correlate by rho: (z_held + z_own) / sqrt(2 + 2 rho). The held-out test
-    scores each window's fit on its neighbours' ground (where the term's covariate changes
-    between windows), the own-fit test the window on its own ground (where it changes within
-    it): a missing term gains in both, while a term standing in for a misfit of the base
-    model gains on one at the other's expense. rho is clipped to [0, 1] (a negative estimate
-    from a few blocks is not trusted); z_own not finite (not measured): z_held alone."""
-    if not math.isfinite(z_own) or not math.isfinite(z_held):
-        return z_held
-    return (z_held + z_own) / math.sqrt(2.0 + 2.0 * min(max(rho, 0.0), 1.0))
-
-
-def term_test(base_held, ext_held, base_res=None, ext_res=None, same: float = SAME
-              ) -> tuple[float, float, float, float, float]:
-    """One term's paired tests against the base model, on (W,) per-window costs: held-out
-    (each window's fit on its neighbours' ground) and, when given, the windows' own residuals,
-    combined (`combined_z`, with their `gain_correlation`). same: `paired_improvement`'s, in
-    the costs' unit. Returns (mean held-out gain, its se, held-out z, own-fit z (inf without
-    residuals), combined z (the held-out z without residuals))."""
-    gain, se, held_z = paired_improvement(base_held, ext_held, same=same)
-    if base_res is None:
-        return gain, se, held_z, math.inf, held_z
-    own_z = paired_improvement(base_res, ext_res, same=same)[2]
-    rho = gain_correlation(base_held, ext_held, base_res, ext_res, same=same)
-    return gain, se, held_z, own_z, combined_z(held_z, own_z, rho)
-
-
+# ------------------------------------------------------------------ spectral lines
 def spectral_line(series: np.ndarray, dx: float, half_width: int = 12, wavelengths=(None, 2.0)) -> dict:
     """Strongest line in the periodogram of a series spaced dx [m] apart (NaN gaps filled by
     linear interpolation, linear trend removed), against the local background (mean of the

@@ -1,5 +1,12 @@
 """The diagnosis of one drive: locate the mismatch, rank and fit catalogue extensions,
-accept one only on held-out evidence, and give the verdict (docs/formats.md section 4)."""
+accept one only on held-out evidence, and give the verdict (docs/formats.md section 4).
+
+`diagnose` runs the phases in order: the tyre section and dig order as nuisances
+(`fit_nuisance_model`), the base model's pass (`base_pass`), where it misses
+(`locate_mismatch`), the catalogue's candidates ranked and fitted (`fit_candidates`), hardening
+on the ground driven again (`_revisit`), which candidates pass (`choose_terms`), the location
+tests and the verdict (`location_verdict`), the named cause and its costs (`name_cause`), and the
+evidence, summary and explanation (`explain_diagnosis`)."""
 
 from __future__ import annotations
 
@@ -20,7 +27,6 @@ from torchsoil.diagnosis.fit import (
     fit_section,
     most_trials,
     own_fit_screen,
-    paired_z,
     run_pass,
     section_candidates,
     section_cost,
@@ -29,16 +35,19 @@ from torchsoil.diagnosis.fit import (
     trial_sides,
     with_section,
 )
-from torchsoil.diagnosis.locate import (
-    ZONES,
+from torchsoil.diagnosis.locate import ZONES, line_zone, spectral_line, zone_segment
+from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
+from torchsoil.diagnosis.stats import (
     correlation,
     evidence_basis,
-    line_zone,
+    gain_material,
+    level_z,
+    outliers,
     paired_improvement,
-    spectral_line,
-    zone_segment,
+    paired_z,
+    thresholds,
+    z_two_sided,
 )
-from torchsoil.diagnosis.revisits import hardening_across_visits, per_pass_fit, run_visits
 from torchsoil.estimate.windows import path_arc
 from torchsoil.settings import DiagnosisConfig, EstimatorConfig, SimConfig
 
@@ -60,53 +69,9 @@ class Diagnosis:
     revisits: dict | None = None
 
 
-def _z_two_sided(alpha: float) -> float:
-    return float(stats.norm.isf(alpha / 2))
-
-
 LOCATED_ZONES = ("rut_floor", "rut_wall", "outside")   # berm heights follow chi: not a location test
 N_LOCATE_TESTS = len(LOCATED_ZONES) + 2                 # + left/right asymmetry + spectral line
 SHAPE_ZONES = ("rut_floor", "rut_wall", "berm")          # where a shape term (walls, footprint) may show
-
-
-def thresholds(p: list[float], alpha: float, lead_share: float) -> list[float]:
-    """Base one-sided levels (alphas) of candidates tested in order of their location
-    evidence p (ascending) by the fallback procedure (Wiens 2003): the leading candidates
-    (all tied at the smallest p) share alpha * lead_share, the others share the rest. They
-    sum to alpha; the level of an accepted candidate carries over to the next (see
-    `accept_in_order`), so the family-wise error stays at alpha."""
-    n = len(p)
-    if n == 0:
-        return []
-    lead = [abs(q - p[0]) <= 1e-12 + 1e-9 * abs(p[0]) for q in p]
-    n_lead = sum(lead)
-    if n_lead == n:
-        return [alpha / n] * n
-    return [alpha * lead_share / n_lead if is_lead else alpha * (1 - lead_share) / (n - n_lead) for is_lead in lead]
-
-
-def gain_material(share: float, base_held_out) -> float:
-    """The smallest mean held-out improvement an accepted term must bring: `share`
-    (diagnosis.gain_materiality) of the base model's mean (W,) held-out cost, in its unit."""
-    return share * float(np.nanmean(np.asarray(base_held_out, np.float64)))
-
-
-def level_z(alpha: float, signs: int = 1) -> float:
-    """The combined z a term must exceed to be accepted at one-sided level alpha, for a
-    coefficient of `signs` possible signs (catalogue.signs).
-
-    Each fold is scored at the coefficient chosen on the other fold's windows, and a term is
-    only accepted when both folds chose the same sign. With no effect, a fold's statistic X_f
-    is centred normal and the other fold picks the sign that helped it, so the combined z is
-    (|X_0| + |X_1|) / sqrt(2) when the folds agree: a two-signed term's folds agree half the
-    time, a one-signed term's (k above 0 on both) a quarter. Since |X_0| + |X_1| <= t exactly
-    when |X_0 + X_1| and |X_0 - X_1| (independent, each sqrt(2) times a standard normal) are at
-    most t, P(z > c) = signs Q(c) (1 - Q(c)) with Q the normal tail: 0.095 at c 1.645 for a
-    two-signed term. The level solves signs Q (1 - Q) = alpha (z 1.95 for alpha 0.05 with two
-    signs, 1.62 with one). The folds' statistics correlate less than fully (held-out and
-    own-fit gains on other windows), which only makes this bound conservative."""
-    q = 0.5 * (1.0 - math.sqrt(max(0.0, 1.0 - 4.0 * alpha / signs)))
-    return float(stats.norm.isf(q))
 
 
 def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead_share: float,
@@ -116,7 +81,7 @@ def accept_in_order(fits: list[CandidateFit], p: list[float], alpha: float, lead
     procedure, each also needing a mean held-out improvement of `material` [m], an effect
     size of `effect` (CandidateFit.effect) and its
     windows' own fit no worse than `own_z` (`fit.accept`); returns the z level each was
-    tested at (`level_z`, for the number of signs each coefficient may take: `signs`, default
+    tested at (`stats.level_z`, for the number of signs each coefficient may take: `signs`, default
     1 each). A candidate whose coefficient is 0 on both folds is the base model on every
     window (each fold's coefficient chosen on the other fold's windows found nothing better):
     it has no test to spend its level on, and passes it on as an accepted one does."""
@@ -193,21 +158,6 @@ def _spans(flags: np.ndarray, s0: np.ndarray, s1: np.ndarray) -> list[list[float
     return [[round(a, 2), round(b, 2)] for a, b in out]
 
 
-def _outliers(x: np.ndarray, n_sd: float = 2.0) -> np.ndarray:
-    """Entries of a per-window gain series (base minus extended cost) above n_sd noise
-    standard deviations; the noise is measured on the losses (gain < 0), which a helpful
-    term only gets by chance, so it is symmetric about 0 there."""
-    ok = np.isfinite(x)
-    neg = x[ok & (x < 0)]
-    if len(neg) >= 3:
-        sd = float(np.sqrt(np.mean(neg ** 2)))
-    elif ok.sum() >= 4:
-        sd = 1.4826 * float(np.median(np.abs(x[ok] - np.median(x[ok]))))
-    else:
-        return np.zeros(len(x), bool)
-    return ok & (np.nan_to_num(x) > n_sd * sd) & (sd > 0)
-
-
 def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.ndarray], zones: dict,
                  n_tracks: int, cfg: DiagnosisConfig, held_out: np.ndarray, ahead: int,
                  z_locate: float = 3.0, material: float = 0.0) -> dict:
@@ -252,7 +202,7 @@ def evidence_for(ext: catalogue.Extension, rows: list[dict], cov: dict[str, np.n
 
 def plainest(fits: dict, best: tuple, declared, z: float = 1.96) -> str:
     """The dig order to keep: `best` (order, section)'s, unless the robot's own section under
-    another order fits the windows as well (`fit.paired_z` of best over it below z): then
+    another order fits the windows as well (`stats.paired_z` of best over it below z): then
     that order, the robot's section kept. Noise tells apart pairs that fit alike, and a
     section taken to stand in for the other order moves d (a crowned tyre digging all at once
     for a flat one digging axle by axle, on a recording made elsewhere). fits: {(order,
@@ -377,21 +327,68 @@ def _screen_shapes(ev: dict, pair, cfg: DiagnosisConfig, est: EstimatorConfig, s
                  "statistic": f"{ev[i]['statistic']}; {scr['statistic']}"}
 
 
-def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
-             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None, pool=None) -> Diagnosis:
-    """Diagnose one terrain pair (torchsoil.io.terrain_pair.TerrainPair) with the diagnosis,
-    estimator and simulator settings (their sections; defaults when None). progress:
-    optional tqdm-like bar (update(n)). cache: where the finished passes are kept
-    (checkpoint.PassCache): a diagnosis run again with the same cache reads them back, so an
-    interrupted one resumes where it stopped. pool: a parallel.PassPool (`parallel.pass_pool`,
-    with the same cache) that runs the independent passes (sections, dig orders, candidates)
-    as parallel tasks first; the results are the same."""
-    cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool)
-    robot = pair.robot
-    drive = DriveSignals.from_poses(pair.poses, robot)
-    window, stride = est.window, est.stride
+@dataclass
+class Located:
+    """What the base pass shows of the mismatch before any term is fitted (`locate_mismatch`):
+    s (W,) the window centres [m]; cov {signal: (W,)} the windows' covariates
+    (covariates.window_signals); zones and asym the cross-track zone statistics and the rut
+    floor's left/right asymmetry (locate.Profiles); arcs per side (left, right) ((N,) base_link
+    arc, (N,) that side's track arc) [m]; fs (S,) the rut floor's base_link arc lengths [m];
+    fgrid (S,) and fr (2, S) each rut along its own track [m]; line the strongest spectral line
+    (`strongest_line`); z_locate and material the location tests' z level and materiality [m]."""
 
+    s: np.ndarray
+    cov: dict
+    zones: dict
+    asym: dict
+    arcs: tuple
+    fs: np.ndarray
+    fgrid: np.ndarray
+    fr: np.ndarray
+    line: dict
+    z_locate: float
+    material: float
+
+
+@dataclass
+class Choice:
+    """The candidates' acceptance (`choose_terms`): best the term a diagnosis names (the first
+    of `by_gain`, None when none passed), z_crit {id: the z level it was tested at}, gain_min
+    the smallest mean held-out gain a term must bring [m], pairwise the named term against the
+    runner-up (None with fewer than two named)."""
+
+    best: CandidateFit | None
+    z_crit: dict
+    gain_min: float
+    pairwise: dict | None
+
+
+@dataclass
+class Verdict:
+    """What the diagnosis says of the drive (`location_verdict`, `name_cause`): verdict, where
+    (cross-track zone `cross`, along-track `spans` [[s0, s1], ...] [m], `covariate` or None),
+    the named term's id (`named`, None when adequate or unexplained) and its fit (`best`, None
+    also when hardening is named on the ground driven again), cost_before and cost_after
+    ({residual, prediction} [m]) and the extension's parameters."""
+
+    verdict: str
+    cross: str
+    spans: list
+    covariate: str | None
+    named: str | None
+    best: CandidateFit | None
+    before: dict
+    after: dict
+    params: dict
+
+
+def base_pass(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, shared: dict, progress=None,
+              cache: PassCache | None = None) -> Pass:
+    """The base model's pass over the whole drive: `fit.run_pass` with cross-track profiles,
+    held-out scores at cfg.offsets and the stitched H_b, on the pair and dig order that
+    `fit_nuisance_model` chose and with its run_pass keywords `shared`; read back from or kept
+    in `cache` (label "base"), one progress step. Returns the Pass (costs in m); raises
+    ValueError on a drive of fewer than 6 fitted windows."""
     def tell(k, o, est):
         if progress is not None and k % 5 == 0:
             progress.set_postfix_str(f"base window {k}")
@@ -402,8 +399,21 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         progress.update(1)
     rows = base.rows
     if len(rows) < 6 or np.isfinite(base.residual).sum() < 6:
-        raise ValueError(f"drive too short to diagnose: {len(rows)} windows of {window} m "
+        raise ValueError(f"drive too short to diagnose: {len(rows)} windows of {est.window} m "
                          f"(need at least 6 fitted windows)")
+    return base
+
+
+def locate_mismatch(pair, cfg: DiagnosisConfig, est: EstimatorConfig, base: Pass, drive: DriveSignals) -> Located:
+    """Where the base model misses, before any term is fitted: the windows' covariates
+    (DriveSignals `drive` over each window of est.window m), the cross-track zones and the rut
+    floor's left/right asymmetry of the base pass's profiles, each rut along its own wheels'
+    track and its strongest spectral line, and the location tests' z level (family-wise
+    cfg.alpha_locate over N_LOCATE_TESTS tests) and materiality (cfg.materiality of the mean
+    noise floor, m). Returns them as a `Located`."""
+    robot = pair.robot
+    window = est.window
+    rows = base.rows
     s = np.array([r["s"] for r in rows])
     cov = window_signals(drive, [(c - window / 2, c + window / 2) for c in s], robot)
     prof = base.profiles
@@ -417,13 +427,23 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     # each rut along its own wheels' track, across the tyre's contact width (its lugs print there)
     fgrid, fr = prof.floor_series(by_side=True, arcs=arcs, band=prof.radius)
     line = strongest_line(fr, pair.dx)
-    n_tracks = robot.n_tracks
-
-    # ---- rank candidates by the location evidence, fit the leading testable ones
-    ahead = max(1, int(round(window / stride)))
-    z_loc = _z_two_sided(cfg.alpha_locate / N_LOCATE_TESTS)
+    z_loc = z_two_sided(cfg.alpha_locate / N_LOCATE_TESTS)
     material = cfg.materiality * float(np.nanmean(base.floor))
-    ev = {e.id: evidence_for(e, rows, cov, zones, n_tracks, cfg, base.held_out, ahead, z_loc)
+    return Located(s, cov, zones, asym, arcs, fs, fgrid, fr, line, z_loc, material)
+
+
+def fit_candidates(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass,
+                   drive: DriveSignals, where: Located, tried: tuple, progress=None, cache: PassCache | None = None,
+                   pool=None) -> tuple[dict, list[str], list[CandidateFit]]:
+    """The catalogue's terms ranked by their location evidence (`evidence_for`; shape terms no
+    zone located screened on their own fit, `_screen_shapes`), and the leading cfg.n_fit
+    testable ones fitted (`fit.fit_extension`, footprint and wall terms choosing among the
+    sections `tried`); on `pool`, every candidate's first trial passes (and the per-visit pass)
+    and then the rest run as tasks first. Returns (location evidence {id: {testable, p,
+    statistic}}, the ranked ids, their CandidateFits in that order)."""
+    rows, n_tracks = base.rows, pair.robot.n_tracks
+    ahead = max(1, int(round(est.window / est.stride)))
+    ev = {e.id: evidence_for(e, rows, where.cov, where.zones, n_tracks, cfg, base.held_out, ahead, where.z_locate)
           for e in catalogue.CATALOGUE.values()}
     if pool is not None:
         pool.share(pair, shared_of(base), base)
@@ -442,8 +462,17 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
+    return ev, ranked, fits
+
+
+def choose_terms(fits: list[CandidateFit], ranked: list[str], ev: dict, cfg: DiagnosisConfig, base: Pass,
+                 alpha: float) -> Choice:
+    """Which fitted candidates pass: each tested in order of its location evidence `ev` at the
+    family-wise level `alpha` (what `_revisit` left to the catalogue) by the fallback procedure
+    (`accept_in_order`; gains of at least cfg.gain_materiality of the base model's mean
+    held-out cost, m), then the named ones ordered by their held-out gain (`by_gain`) and the
+    first set against the runner-up (`stats.paired_improvement`). Returns the `Choice`."""
     gain_min = gain_material(cfg.gain_materiality, base.held_out)
-    alpha, revisit = _revisit(pair, cfg, est, sim, base, n_tracks, progress, cache)
     z_crit = dict(zip(ranked, accept_in_order(fits, [ev[i]["p"] for i in ranked], alpha,
                                               cfg.lead_share, gain_min, -cfg.own_fit_z,
                                               [catalogue.signs(f.ext) for f in fits], cfg.effect_materiality),
@@ -455,8 +484,24 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         m, se, z = paired_improvement(accepted[1].held_out, best.held_out)
         pairwise = {"runner_up": accepted[1].ext.id, "improvement": m, "se": se, "z": z,
                     "named_passed": bool(best.accepted), "runner_up_passed": bool(accepted[1].accepted)}
+    return Choice(best, z_crit, gain_min, pairwise)
 
-    # ---- location tests (family-wise alpha_locate over N_LOCATE_TESTS tests)
+
+def location_verdict(pair, cfg: DiagnosisConfig, est: EstimatorConfig, base: Pass, drive: DriveSignals,
+                     where: Located, best: CandidateFit | None) -> tuple[str, str, list[list[float]], str | None]:
+    """The location tests (family-wise cfg.alpha_locate over N_LOCATE_TESTS tests: the located
+    zones, the rut floor's asymmetry, the spectral line) and the verdict they and the named
+    term `best` give: missing_physics where a term is named (where its held-out gain stands out,
+    `stats.outliers`), unexplained where only a location test is significant (where the line
+    or the zone's residual stands, and the covariate that follows it, if any), else adequate.
+    Returns (verdict, cross-track zone, along-track spans [[s0, s1], ...] [m], covariate or
+    None)."""
+    robot = pair.robot
+    window, stride = est.window, est.stride
+    s, zones, asym, line, fr, fgrid, arcs, fs = (where.s, where.zones, where.asym, where.line, where.fr,
+                                                 where.fgrid, where.arcs, where.fs)
+    z_loc, material = where.z_locate, where.material
+    prof = base.profiles
     sig_zones = [zn for zn in LOCATED_ZONES
                  if abs(zones[zn]["z"]) > z_loc and abs(zones[zn]["mean"]) > material]
     sig_asym = abs(asym["z"]) > z_loc and abs(asym["mean"]) > material
@@ -467,7 +512,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     if best is not None:
         verdict = "missing_physics"
         gain = base.held_out - best.held_out            # scored on the neighbouring windows' ground
-        spans = _spans(_outliers(gain), s0, s1)
+        spans = _spans(outliers(gain), s0, s1)
         covariate = best.ext.covariate
         if sig_zones:
             cross = sig_zones[0] if len(sig_zones) == 1 else "mixed"
@@ -497,7 +542,17 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
             covariate = name if c.p < cfg.alpha_locate / len(SIGNALS) else None
     else:
         verdict, cross, spans = "adequate", "mixed", []
+    return verdict, cross, spans, covariate
 
+
+def name_cause(base: Pass, best: CandidateFit | None, revisit: dict | None, window: float, verdict: str,
+               cross: str, spans: list[list[float]], covariate: str | None) -> Verdict:
+    """The named term, its costs and parameters: the base model's mean window residual and
+    held-out prediction cost [m] before, the named term's after, and its reported parameters
+    (catalogue.reported_parameters); hardening named on the ground driven again instead where
+    its test there accepted it and no other term was named (`_named_on_visits`: the later
+    visits' spans of `window` m, `_visit_costs`). verdict, cross, spans, covariate: those of
+    `location_verdict`. Returns the `Verdict`."""
     before = {"residual": float(np.nanmean(base.residual)), "prediction": float(np.nanmean(base.prediction))}
     after = before if best is None else {"residual": float(np.nanmean(best.residual)),
                                          "prediction": float(np.nanmean(best.prediction))}
@@ -509,13 +564,26 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
         spans = _spans(np.ones(len(revisit["s"]), bool), np.array(revisit["s"]) - window / 2,
                        np.array(revisit["s"]) + window / 2)
         before, after, params = _visit_costs(revisit, before["residual"])
+    return Verdict(verdict, cross, spans, covariate, named, best, before, after, params)
+
+
+def explain_diagnosis(cfg: DiagnosisConfig, base: Pass, where: Located, ev: dict, fits: list[CandidateFit],
+                      choice: Choice, section: dict | None, dig: dict | None, revisit: dict | None,
+                      told: Verdict) -> Diagnosis:
+    """The evidence behind the verdict (zones, asymmetry, spectral line, rut shape, the tests'
+    levels, every candidate's location evidence `ev`, the nuisances' fits `section` and `dig`,
+    the hardening test `revisit`, what the named gain rests on, the covariates' correlations
+    with the sinkage), the diagnosis.json summary (docs/formats.md 4; costs in m) and its
+    explanation in words (report.explain). Returns the `Diagnosis`."""
+    zones, asym, line, s, cov, z_loc = where.zones, where.asym, where.line, where.s, where.cov, where.z_locate
+    prof, rows, best = base.profiles, base.rows, told.best
     evidence = {"zones": zones, "asymmetry": {k: v for k, v in asym.items() if k != "series"},
                 "spectral_line": line, "rut_shape": prof.shape(z_loc),
-                "z_locate": z_loc, "z_accept": z_crit, "gain_material": gain_min,
+                "z_locate": z_loc, "z_accept": choice.z_crit, "gain_material": choice.gain_min,
                 "effect_material": cfg.effect_materiality,
                 "own_z_min": -cfg.own_fit_z,
                 "candidates": ev,
-                "pairwise": pairwise,
+                "pairwise": choice.pairwise,
                 "map_nuisance": base.nuisance.summary() if base.nuisance is not None else None,
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "tyre_section": section,
@@ -525,14 +593,14 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
                                     for n in SIGNALS}}
     summary = {
-        "verdict": verdict,
-        "missing_physics": named,
-        "where": {"cross_track": cross, "along_track": spans, "covariate": covariate},
+        "verdict": told.verdict,
+        "missing_physics": told.named,
+        "where": {"cross_track": told.cross, "along_track": told.spans, "covariate": told.covariate},
         "explanation": "",
-        "cost_before": before,
-        "cost_after": after,
+        "cost_before": told.before,
+        "cost_after": told.after,
         "noise_floor": float(np.nanmean(base.floor)),
-        "extension_parameters": params,
+        "extension_parameters": told.params,
         "candidates": [{"id": f.ext.id, "prediction": float(np.nanmean(f.prediction)), "accepted": bool(f.accepted)}
                        for f in fits],
     }
@@ -543,6 +611,28 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s, revisit)
     summary["explanation"] = explain(diag)
     return diag
+
+
+def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | None = None,
+             sim: SimConfig | None = None, progress=None, cache: PassCache | None = None, pool=None) -> Diagnosis:
+    """Diagnose one terrain pair (torchsoil.io.terrain_pair.TerrainPair) with the diagnosis,
+    estimator and simulator settings (their sections; defaults when None). progress:
+    optional tqdm-like bar (update(n)). cache: where the finished passes are kept
+    (checkpoint.PassCache): a diagnosis run again with the same cache reads them back, so an
+    interrupted one resumes where it stopped. pool: a parallel.PassPool (`parallel.pass_pool`,
+    with the same cache) that runs the independent passes (sections, dig orders, candidates)
+    as parallel tasks first; the results are the same."""
+    cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
+    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool)
+    drive = DriveSignals.from_poses(pair.poses, pair.robot)
+    base = base_pass(pair, cfg, est, sim, shared, progress, cache)
+    where = locate_mismatch(pair, cfg, est, base, drive)
+    ev, ranked, fits = fit_candidates(pair, cfg, est, sim, base, drive, where, tried, progress, cache, pool)
+    alpha, revisit = _revisit(pair, cfg, est, sim, base, pair.robot.n_tracks, progress, cache)
+    choice = choose_terms(fits, ranked, ev, cfg, base, alpha)
+    told = name_cause(base, choice.best, revisit, est.window,
+                      *location_verdict(pair, cfg, est, base, drive, where, choice.best))
+    return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told)
 
 
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:

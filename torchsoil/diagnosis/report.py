@@ -174,7 +174,7 @@ def _rut_text(rut: dict | None) -> str:
 
 
 def basis_text(basis: dict | None) -> str:
-    """What a named term's held-out gain rests on (locate.evidence_basis), or ""."""
+    """What a named term's held-out gain rests on (stats.evidence_basis), or ""."""
     if not basis or not basis["blocks"]:
         return ""
     spans = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in basis["carriers"])

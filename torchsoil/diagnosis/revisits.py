@@ -6,7 +6,7 @@ same soil, only the wheel passes before the visit differ. Soil that hardens unde
 sinks less at each later visit; soil that does not keeps its sinkage. The windows' sinkage
 ratios d_v / d_0 against the passes between the visits test that, paired window by window
 (soil that changes along the drive cancels), with an effective sample size for the
-neighbouring windows' shared ground (`locate.effective_n`).
+neighbouring windows' shared ground (`stats.effective_n`).
 
 Laws of the sinkage d_n after n earlier wheel passes, relative to the first visit's d_0:
 
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import interpolate, optimize, stats
 
-from torchsoil.diagnosis.locate import effective_n, t_z
+from torchsoil.diagnosis.stats import effective_n, paired_improvement, spaced_z
 from torchsoil.sim.simulate import Modifiers
 
 LAWS = ("geometric", "hyperbolic", "power")
@@ -277,9 +277,7 @@ def _shapes(later: dict, level: float, min_windows: int = 4) -> tuple[dict, str 
     best-fitting shape, or None when the shapes are not told apart: fewer than two pass
     distances (passes since the first visit) with `min_windows` windows each (with one, every
     law fits exactly), or the best law's per-window costs not lower than each other law's at
-    z `level` (`locate.paired_improvement`)."""
-    from torchsoil.diagnosis.locate import paired_improvement
-
+    z `level` (`stats.paired_improvement`)."""
     laws, costs = {}, {}
     for shape in LAWS:
         c = fit_cost_law(later, shape)
@@ -290,35 +288,6 @@ def _shapes(later: dict, level: float, min_windows: int = 4) -> tuple[dict, str 
     best = min(LAWS, key=lambda k: laws[k]["cost"])
     apart = all(paired_improvement(costs[k], costs[best])[2] > level for k in LAWS if k != best)
     return laws, (best if len(levels) >= 2 and apart else None)
-
-
-def spaced_z(s, gain, stride: float, apart: int = 2) -> float:
-    """One-sided z that the mean of a per-window gain (W,) is above 0, counting only windows
-    that share no ground as independent: windows of `apart` strides of `stride` [m] (the window
-    length over the stride) are grouped by their centre s (W,) [m] into `apart` sets whose
-    windows lie at least a window apart (the gains of the visits of one window averaged
-    first), a t test in each, and the smaller z of the sets. On the ground driven again the
-    soil is the same at every visit and cancels: what is left between disjoint windows is
-    their own measurement noise, while the gain itself follows the passes and the rut depth
-    along the drive (a drive's middle gains more than its ends), so block means about a line
-    along the drive would count the gain's own shape as noise. 0 where a set has fewer than
-    3 windows."""
-    s, gain, apart = np.asarray(s, np.float64), np.asarray(gain, np.float64), max(1, apart)
-    ok = np.isfinite(gain)
-    at = np.round(s[ok] / stride).astype(np.int64)
-    cells, inv = np.unique(at, return_inverse=True)
-    per = np.bincount(inv, weights=gain[ok]) / np.bincount(inv)
-    zs = []
-    for r in range(apart):
-        x = per[cells % apart == r]
-        if len(x) < 3:
-            return 0.0
-        sd = float(np.std(x, ddof=1))
-        if sd == 0:
-            zs.append(0.0 if x.mean() == 0 else math.copysign(math.inf, x.mean()))
-            continue
-        zs.append(t_z(x.mean() / (sd / math.sqrt(len(x))), len(x) - 1))
-    return min(zs)
 
 
 def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, block_m: float,
@@ -332,13 +301,13 @@ def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, blo
        sign (g < 1).
     2. Gain: the windows scored at the other fold's g must predict their later visits better
        than the first visit's soil as it is, at one-sided level `alpha`, counting windows that
-       share no ground (`spaced_z`, `apart` strides of `stride` [m]). Soil that does not harden
+       share no ground (`stats.spaced_z`, `apart` strides of `stride` [m]). Soil that does not harden
        predicts its later visits best at g 1, and there is nothing to gain.
     3. Material: 1 - g, the share by which each pass sinks less than the one before, at least
        `materiality`.
 
     The cost of the later visits without the law is also set against their noise floor
-    (z_visible, `locate.paired_improvement`; reported, not tested: the floor of two noisy maps
+    (z_visible, `stats.paired_improvement`; reported, not tested: the floor of two noisy maps
     lies above what an adequate model reaches, by 0.4-0.8 mm on the nulls, so a hardening
     whose rut is shallow hides below it).
 
@@ -348,8 +317,6 @@ def hardening_across_visits(vp: VisitPass, alpha: float, materiality: float, blo
     with it, mean over the later visits, m), laws {shape: {coefficient, cost}}, shape
     (best-fitting law, or None), and the per-visit fits' sinkage ratios (`ratio_test`, for
     reference)."""
-    from torchsoil.diagnosis.locate import paired_improvement
-
     later = {k: v for k, v in vp.later.items() if np.all(np.isfinite(v["cost"])) and np.isfinite(v["floor"])}
     out: dict = {"accepted": False, "windows": len(later)}
     if len(later) < 6:

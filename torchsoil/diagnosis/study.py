@@ -29,10 +29,10 @@ from types import SimpleNamespace
 import numpy as np
 
 from torchsoil.diagnosis.catalogue import CATALOGUE, signs
-from torchsoil.diagnosis.fit import by_fold, fold_choice, folds, section_of, with_section
-from torchsoil.diagnosis.locate import SAME, term_test
-from torchsoil.diagnosis.phases import accept_in_order, by_gain, diagnose, gain_material
+from torchsoil.diagnosis.fit import section_of, with_section
+from torchsoil.diagnosis.phases import accept_in_order, by_gain, diagnose
 from torchsoil.diagnosis.report import mean_sinkage
+from torchsoil.diagnosis.stats import SAME, by_fold, fold_choice, folds, gain_material, term_test
 from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.settings import DiagnosisConfig, Settings
 from torchsoil.synth.scenario import make_terrain_pair
@@ -79,7 +79,7 @@ def revisit_test(diag) -> dict | None:
 
 def held_out_tests(diag) -> list[dict]:
     """Each fitted candidate's test: coefficient (all windows and per fold), its z (held-out
-    and own-fit evidence together, `locate.combined_z`) and the z it needed, the held-out
+    and own-fit evidence together, `stats.combined_z`) and the z it needed, the held-out
     paired z and mean gain [mm], the paired z of its windows' own residuals and its location
     evidence p (a study compares these across settings more finely than verdicts)."""
     need, ev = diag.evidence["z_accept"], diag.evidence["candidates"]
@@ -116,11 +116,11 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
            own_fit_z: float = _DIAG.own_fit_z, effect_materiality: float = _DIAG.effect_materiality
            ) -> tuple[list[dict], str | None]:
     """A case record's held-out tests redone from its `series` (held_out_series), as the
-    diagnosis does them: each candidate's coefficient chosen per fold (`fit.fold_choice`,
+    diagnosis does them: each candidate's coefficient chosen per fold (`stats.fold_choice`,
     folds of block_m [m] at the estimator's stride [m]), the paired z of the held-out costs and
     of the windows' own residuals against the base pass and their combined z
-    (`locate.combined_z`; records without residual series: the held-out z alone), and
-    acceptance in order of location evidence (`run.accept_in_order`), a term's mean gain
+    (`stats.combined_z`; records without residual series: the held-out z alone), and
+    acceptance in order of location evidence (`phases.accept_in_order`), a term's mean gain
     at least gain_materiality times the base's mean held-out cost and its windows' own fit
     no worse than -own_fit_z (records without residual series skip this check), and its
     effect size at both folds' coefficients at least effect_materiality (records without

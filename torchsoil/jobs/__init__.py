@@ -5,6 +5,6 @@ of them.
 
 Modules: `estimate` (`torchsoil estimate`), `diagnose` (`torchsoil diagnose`), `process_bag`
 (`torchsoil process-bag`), `fleet` (many recordings on an engine), `study` (`torchsoil study`),
-`ablation` (`torchsoil ablation`), `bench` (`torchsoil bench`), `common` (input loading and the
+`ablation` (`torchsoil ablation`), `record` (`torchsoil record`), `common` (input loading and the
 run record they share) and `provenance` (run.json: what made a folder).
 """

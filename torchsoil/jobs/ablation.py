@@ -8,6 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from torchsoil.jobs.estimate import estimate
+from torchsoil.robot import Robot
+from torchsoil.settings import load_settings
+
 # settings overrides of each variant of the paper's Table I
 VARIANTS = {"proposed": [], "merged_sinkage": ["estimator.merged_sinkage=true"],
             "capped_relaxation": ["sim.fixed_iter=5"]}
@@ -36,3 +40,19 @@ def ablation_table(runs: dict[str, Path]) -> str:
         lines.append(f"| {name} | {_cells(_read(p, 'residual'))} | {_cells(_read(p, 'prediction'))} | "
                      f"{np.mean(_read(p, 'seconds')):.3f} |")
     return "\n".join(lines)
+
+
+def ablation(input_path: str | Path, out_dir: str | Path, configs: list[str] = (), overrides: list[str] = (),
+             robot: Robot | None = None, robot_yaml: str | Path | None = None, threads: int | None = 1,
+             extrinsics: dict[str, list[float]] | None = None) -> str:
+    """Estimate `input_path` once per variant of VARIANTS into out_dir/<variant> (settings: the
+    defaults, `configs`, `overrides`, then the variant's own), and write the table
+    (`ablation_table`) to out_dir/ablation.md; returns it."""
+    runs = {}
+    for name, variant in VARIANTS.items():
+        settings = load_settings(*configs, overrides=[*overrides, *variant])
+        runs[name] = estimate(input_path, Path(out_dir) / name, settings, robot=robot, tensorboard=False,
+                              robot_yaml=robot_yaml, threads=threads, overwrite=False, extrinsics=extrinsics)
+    table = ablation_table(runs)
+    (Path(out_dir) / "ablation.md").write_text(table + "\n")
+    return table

@@ -10,12 +10,14 @@ from torchsoil.diagnosis.checkpoint import PassCache
 from torchsoil.diagnosis.parallel import pass_pool
 from torchsoil.diagnosis.phases import diagnose, n_steps
 from torchsoil.diagnosis.report import write_all
+from torchsoil.engines import default_workers
 from torchsoil.io.extrinsics import pipeline_settings
 from torchsoil.jobs import provenance
 from torchsoil.jobs.common import load_input, run_record, torch_threads
 from torchsoil.robot import Robot
 from torchsoil.settings import Settings
 
+MAX_PASS_WORKERS = 4     # a diagnosis's default local pass workers at most
 OUTPUTS = ("diagnosis.json", "report.md", "residual_map.png", "residual_vs_covariate.png", "cross_sections.png",
            "prediction_costs.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "passes")
 
@@ -24,7 +26,7 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
                    robot: Robot | None = None, progress: bool = True, tensorboard: bool = True,
                    overwrite: bool = False, robot_yaml: str | Path | None = None, threads: int | None = None,
                    extrinsics: dict[str, list[float]] | None = None, rows: list | None = None,
-                   resume: bool = False, workers: int = 1, engine: str = "local") -> dict:
+                   resume: bool = False, workers: int | None = 1, engine: str = "local") -> dict:
     """Diagnose a terrain pair (.npz) or a recording (bag, through the lidar pipeline).
 
     Writes out_dir/run.json (what made the folder; another run's folder is refused unless
@@ -37,8 +39,10 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
     receives the base model's window rows (params.csv rows: s [m], d1..dT [m], chi, beta [deg],
     costs [m], flags), for summaries of many diagnoses (torchsoil.jobs.fleet). workers, engine: the
     independent passes run as that many tasks at once on the local process pool or Ray
-    (diagnosis.parallel; workers 1 on the local engine: all in this process); same results."""
+    (diagnosis.parallel; workers 1 on the local engine: all in this process; None: `pass_workers`'
+    default); same results."""
     settings = settings or Settings()
+    workers = pass_workers(workers, engine, settings.fleet)
     out = Path(out_dir)
     pipeline = pipeline_settings(settings, robot_yaml, extrinsics)
     record = run_record("diagnose", input_path, settings, pipeline, robot, ("sim", "estimator", "diagnosis"))
@@ -61,3 +65,13 @@ def diagnose_input(input_path: str | Path, out_dir: str | Path, settings: Settin
         rows.extend(diag.base.rows)
     write_all(diag, pair, out, Path(input_path).name, tb=tensorboard)
     return diag.summary
+
+
+def pass_workers(given: int | None, engine: str, fleet) -> int:
+    """The pass workers of one diagnosis: `given`, or by default on the local engine as many as
+    the cores and memory hold (`engines.default_workers` of the fleet settings), at most
+    MAX_PASS_WORKERS (a diagnosis has a few tens of independent passes, each worker holds the
+    drive's maps); on Ray, 1 (the cluster's own)."""
+    if given is not None:
+        return given
+    return min(MAX_PASS_WORKERS, default_workers(fleet)) if engine == "local" else 1

@@ -27,10 +27,23 @@ from torchsoil.memory import release
 from torchsoil.robot import Robot
 from torchsoil.settings import Settings
 
+DEMO = Path("data") / "demo"  # the bundled demo recording, in a source checkout
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
 OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_parameters.png",
            "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "tiles",
            "trajectory.csv", "passes.npz", "passes.png", "multipass.png")
+
+
+def demo_input() -> tuple[Path, Path]:
+    """The bundled demo recording and its robot YAML (data/demo/ under the current directory or
+    the source checkout); FileNotFoundError when there is none."""
+    import torchsoil
+
+    for root in (Path.cwd(), Path(torchsoil.__file__).resolve().parents[1]):
+        if (root / DEMO / "demo").exists():
+            return root / DEMO / "demo", root / DEMO / "demo.robot.yaml"
+    raise FileNotFoundError("no INPUT given and no bundled demo recording here (data/demo/demo of a "
+                            "source checkout); give a bag or terrain-pair .npz")
 
 
 def estimate(input_path: str | Path, out_dir: str | Path, settings: Settings | None = None,
@@ -202,7 +215,7 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
         meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
                            f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
                            "(torchsoil.pipeline.raster.Tiles) and the simulated change stitched over windows "
-                           "in tiles/sim (runner.SimTiles), not assembled into one terrain pair")
+                           "in tiles/sim (estimate.tiles.SimTiles), not assembled into one terrain pair")
     figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
 
 

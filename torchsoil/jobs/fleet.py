@@ -4,14 +4,14 @@ Ray cluster.
     recs = recordings(["season/*.bag", "extra.npz"], manifest="season.csv")
     rows = run_fleet("estimate", recs, "out/season", robot="paper_platform", engine="ray")
 
-Each recording is one task that calls the function a single run calls (`runner.estimate`,
-`diagnosis.job.diagnose_input`), so OUT/<name>/ holds exactly what `torchsoil estimate INPUT
+Each recording is one task that calls the function a single run calls (`jobs.estimate.estimate`,
+`jobs.diagnose.diagnose_input`), so OUT/<name>/ holds exactly what `torchsoil estimate INPUT
 --out OUT/<name>` writes; the task's printed output goes to OUT/logs/<name>.log. OUT/fleet.csv
 gets one row per recording as its task finishes (`FleetLog`). A task that fails is recorded
 with its error and the others go on; a rerun skips the recordings whose outputs are complete
 and were made from the same input, robot and settings (`complete`) and runs the rest.
 
-Engines (`make_engine`): `local`, single-worker process pools on this machine (spawned, so a
+Engines (`torchsoil.engines.make_engine`): `local`, single-worker process pools on this machine (spawned, so a
 killed worker takes only its own task down), or `ray`, Ray tasks on a running cluster or a
 local Ray instance, each asking for the `fleet` settings' CPUs and memory. The same engines run
 the diagnosis studies (`diagnosis.study.run_study(..., engine=...)`). Ray is optional
@@ -37,7 +37,7 @@ from torchsoil.engines import make_engine, one_line
 
 SUMMARY = "fleet.csv"
 LOGS = "logs"
-# the settings sections each job records in run.json (runner.estimate, diagnosis.job.diagnose_input)
+# the settings sections each job records in run.json (jobs.estimate.estimate, jobs.diagnose.diagnose_input)
 SECTIONS = {"estimate": ("sim", "estimator"), "diagnose": ("sim", "estimator", "diagnosis")}
 # the output each job writes last: present and newer than run.json = the run completed
 LAST = {"estimate": "summary.md", "diagnose": "report.md"}
@@ -47,7 +47,7 @@ GLOB_CHARS = "*?["
 
 # ---------------------------------------------------------------------------- inputs
 @dataclass(frozen=True)
-class Recording:
+class FleetInput:
     """One input of a many-recordings run: its path (bag or terrain pair), the name of its
     output folder, and its own robot (name or YAML path), settings YAMLs and `section.key=value`
     overrides, applied after the command's."""
@@ -83,7 +83,7 @@ def _beside(value: str, base: Path) -> str:
     return str(p if p.is_absolute() else base / p)
 
 
-def read_manifest(path: str | Path) -> list[Recording]:
+def read_manifest(path: str | Path) -> list[FleetInput]:
     """The recordings of a CSV manifest: a header naming some of `input` (required), `name`,
     `robot`, `config`, `set`; one row per recording (an input may be a glob, then without a
     name). `config` and `set` hold several values separated by `;`. Relative paths (input,
@@ -111,30 +111,30 @@ def read_manifest(path: str | Path) -> list[Recording]:
         paths = _expand(_beside(row["input"], base))
         if row.get("name") and len(paths) > 1:
             raise ValueError(f"{path} line {n}: a name for a glob of {len(paths)} recordings")
-        out += [Recording(str(p), row.get("name") or _stem(p), **extra) for p in paths]
+        out += [FleetInput(str(p), row.get("name") or _stem(p), **extra) for p in paths]
     return out
 
 
-def recordings(inputs: Iterable[str | Path] = (), manifest: str | Path | None = None) -> list[Recording]:
+def recordings(inputs: Iterable[str | Path] = (), manifest: str | Path | None = None) -> list[FleetInput]:
     """The recordings of paths, globs and CSV manifests (`read_manifest`; an input ending in
     .csv is one too), each with a unique output name: the input's stem, prefixed by its
     folder's name where two stems collide, or the manifest's `name`."""
-    found: list[tuple[Recording, bool]] = []          # (recording, name derived from the path)
+    found: list[tuple[FleetInput, bool]] = []          # (recording, name derived from the path)
     for item in [*inputs, *([manifest] if manifest else [])]:
         if str(item).endswith(".csv"):
             found += [(r, False) for r in read_manifest(item)]
         else:
-            found += [(Recording(str(p), _stem(p)), True) for p in _expand(item)]
+            found += [(FleetInput(str(p), _stem(p)), True) for p in _expand(item)]
     return _unique(found)
 
 
-def _unique(found: list[tuple[Recording, bool]]) -> list[Recording]:
+def _unique(found: list[tuple[FleetInput, bool]]) -> list[FleetInput]:
     out = list(dict.fromkeys(found))                   # the same recording twice: once
     names = [r.name for r, _ in out]
     for i, (rec, derived) in enumerate(out):
         if derived and names.count(rec.name) > 1:
             parent = Path(rec.input).resolve().parent.name
-            out[i] = (Recording(rec.input, f"{parent}_{rec.name}", rec.robot, rec.config, rec.overrides), derived)
+            out[i] = (FleetInput(rec.input, f"{parent}_{rec.name}", rec.robot, rec.config, rec.overrides), derived)
     names = [r.name for r, _ in out]
     clash = sorted({n for n in names if names.count(n) > 1})
     if clash:
@@ -360,7 +360,7 @@ def _absolute(path: str | Path | None, existing: bool = False) -> str | None:
     return str(Path(path).expanduser().absolute())
 
 
-def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: list[str], overrides: list[str],
+def plan(job: str, recs: list[FleetInput], out: Path, log: FleetLog, configs: list[str], overrides: list[str],
          robot: str | None, extrinsics: dict | None, tensorboard: bool,
          overwrite: bool) -> tuple[list[Task], list[dict]]:
     """The tasks to run, and the fleet.csv rows of recordings not to run: skipped (complete,
@@ -397,7 +397,7 @@ def plan(job: str, recs: list[Recording], out: Path, log: FleetLog, configs: lis
     return tasks, early
 
 
-def run_fleet(job: str, recs: list[Recording], out: str | Path, *, configs: Iterable[str] = (),
+def run_fleet(job: str, recs: list[FleetInput], out: str | Path, *, configs: Iterable[str] = (),
               overrides: Iterable[str] = (), robot: str | None = None, extrinsics: dict | None = None,
               engine: str = "local", workers: int | None = None, address: str | None = None,
               tensorboard: bool = True, overwrite: bool = False, echo: Callable[[str], Any] = print) -> list[dict]:
@@ -433,3 +433,19 @@ def run_fleet(job: str, recs: list[Recording], out: str | Path, *, configs: Iter
                 echo(f"[{k + 1}/{len(tasks)}] {t.name}: {row['status']} in {o.seconds:.1f} s, peak "
                      f"{o.peak_mb:.0f} MiB" + (f": {o.error}" if o.error else ""))
     return [log.rows[r.name] for r in recs]
+
+
+def run_many(job: str, inputs: Iterable[str | Path], manifest: str | Path | None, out: str | Path,
+             echo: Callable[[str], Any] = print, **options) -> int:
+    """`run_fleet` of `job` on the recordings of paths, globs and CSV manifests (`recordings`),
+    with run_fleet's keyword options; says how many finished, were skipped and failed, and
+    returns the exit status of the command: 1 when some failed (their errors are in
+    OUT/fleet.csv), else 0."""
+    recs = recordings(inputs, manifest)
+    if not recs:
+        raise FileNotFoundError("no recordings given (paths, globs, or --manifest CSV)")
+    rows = run_fleet(job, recs, out, echo=echo, **options)
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("ok", "skipped", "error")}
+    echo(f"wrote {Path(out) / SUMMARY}: {counts['ok']} done, {counts['skipped']} already complete (skipped), "
+         f"{counts['error']} failed")
+    return 1 if counts["error"] else 0

@@ -33,7 +33,7 @@ def flagged_spans(stamps: np.ndarray, flags: np.ndarray, t0: float) -> list[str]
 def check_visits(terrain: TerrainPair, max_shift: float, t_start: float = 0.0) -> list[str]:
     """Ground driven more than once, checked: the state between visits as the way out left it
     (`visit_back[v]`) and as the way back finds it (`visit_front[v + 1]`) must lie on the same
-    cells (`visits.visit_offsets`). Where they lie more than `max_shift` m apart, the map broke
+    cells (`visit_offsets`). Where they lie more than `max_shift` m apart, the map broke
     between the visits: the sweeps of the later visit over that ground get MAP_CONFLICT (their
     windows are flagged) and a problem says so. Writes `visit_shift` (V - 1, 2) [m] into the
     extras. Returns the problems."""
