@@ -5,6 +5,7 @@
     torchsoil process-bag BAG --robot NAME|PATH --out DIR
     torchsoil diagnose INPUT... | --manifest CSV --out DIR [--engine local|ray]
     (each command that takes a bag also: --front-topic, --back-topic, --imu-topic, --extrinsic)
+    torchsoil export RUN --out DIR [--anchor LAT,LON,HEADING_DEG] [--formats geotiff gpkg mcap]
     torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]] [--convention C] [--no-imu]
     torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR] [--engine local|ray]
     torchsoil rollout --out DIR
@@ -106,8 +107,32 @@ def _add_estimate(sub) -> None:
     p.add_argument("--resume", action="store_true", help="continue the interrupted run in --out")
     p.add_argument("--realtime", action="store_true", help="play the recording at its own pace, as on the robot, "
                                                            "printing each window's estimate and latency as it comes")
+    p.add_argument("--export", action="store_true", help="also write the georeferenced maps into OUT/export "
+                                                         "(GeoTIFF, GeoPackage, GridMap MCAP; see `torchsoil export`)")
+    _anchor_option(p)
     _job_options(p)
     _fleet_options(p)
+
+
+def _anchor_option(p) -> None:
+    p.add_argument("--anchor", metavar="LAT,LON,HEADING_DEG",
+                   help="place the first pose at this latitude, longitude (deg, WGS 84) and compass heading (deg "
+                        "clockwise from north) instead of fitting the recording's RTK GNSS fixes")
+
+
+def _add_export(sub) -> None:
+    p = sub.add_parser("export", help="georeferenced maps of a run: GeoTIFF, GeoPackage, GridMap MCAP",
+                       description="Write RUN's soil maps into DIR: soil.tif (Cloud-Optimized GeoTIFF, a band per "
+                                   "layer), soil.gpkg (windows, ruts, path), soil_gridmap/ (grid_map_msgs/GridMap "
+                                   "in MCAP) and georef.json. The map frame is tied to UTM by the recording's RTK "
+                                   "GNSS fixes (sensor_msgs/NavSatFix), or by --anchor; without either the maps "
+                                   "stay in the run's local frame, and say so (docs/export.md).")
+    p.add_argument("run", type=Path, help="a run folder of `estimate` or `process-bag`, or a terrain pair .npz")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    _anchor_option(p)
+    p.add_argument("--bag", type=Path, help="the recording to read GNSS from (default: the one in RUN/run.json)")
+    p.add_argument("--gnss-topic", default="", help="NavSatFix topic (default: the bag's only one)")
+    p.add_argument("--formats", nargs="+", default=["geotiff", "gpkg", "mcap"], choices=["geotiff", "gpkg", "mcap"])
 
 
 def _add_process_bag(sub) -> None:
@@ -164,6 +189,7 @@ def _add_record(sub) -> None:
                    help="lidar driver layout and stamp convention of the sweeps: ouster, velodyne, hesai, "
                         "robosense_start, robosense_end, livox, livox_custom, mixed (front ouster, back velodyne)")
     p.add_argument("--no-imu", action="store_true", help="no IMU topic (/imu/data) in the bag")
+    p.add_argument("--no-gnss", action="store_true", help="no RTK GNSS topic (/gnss/fix) in the bag")
 
 
 def _add_rollout(sub) -> None:
@@ -233,7 +259,7 @@ def parser() -> argparse.ArgumentParser:
                                         "`python3 -m sphinx -b html docs out/docs`).",
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_estimate, _add_process_bag, _add_diagnose, _add_record, _add_rollout, _add_bench,
+    for add in (_add_estimate, _add_process_bag, _add_diagnose, _add_export, _add_record, _add_rollout, _add_bench,
                 _add_ablation, _add_study, _add_settings):
         add(sub)
     return ap
@@ -350,6 +376,28 @@ def cmd_estimate(args) -> int:
              extrinsics=given, realtime=args.realtime)
     print(f"wrote {out}: params.csv, summary.md, fig4_parameters.png, fig6_difference_maps.png, tensorboard/")
     print((out / "summary.md").read_text())
+    if args.export or args.anchor:
+        from torchsoil.jobs.export import export
+
+        print("\n".join(export(out, out / "export", anchor=_anchor(args.anchor))))
+    return 0
+
+
+def _anchor(text: str | None) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        lat, lon, heading = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--anchor {text!r}: give LAT,LON,HEADING_DEG, three numbers (deg)") from None
+    return lat, lon, heading
+
+
+def cmd_export(args) -> int:
+    from torchsoil.jobs.export import export
+
+    print("\n".join(export(args.run, args.out, anchor=_anchor(args.anchor), formats=tuple(args.formats),
+                           bag=args.bag, gnss_topic=args.gnss_topic)))
     return 0
 
 
@@ -387,7 +435,8 @@ def cmd_record(args) -> int:
 
     print(record(args.scenario, args.out, args.seed, args.dx, pair_only=args.pair_only, realistic=args.realistic,
                  storage=args.storage, compress=not args.no_compress, duration=args.duration, columns=args.columns,
-                 organized=args.organized or None, convention=args.convention, imu=not args.no_imu))
+                 organized=args.organized or None, convention=args.convention, imu=not args.no_imu,
+                 gnss=not args.no_gnss))
     return 0
 
 
@@ -427,7 +476,7 @@ def cmd_settings(args) -> int:
     return 0
 
 
-COMMANDS = {"estimate": cmd_estimate, "process-bag": cmd_process_bag, "diagnose": cmd_diagnose,
+COMMANDS = {"estimate": cmd_estimate, "process-bag": cmd_process_bag, "diagnose": cmd_diagnose, "export": cmd_export,
             "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench, "ablation": cmd_ablation,
             "study": cmd_study, "settings": cmd_settings}
 

@@ -18,7 +18,7 @@ def record(scenario: str | Path, out: str | Path, seed: int = 0, dx: float = 0.0
     was written, a line. pair_only: only the terrain pair, as OUT.npz (`realistic`: with the
     measurement nuisances and tyre draws of real data, settings.REALISTIC). Otherwise a bag
     directory and its truth, bag_options going to `synth.record.make_recording` (storage,
-    compress, duration, columns, organized, convention, imu); the line holds its statistics."""
+    compress, duration, columns, organized, convention, imu, gnss); the line holds its statistics."""
     if realistic and not pair_only:
         raise ValueError("--realistic applies to --pair-only (the recorder's lidars have their own noise model)")
     out = Path(out)

@@ -1,5 +1,6 @@
-"""rosbag2 output through `rosbags`: PointCloud2 lidar sweeps, sensor_msgs/Imu and
-/tf_static (docs/formats.md section 1), in sqlite3 or mcap storage (mcap optionally with zstd chunk compression)."""
+"""rosbag2 output through `rosbags`: PointCloud2 lidar sweeps, sensor_msgs/Imu,
+sensor_msgs/NavSatFix and /tf_static (docs/formats.md section 1), in sqlite3 or mcap storage
+(mcap optionally with zstd chunk compression)."""
 
 from __future__ import annotations
 
@@ -73,6 +74,19 @@ def imu_message(frame_id: str, t_ns: int, acc, gyro, acc_var: float, gyro_var: f
         linear_acceleration_covariance=np.diag([acc_var] * 3).reshape(-1))
 
 
+def navsatfix_message(frame_id: str, t_ns: int, lat: float, lon: float, alt: float, var_h: float, var_v: float,
+                      status: int = 2):
+    """sensor_msgs/NavSatFix at (lat, lon) [deg], ellipsoidal height alt [m], with a diagonal
+    ENU covariance (var_h east and north, var_v up, m^2; COVARIANCE_TYPE_DIAGONAL_KNOWN) and
+    NavSatStatus `status` (2: GBAS, as RTK receivers report a fixed solution), GPS service."""
+    return _T["sensor_msgs/msg/NavSatFix"](
+        header=_T["std_msgs/msg/Header"](stamp=stamp(t_ns), frame_id=frame_id),
+        status=_T["sensor_msgs/msg/NavSatStatus"](status=int(status), service=1),
+        latitude=float(lat), longitude=float(lon), altitude=float(alt),
+        position_covariance=np.diag([var_h, var_h, var_v]).reshape(-1).astype(np.float64),
+        position_covariance_type=2)
+
+
 class BagWriter:
     """Write lidar sweeps and static transforms to a new rosbag2 directory.
 
@@ -116,11 +130,6 @@ class BagWriter:
         conn = self._conn(topic, msgtype)
         raw = msg if isinstance(msg, bytes) else TYPESTORE.serialize_cdr(msg, msgtype)
         self.writer.write(conn, int(log_ns), raw)
-
-    def write_imu(self, topic: str, msg, t_ns: int) -> None:
-        """An `imu_message` at bag time t_ns."""
-        conn = self._conn(topic, "sensor_msgs/msg/Imu")
-        self.writer.write(conn, int(t_ns), TYPESTORE.serialize_cdr(msg, "sensor_msgs/msg/Imu"))
 
     def write_tf_static(self, transforms, stamp_ns: int) -> None:
         msg = tf_message(transforms, stamp_ns)

@@ -3,18 +3,22 @@
 Files written for `make_recording(..., out=PATH)`::
 
     PATH/                 the rosbag2 directory (docs/formats.md section 1), nothing else inside:
-                          both lidars, /tf_static and, unless imu=False, IMU_TOPIC
+                          both lidars, /tf_static, unless imu=False IMU_TOPIC and unless
+                          gnss=False RTK fixes on GNSS_TOPIC
     PATH.robot.yaml       the robot description (docs/formats.md section 2)
     PATH.pair.npz         terrain pair straight from the truth, 3 mm per-cell noise (section 3)
     PATH.truth.npz        the truth: noise-free surfaces, per-visit states and times, soil
                           fields, true poses, time of last wheel passage, and on ground driven
                           twice or more the noise-free visit layers (tools under test must not
                           read it)
-    PATH.truth.json       scenario, effects and parameters, seed, extrinsics, clock
+    PATH.truth.json       scenario, effects and parameters, seed, extrinsics, clock, and the
+                          datum tying the world to UTM (`datum`: epsg, east, north, yaw,
+                          scale, up, as torchsoil.geo.georef.Georef)
 """
 
 from __future__ import annotations
 
+import heapq
 import json
 import time
 from dataclasses import asdict
@@ -25,14 +29,17 @@ import yaml
 
 from torchsoil.settings import SynthConfig, merge, validate
 from torchsoil.synth import effects as fx
-from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter, imu_message
+from torchsoil.synth.bagwriter import POINT_DTYPE, BagWriter, imu_message, navsatfix_message
 from torchsoil.synth.conventions import driver_message, driver_of
+from torchsoil.synth.gnss import Datum, GnssSpec, gnss_fixes
 from torchsoil.synth.imu import ImuSpec, imu_samples
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
 from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth, visit_layers
 
 T0_NS = 1_750_000_000 * 1_000_000_000   # bag clock of trajectory time 0, ns
 IMU_TOPIC = "/imu/data"
+GNSS_TOPIC = "/gnss/fix"
+DATUM = Datum()   # where the synthetic world lies on the Earth
 
 
 def sidecar(out: str | Path, suffix: str) -> Path:
@@ -104,7 +111,7 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
                    dx: float = 0.02, storage: str = "mcap", compress: bool = True,
                    duration: float | None = None, columns: int | None = None,
                    organized: bool | None = None, progress: bool = False, convention: str = "ouster",
-                   imu: bool = True) -> dict:
+                   imu: bool = True, gnss: bool = True) -> dict:
     """Write the bag directory `out` and its sidecar files (module docstring).
 
     scenario: a shipped name, a YAML path, a dict or a SynthConfig (see
@@ -115,7 +122,8 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     columns) clouds with NaN for no return instead of the returns only); convention: the
     lidar driver layout and stamp convention the sweeps are written in (synth.conventions:
     ouster, velodyne, hesai, robosense_start, robosense_end, livox, livox_custom, mixed);
-    imu: also write a MEMS IMU (synth.imu.ImuSpec) on IMU_TOPIC in frame imu_link. Returns a
+    imu: also write a MEMS IMU (synth.imu.ImuSpec) on IMU_TOPIC in frame imu_link; gnss: also
+    write RTK fixes (synth.gnss.GnssSpec) on GNSS_TOPIC in frame gnss_link. Returns a
     dict of figures (timings [s], bag size [MB], number of sweeps and points)."""
     out = Path(out)
     if out.exists():
@@ -136,31 +144,36 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
 
         bar = tqdm(total=2 * len(starts), unit="sweep", desc=f"recording {out.name}")
     imu_spec = ImuSpec() if imu else None
-    imu_msgs = iter(imu_messages(truth, seed, float(starts[-1] + period) if len(starts) else 0.0, imu_spec))
-    pending = next(imu_msgs, None)
+    gnss_spec = GnssSpec() if gnss else None
+    end = float(starts[-1] + period) if len(starts) else 0.0
+    aux = heapq.merge(imu_messages(truth, seed, end, imu_spec), fix_messages(truth, seed, end, gnss_spec),
+                      key=lambda m: m[0])
+    pending = next(aux, None)
     with BagWriter(out, storage=storage, compress=compress) as bag:
         tfs = [("base_link", s.name, np.asarray(s.xyz), matrix_quaternion(s.transform()[:3, :3]))
                for s in specs]
         if imu_spec is not None:
             tfs.append(("base_link", imu_spec.name, np.asarray(imu_spec.xyz),
                         matrix_quaternion(imu_spec.transform()[:3, :3])))
+        if gnss_spec is not None:
+            tfs.append(("base_link", gnss_spec.name, np.asarray(gnss_spec.xyz), np.array([0.0, 0.0, 0.0, 1.0])))
         bag.write_tf_static(tfs, T0_NS)
         for ts, s, pts in iter_sweeps(truth, seed, duration):
             stamp_ns = T0_NS + int(round(ts * 1e9))
             while pending is not None and pending[0] <= stamp_ns + int(round(period * 1e9)):
-                bag.write_imu(IMU_TOPIC, pending[1], pending[0])
-                pending = next(imu_msgs, None)
+                bag.write_message(*pending[1], pending[0])
+                pending = next(aux, None)
             n_points += int(np.isfinite(pts["x"]).sum())
             msgtype, msg = driver_message(pts, s.name, stamp_ns, driver_of(convention, s.name))
             bag.write_message(f"/{s.name}/points", msgtype, msg, stamp_ns + int(round(period * 1e9)))
             if bar is not None:
                 bar.update(1)
-        for t_ns, msg in ([pending] if pending is not None else []) + list(imu_msgs):
-            bag.write_imu(IMU_TOPIC, msg, t_ns)
+        for t_ns, msg in ([pending] if pending is not None else []) + list(aux):
+            bag.write_message(*msg, t_ns)
     if bar is not None:
         bar.close()
     t2 = time.perf_counter()
-    write_sidecars(truth, out, seed, specs, imu_spec)
+    write_sidecars(truth, out, seed, specs, imu_spec, gnss_spec)
     t3 = time.perf_counter()
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     return {"truth_s": t1 - t0, "lidar_s": t2 - t1, "sidecars_s": t3 - t2, "total_s": t3 - t0,
@@ -169,8 +182,8 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
 
 
 def imu_messages(truth: Truth, seed: int, end: float, spec: ImuSpec | None):
-    """Yield (bag time ns, sensor_msgs/Imu) of the IMU from trajectory time 0 to `end` s (none
-    without a spec); its own noise stream, so the lidar sweeps do not change with it."""
+    """Yield (bag time ns, (topic, type, sensor_msgs/Imu)) of the IMU from trajectory time 0 to
+    `end` s (none without a spec); its own noise stream, so the lidar sweeps do not change with it."""
     if spec is None:
         return
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
@@ -178,11 +191,24 @@ def imu_messages(truth: Truth, seed: int, end: float, spec: ImuSpec | None):
     acc_var, gyro_var = (spec.acc_noise**2 * spec.rate_hz, spec.gyro_noise**2 * spec.rate_hz)
     for k in range(len(t)):
         t_ns = T0_NS + int(round(t[k] * 1e9))
-        yield t_ns, imu_message(spec.name, t_ns, acc[k], gyro[k], acc_var, gyro_var)
+        yield t_ns, (IMU_TOPIC, "sensor_msgs/msg/Imu", imu_message(spec.name, t_ns, acc[k], gyro[k], acc_var, gyro_var))
+
+
+def fix_messages(truth: Truth, seed: int, end: float, spec: GnssSpec | None, datum: Datum = DATUM):
+    """Yield (bag time ns, (topic, type, sensor_msgs/NavSatFix)) of the RTK receiver from
+    trajectory time 0 to `end` s (none without a spec); its own noise stream."""
+    if spec is None:
+        return
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 31]))
+    t, lat, lon, alt = gnss_fixes(truth.traj.poses, spec, datum, rng, end)
+    for k in range(len(t)):
+        t_ns = T0_NS + int(round(t[k] * 1e9))
+        yield t_ns, (GNSS_TOPIC, "sensor_msgs/msg/NavSatFix",
+                     navsatfix_message(spec.name, t_ns, lat[k], lon[k], alt[k], spec.sigma_h**2, spec.sigma_v**2))
 
 
 def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | None = None,
-                   imu: ImuSpec | None = None) -> None:
+                   imu: ImuSpec | None = None, gnss: GnssSpec | None = None, datum: Datum = DATUM) -> None:
     """Robot YAML, terrain pair and truth files beside the bag path `out`."""
     specs = specs or lidars_for(truth)
     sidecar(out, "robot.yaml").write_text(yaml.safe_dump(truth.robot.to_dict(), sort_keys=False))
@@ -219,6 +245,8 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
                                 "beams": s.beams, "vfov_deg": s.vfov_deg, "columns": s.columns,
                                 "rate_hz": s.rate_hz} for s in specs},
         "imu": None if imu is None else {"topic": IMU_TOPIC, "parent": "base_link", **asdict(imu)},
+        "gnss": None if gnss is None else {"topic": GNSS_TOPIC, "parent": "base_link", **asdict(gnss)},
+        "datum": asdict(datum.georef()),
     }
     sidecar(out, "truth.json").write_text(json.dumps(meta, indent=1, default=_jsonable))
 
