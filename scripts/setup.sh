@@ -28,6 +28,7 @@ if ! "$PY" -c "
 import pathlib, shutil, sys
 sys.path.pop(0)  # not the current directory: scripts/*.py must find the installed package
 import open3d, rosbags, gymnasium, numba, pytest, xdist, hypothesis, pydantic, ray, sphinx, myst_parser, furo, torchsoil
+import pyproj, rasterio, shapely, geopandas, pyogrio, mcap, mcap_ros2  # export, and its second reader in the tests
 here = pathlib.Path(torchsoil.__file__).resolve().parents[1] == pathlib.Path.cwd().resolve()
 sys.exit(not here or shutil.which("torchsoil") is None)  # the command comes with the install
 " 2>/dev/null; then

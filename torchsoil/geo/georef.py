@@ -28,6 +28,8 @@ from torchsoil.io.gnss import STATUS_FIX, STATUS_GBAS_FIX, Fixes
 RTK_SIGMA = 0.05       # m: a fix whose horizontal standard deviation is larger is not RTK-fixed
 MIN_SPREAD = 2.0       # m: fixes spread less than this along the drive cannot give its heading
 OUTLIER_SIGMAS = 4.0   # a fix further than this many standard deviations from the fit is an outlier
+MAP_SIGMA = 0.01       # m: the trajectory's own error, added to each fix's in that test
+TRIES = 200            # random pairs of fixes tried for the consensus
 
 
 class GeorefError(ValueError):
@@ -94,15 +96,17 @@ class Georef:
 
 
 def utm_epsg(lat: float, lon: float) -> int:
-    """EPSG code of the WGS 84 UTM zone holding (lat, lon) [deg] (the Norway and Svalbard
-    exceptions included, from PROJ's database)."""
-    from pyproj.aoi import AreaOfInterest
-    from pyproj.database import query_utm_crs_info
-
-    info = query_utm_crs_info(datum_name="WGS 84", area_of_interest=AreaOfInterest(lon, lat, lon, lat))
-    if not info:
-        raise GeorefError(f"no UTM zone holds latitude {lat:.6f}, longitude {lon:.6f} (UTM spans 80 S to 84 N)")
-    return int(info[0].code)
+    """EPSG code of the WGS 84 UTM zone holding (lat, lon) [deg], with the grid's exceptions
+    (zone 32V over south-west Norway, zones 31X-37X over Svalbard), which PROJ's database of
+    areas does not draw."""
+    if not (-80.0 <= lat <= 84.0 and -180.0 <= lon <= 180.0):
+        raise GeorefError(f"latitude {lat:.6f}, longitude {lon:.6f} lies outside UTM (80 S to 84 N)")
+    zone = min(int((lon + 180.0) // 6) + 1, 60)
+    if 56.0 <= lat < 64.0 and 3.0 <= lon < 12.0:
+        zone = 32
+    elif 72.0 <= lat and 0.0 <= lon < 42.0:
+        zone = 31 if lon < 9.0 else 33 if lon < 21.0 else 35 if lon < 33.0 else 37
+    return (32600 if lat >= 0 else 32700) + zone
 
 
 def project(epsg: int, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
@@ -204,12 +208,12 @@ def fit_gnss(stamps: np.ndarray, rows: np.ndarray, fixes: Fixes, rtk_sigma: floa
     if spread < MIN_SPREAD:
         raise GeorefError(f"{fixes.topic}: the RTK fixes spread over {spread:.2f} m of the drive, less than "
                           f"{MIN_SPREAD:.0f} m: the map's heading cannot be told from them (a robot standing still?)")
-    keep = np.ones(len(u), dtype=bool)
+    thr = OUTLIER_SIGMAS * np.hypot(sig, MAP_SIGMA)
+    keep = _consensus(a[:, :2], u, k, thr)
     for _ in range(20):
         yaw, t = _procrustes(a[keep, :2], u[keep], 1.0 / sig[keep] ** 2, k)
         r = np.linalg.norm(u - (a[:, :2] @ _rot(yaw, k).T + t), axis=1)
-        mad = 1.4826 * float(np.median(np.abs(r[keep] - np.median(r[keep]))))
-        new = r <= OUTLIER_SIGMAS * np.maximum(sig, mad)
+        new = r <= thr
         if new.sum() < 3 or np.array_equal(new, keep):
             break
         keep = new
@@ -225,6 +229,23 @@ def fit_gnss(stamps: np.ndarray, rows: np.ndarray, fixes: Fixes, rtk_sigma: floa
             f"{int(span.sum() - rtk.sum())} non-RTK fixes left out): residual RMS {100 * rms:.1f} cm, "
             f"yaw sd {math.degrees(yaw_sd):.3f} deg")
     return Georef("gnss", epsg, _wrap(yaw), float(t[0]), float(t[1]), k, up, note, fit)
+
+
+def _consensus(a: np.ndarray, u: np.ndarray, k: float, thr: np.ndarray) -> np.ndarray:
+    """(M,) the fixes that agree with the best of TRIES two-fix fits (a RANSAC start, so that
+    a stretch of jumped fixes cannot pull the first fit); all where none is better."""
+    rng = np.random.default_rng(0)
+    best = np.ones(len(a), dtype=bool)
+    n_best = 0
+    for _ in range(TRIES):
+        i, j = rng.choice(len(a), 2, replace=False)
+        if np.linalg.norm(a[i] - a[j]) < MIN_SPREAD / 2:
+            continue
+        yaw, t = _procrustes(a[[i, j]], u[[i, j]], np.ones(2), k)
+        inl = np.linalg.norm(u - (a @ _rot(yaw, k).T + t), axis=1) <= thr
+        if inl.sum() > n_best:
+            best, n_best = inl, int(inl.sum())
+    return best if n_best >= 3 else np.ones(len(a), dtype=bool)
 
 
 def _status_counts(fixes: Fixes, mask: np.ndarray) -> str:

@@ -8,6 +8,7 @@ and speed). Geometry in the Georef's CRS (none when local), lengths in metres.
 from __future__ import annotations
 
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,9 @@ def write_geopackage(path: str | Path, run: Run, georef: Georef, rut_depth: np.n
 
     def write(name: str, records: list[dict], geoms: list) -> None:
         gdf = gpd.GeoDataFrame(records, geometry=to_crs(geoms), crs=crs)
-        gdf.to_file(path, layer=name, driver="GPKG", engine="pyogrio")
+        with warnings.catch_warnings():   # a local frame has no CRS, and georef.json says so
+            warnings.filterwarnings("ignore", message="'crs' was not provided")
+            gdf.to_file(path, layer=name, driver="GPKG", engine="pyogrio")
 
     rows = run.final_rows()
     if rows:
