@@ -15,7 +15,7 @@ from torchsoil.io.terrain_pair import TerrainPair
 DX = 0.02
 T0 = 1.75e9
 RUT = 0.03
-WHEEL_WIDTH = 0.1
+WHEEL_WIDTH = 0.11                             # no cell centre lies exactly a wheel width from a wheel path
 WHEELS = np.array([[0.3, 0.25, 0], [0.3, -0.25, 1], [-0.3, 0.25, 0], [-0.3, -0.25, 1]], dtype=np.float64)
 CENTRES = [0.4 * k for k in range(1, 9)]      # window centres s, m (the last at 3.2)
 FLAGGED = 1.2                                  # the window whose row carries a flag

@@ -135,3 +135,19 @@ def test_without_gnss_or_anchor_the_maps_stay_local_and_say_so(tmp_path):
         assert src.transform.c == pytest.approx(-1.0 - hb.DX / 2)         # map metres as they are
     assert gpd.read_file(tmp_path / "out" / "soil.gpkg", layer="windows").crs is None
     assert not (tmp_path / "out" / "soil_gridmap").exists()
+
+
+def test_a_geotiff_written_in_small_blocks_equals_the_whole(exported, tmp_path):
+    """Block by block (bounded memory on a long drive) gives the bands of one whole block."""
+    from torchsoil.geo.georef import from_anchor
+    from torchsoil.geo.geotiff import write_geotiff
+    from torchsoil.geo.layers import raster_layers
+
+    run_dir, out, _ = exported
+    run = load_run(run_dir)
+    g = from_anchor(LAT, LON, 90.0, run.pair.poses[0])
+    small = write_geotiff(tmp_path / "small.tif", run.grid, g, layer_units(run),
+                          lambda *b: raster_layers(run, *b), block_cells=64)
+    with rasterio.open(small) as a, rasterio.open(out / "soil.tif") as b:
+        assert a.transform == b.transform
+        np.testing.assert_array_equal(a.read(), b.read())

@@ -13,9 +13,9 @@ import rasterio
 
 from tests.geo import handbuilt as hb
 from torchsoil.geo.georef import Georef
+from torchsoil.jobs.export import export
 from torchsoil.synth.bagwriter import BagWriter, navsatfix_message
 from torchsoil.synth.gnss import Datum
-from torchsoil.jobs.export import export
 
 ANTENNA = np.array([-0.2, 0.0, 0.8])
 DATUM = Datum()

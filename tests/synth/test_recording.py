@@ -46,7 +46,7 @@ def rec(tmp_path_factory):
 
 def test_bag_layout_and_sidecars(rec):
     out, stats, msgs = rec
-    assert set(msgs) == {"/tf_static", "/lidar_front/points", "/lidar_back/points", "/imu/data"}
+    assert set(msgs) == {"/tf_static", "/lidar_front/points", "/lidar_back/points", "/imu/data", "/gnss/fix"}
     assert {m[1] for m in msgs["/lidar_front/points"]} == {"sensor_msgs/msg/PointCloud2"}
     assert len(msgs["/lidar_front/points"]) == len(msgs["/lidar_back/points"]) == 40
     # the truth is beside the bag, never inside it
@@ -295,3 +295,33 @@ def test_organized_clouds_keep_the_beam_image(tmp_path):
         assert 0.3 < np.isnan(p["x"]).mean() < 0.8             # sky and dropouts
     front = [e for e in expected if e[1].name == "lidar_front"]
     assert cloud_points(msgs["/lidar_front/points"][0][2]).tobytes() == front[0][2].tobytes()   # NaN-safe
+
+
+def test_gnss_fixes_are_the_antenna_on_the_datum_with_rtk_noise(rec):
+    """Each fix, projected with pyproj, lies where the datum puts the antenna (base_link's true
+    pose plus the antenna's offset, by hand) within the RTK noise the covariance states."""
+    from pyproj import Transformer
+
+    from torchsoil.synth.truthfile import load_truth
+
+    out, _, msgs = rec
+    truth = load_truth(out)
+    datum, gnss = truth.meta["datum"], truth.meta["gnss"]
+    fixes = [m for _, _, m in msgs["/gnss/fix"]]
+    assert len(fixes) == int(DURATION * gnss["rate_hz"]) + 1
+    assert {f.status.status for f in fixes} == {2} and {f.position_covariance_type for f in fixes} == {2}
+    assert fixes[0].position_covariance[0] == pytest.approx(gnss["sigma_h"] ** 2)
+    t = np.array([f.header.stamp.sec + 1e-9 * f.header.stamp.nanosec for f in fixes]) - truth.t0
+    poses = truth["poses"]
+    x, y, yaw = (np.interp(t, poses[:, 0], poses[:, k]) for k in (1, 2, 6))
+    ax, ay, _ = gnss["xyz"]
+    px, py = x + np.cos(yaw) * ax - np.sin(yaw) * ay, y + np.sin(yaw) * ax + np.cos(yaw) * ay
+    c, s, k = np.cos(datum["yaw"]), np.sin(datum["yaw"]), datum["scale"]
+    want = np.column_stack([datum["east"] + k * (c * px - s * py), datum["north"] + k * (s * px + c * py)])
+    e, n = Transformer.from_crs("EPSG:4326", f"EPSG:{datum['epsg']}", always_xy=True).transform(
+        [f.longitude for f in fixes], [f.latitude for f in fixes])
+    err = np.column_stack([e, n]) - want
+    assert np.abs(err).max() < 5 * gnss["sigma_h"]
+    assert np.std(err) == pytest.approx(gnss["sigma_h"], rel=0.5)
+    tf = {tr.child_frame_id: tr.transform.translation for tr in msgs["/tf_static"][0][2].transforms}
+    assert [tf["gnss_link"].x, tf["gnss_link"].y, tf["gnss_link"].z] == pytest.approx(gnss["xyz"])

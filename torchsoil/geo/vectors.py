@@ -60,9 +60,9 @@ def _segments(xy: np.ndarray, step: float) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True) if b > a]
 
 
-def write_geopackage(path: str | Path, run: Run, georef: Georef, rut_depth: np.ndarray) -> Path:
-    """Write the GeoPackage `path` (module docstring); rut_depth: the run's (X, Y) rut depth
-    layer [m], sampled along the centrelines. Returns path."""
+def write_geopackage(path: str | Path, run: Run, georef: Georef) -> Path:
+    """Write the GeoPackage `path` (module docstring); the rut depth, max(h_front - h_back, 0)
+    [m], is sampled at the cells under each centreline. Returns path."""
     import geopandas as gpd
     import shapely
 
@@ -93,7 +93,8 @@ def write_geopackage(path: str | Path, run: Run, georef: Georef, rut_depth: np.n
         ij = grid.index(xy)
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < grid.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < grid.shape[1])
         depth = np.full(len(xy), np.nan)
-        depth[inside] = rut_depth[ij[inside, 0], ij[inside, 1]]
+        ii, jj = ij[inside, 0], ij[inside, 1]
+        depth[inside] = np.maximum(run.pair.h_front[ii, jj] - run.pair.h_back[ii, jj], 0.0)
         arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
         for a, b in _segments(xy, RUT_STEP):
             d = depth[a:b + 1]

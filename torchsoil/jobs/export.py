@@ -67,10 +67,9 @@ def export(run_path: str | Path, out_dir: str | Path, anchor: tuple[float, float
     out.mkdir(parents=True, exist_ok=True)
     georef.save(out / "georef.json")
     units = layer_units(run)
-    layers = raster_layers(run)
 
-    def block(i0: int, i1: int, j0: int, j1: int) -> dict:
-        return {k: v[i0:i1, j0:j1] for k, v in layers.items()}
+    def block(i0: int, i1: int, j0: int, j1: int) -> dict:   # a block at a time: memory set by the block
+        return raster_layers(run, i0, i1, j0, j1)
 
     lines = [f"warning: {n}" for n in notes] + [f"georeference: {georef.note}"
                                                 + (f" ({georef.crs})" if georef.crs else "")]
@@ -79,9 +78,9 @@ def export(run_path: str | Path, out_dir: str | Path, anchor: tuple[float, float
         written.append(write_geotiff(out / "soil.tif", run.grid, georef, units, block,
                                      tags={"source": str(run.path)}))
     if "gpkg" in formats:
-        written.append(write_geopackage(out / "soil.gpkg", run, georef, layers["rut_depth"]))
+        written.append(write_geopackage(out / "soil.gpkg", run, georef))
     if "mcap" in formats:
-        names = [n for n in (*GRIDMAP_LAYERS, *run.names) if n in layers]
+        names = [n for n in (*GRIDMAP_LAYERS, *run.names) if n in units]
         written.append(write_gridmap_bag(out / "soil_gridmap", run.grid, names, block, run.pair.poses, topic=topic))
     X, Y = run.grid.shape
     lines += [f"wrote {p}" for p in written]
