@@ -5,6 +5,7 @@ DIR/soil.tif        Cloud-Optimized GeoTIFF, one band per layer (torchsoil.geo.g
 DIR/soil.gpkg       GeoPackage: windows, window_visits, ruts, path (torchsoil.geo.vectors)
 DIR/soil_gridmap/   rosbag2 (mcap) of grid_map_msgs/GridMap (torchsoil.geo.gridmap)
 DIR/georef.json     how the map frame was tied to the Earth (torchsoil.geo.georef.Georef)
+DIR/preview.png     the rut depth as a GIS shows it, with the windows and path (torchsoil.geo.preview)
 
 The map frame is tied by, in this order: `anchor` (lat, lon, heading), the run's own
 georef.json, the RTK fixes of the recording the run came from (or `bag`), else it stays a
@@ -82,6 +83,10 @@ def export(run_path: str | Path, out_dir: str | Path, anchor: tuple[float, float
     if "mcap" in formats:
         names = [n for n in (*GRIDMAP_LAYERS, *run.names) if n in units]
         written.append(write_gridmap_bag(out / "soil_gridmap", run.grid, names, block, run.pair.poses, topic=topic))
+    if "geotiff" in formats:
+        from torchsoil.geo.preview import preview
+
+        written.append(preview(out))
     X, Y = run.grid.shape
     lines += [f"wrote {p}" for p in written]
     lines.append(f"exported {len(units)} layers of {X} x {Y} cells ({run.grid.dx:g} m) and "
