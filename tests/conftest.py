@@ -86,3 +86,12 @@ def out_and_back(tmp_path_factory):
     bag = tmp_path_factory.mktemp("out_and_back") / "out_and_back"
     make_recording(OUT_AND_BACK, bag, seed=0)
     return bag, load_truth(bag)
+
+
+@pytest.fixture(scope="session")  # SHARED_FIXTURES: built once
+def out_and_back_pair(out_and_back):
+    """`out_and_back` through the pipeline: (its PipelineResult, the truth)."""
+    from torchsoil.pipeline.run import process_bag
+
+    bag, truth = out_and_back
+    return process_bag(bag, Robot.from_yaml(bag.parent / (bag.name + ".robot.yaml"))), truth

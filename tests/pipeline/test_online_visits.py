@@ -1,4 +1,5 @@
-"""The pipeline on a drive that comes back over its own ruts (tests/conftest.py `out_and_back`):
+"""The pipeline on a drive that comes back over its own ruts (tests/conftest.py `out_and_back`,
+`out_and_back_pair`):
 every visit kept as its own layer, scored against the recorder's truth."""
 
 import numpy as np
@@ -7,14 +8,6 @@ import pytest
 from torchsoil.estimate.visits import visit_counts
 from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.pipeline.outputs import write_outputs
-from torchsoil.pipeline.run import process_bag
-from torchsoil.robot import Robot
-
-
-@pytest.fixture(scope="session")  # tests/conftest.py SHARED_FIXTURES
-def out_and_back_pair(out_and_back):
-    bag, truth = out_and_back
-    return process_bag(bag, Robot.from_yaml(bag.parent / (bag.name + ".robot.yaml"))), truth
 
 
 def on_grid(truth, layer, grid):
