@@ -135,6 +135,7 @@ def test_without_gnss_or_anchor_the_maps_stay_local_and_say_so(tmp_path):
         assert src.transform.c == pytest.approx(-1.0 - hb.DX / 2)         # map metres as they are
     assert gpd.read_file(tmp_path / "out" / "soil.gpkg", layer="windows").crs is None
     assert not (tmp_path / "out" / "soil_gridmap").exists()
+    assert (tmp_path / "out" / "preview.png").stat().st_size > 10_000
 
 
 def test_a_geotiff_written_in_small_blocks_equals_the_whole(exported, tmp_path):

@@ -31,9 +31,12 @@ def preview(export_dir: str | Path, png: str | Path | None = None, band: str = "
         step = max((e1 - e0), (n1 - n0)) / MAX_PIXELS
         step = max(step, math.hypot(src.transform.a, src.transform.d))
         w, h = int(math.ceil((e1 - e0) / step)), int(math.ceil((n1 - n0) / step))
-        img = np.full((h, w), np.nan, np.float32)
-        reproject(rasterio.band(src, b), img, dst_transform=from_origin(e0, n1, step, step), dst_crs=src.crs,
-                  dst_nodata=np.nan, resampling=Resampling.nearest)
+        if src.crs is None:       # a local frame: north up already (no rotation), only resampled
+            img = src.read(b, out_shape=(h, w), resampling=Resampling.nearest)
+        else:
+            img = np.full((h, w), np.nan, np.float32)
+            reproject(rasterio.band(src, b), img, dst_transform=from_origin(e0, n1, step, step), dst_crs=src.crs,
+                      dst_nodata=np.nan, resampling=Resampling.nearest)
         crs = src.crs
         unit = src.tags(b).get("unit", "")
     fig = Figure(figsize=(9, 9 * max(h / w, 0.3) + 1.0), layout="constrained")

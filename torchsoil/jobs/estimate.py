@@ -31,7 +31,7 @@ DEMO = Path("data") / "demo"  # the bundled demo recording, in a source checkout
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
 OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_parameters.png",
            "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "tiles",
-           "trajectory.csv", "passes.npz", "passes.png", "multipass.png")
+           "trajectory.csv", "passes.npz", "passes.png", "multipass.png", "export")
 
 
 def demo_input() -> tuple[Path, Path]:
