@@ -6,7 +6,7 @@ from importlib.metadata import entry_points
 
 from torchsoil.cli import main
 
-SUBCOMMANDS = ("estimate", "process-bag", "diagnose", "record", "rollout", "bench", "settings")
+SUBCOMMANDS = ("estimate", "export", "process-bag", "diagnose", "record", "rollout", "bench", "settings")
 
 
 def run(*args):
@@ -132,3 +132,19 @@ def test_pass_workers_default_to_what_the_cores_and_memory_hold(monkeypatch):
     assert diagnose.pass_workers(None, "local", s) == 1                          # one core: all in this process
     assert diagnose.pass_workers(3, "local", s) == 3
     assert diagnose.pass_workers(None, "ray", s) == 1
+
+
+def test_export_command_anchors_and_refuses_clearly(tmp_path, capsys):
+    from tests.geo import handbuilt
+
+    run = handbuilt.write_run(tmp_path / "run")
+    assert main(["export", str(run), "--out", str(tmp_path / "out"), "--anchor", "47.4,8.55,90",
+                 "--formats", "geotiff"]) == 0
+    assert "EPSG:32632" in capsys.readouterr().out
+    assert main(["export", str(run), "--out", str(tmp_path / "o2"), "--anchor", "47.4,8.55"]) == 2
+    assert "LAT,LON,HEADING_DEG" in capsys.readouterr().err
+    assert main(["export", str(tmp_path / "nothing"), "--out", str(tmp_path / "o3")]) == 2
+    assert "no such run folder" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["export", str(tmp_path / "empty"), "--out", str(tmp_path / "o4")]) == 2
+    assert "holds none of simulated.npz" in capsys.readouterr().err

@@ -18,7 +18,8 @@ import numpy as np
 from torchsoil.geo.georef import Georef
 from torchsoil.grid import Grid
 
-BLOCK = 1024   # cells per side of the blocks computed and written at a time
+BLOCK = 1024    # cells per side of the blocks computed and written at a time
+CACHE_MB = 64   # GDAL's block cache while writing (its default, 5 % of the machine's memory, grows with the file)
 
 
 def write_geotiff(path: str | Path, grid: Grid, georef: Georef, units: dict[str, tuple[str, str]],
@@ -42,7 +43,7 @@ def write_geotiff(path: str | Path, grid: Grid, georef: Georef, units: dict[str,
     if georef.crs is not None:
         profile["crs"] = georef.crs
     names = list(units)
-    with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+    with tempfile.TemporaryDirectory(dir=path.parent) as tmp, rasterio.Env(GDAL_CACHEMAX=CACHE_MB):
         staged = Path(tmp) / "staged.tif"
         with rasterio.open(staged, "w", **profile) as dst:
             for b, name in enumerate(names, 1):
