@@ -144,3 +144,17 @@ def test_the_geotransform_puts_each_pixel_centre_on_its_cell():
 def test_a_saved_georef_reads_back():
     g = Georef("gnss", EPSG, 0.7, E0, N0, 0.9996, UP, "n", {"used": 3})
     assert Georef.load(g.save(__import__("tempfile").mktemp(suffix=".json"))) == g
+
+
+def test_an_antenna_missing_from_tf_is_fitted_where_the_drive_turns():
+    rows = drive()                                          # turns by about 58 deg
+    fx = fixes_along(rows)
+    fx.antenna, fx.antenna_known = np.zeros(3), False
+    g = fit_gnss(rows[:, 0], rows, fx)
+    np.testing.assert_allclose(g.fit["antenna_m"][:2], ANTENNA[:2], atol=0.01)
+    assert abs(g.east - E0) < 0.01 and abs(g.north - N0) < 0.01 and abs(math.degrees(g.yaw - YAW)) < 0.05
+    straight = rows.copy()
+    straight[:, 2], straight[:, 6] = 0.0, 0.0
+    fx = fixes_along(straight)
+    fx.antenna, fx.antenna_known = np.zeros(3), False
+    assert "too little" in fit_gnss(straight[:, 0], straight, fx).note

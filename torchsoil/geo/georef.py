@@ -30,6 +30,7 @@ MIN_SPREAD = 2.0       # m: fixes spread less than this along the drive cannot g
 OUTLIER_SIGMAS = 4.0   # a fix further than this many standard deviations from the fit is an outlier
 MAP_SIGMA = 0.01       # m: the trajectory's own error, added to each fix's in that test
 TRIES = 200            # random pairs of fixes tried for the consensus
+MIN_TURN_DEG = 30.0    # the heading change over the fixes that lets an unknown antenna offset be fitted
 
 
 class GeorefError(ValueError):
@@ -208,8 +209,40 @@ def fit_gnss(stamps: np.ndarray, rows: np.ndarray, fixes: Fixes, rtk_sigma: floa
     if spread < MIN_SPREAD:
         raise GeorefError(f"{fixes.topic}: the RTK fixes spread over {spread:.2f} m of the drive, less than "
                           f"{MIN_SPREAD:.0f} m: the map's heading cannot be told from them (a robot standing still?)")
-    thr = OUTLIER_SIGMAS * np.hypot(sig, MAP_SIGMA)
+    thr = OUTLIER_SIGMAS * np.hypot(sig, MAP_SIGMA if fixes.antenna_known else MAP_SIGMA + 1.0)
     keep = _consensus(a[:, :2], u, k, thr)
+    yaw, t, r, keep = _robust_fit(a, u, sig, k, thr, keep)
+    antenna, lever = np.asarray(fixes.antenna, dtype=np.float64), ""
+    if not fixes.antenna_known:
+        heading = np.interp(fixes.t[rtk], stamps, np.unwrap(rows[:, 6]))
+        turned = float(np.degrees(np.ptp(heading[keep])))
+        if turned >= MIN_TURN_DEG:
+            base = antenna_track(stamps, rows, np.zeros(3), fixes.t[rtk])
+            for _ in range(3):
+                yaw, antenna[:2], t = _lever_arm(base[keep, :2], heading[keep], u[keep], 1.0 / sig[keep] ** 2, k,
+                                                 yaw, t)
+                a = antenna_track(stamps, rows, antenna, fixes.t[rtk])
+                yaw, t, r, keep = _robust_fit(a, u, sig, k, OUTLIER_SIGMAS * np.hypot(sig, MAP_SIGMA), keep)
+            lever = f"; the antenna's offset, missing from TF, fitted at ({antenna[0]:.3f}, {antenna[1]:.3f}) m"
+        else:
+            lever = (f"; the antenna's offset is missing from TF and the drive turned {turned:.0f} deg, too little "
+                     "to fit it: the antenna taken at base_link")
+    w = 1.0 / sig[keep] ** 2
+    up = float(np.sum(w * (fixes.alt[rtk][keep] - a[keep, 2])) / np.sum(w))
+    rms = float(np.sqrt(np.mean(r[keep] ** 2)))
+    yaw_sd = float(np.sqrt(1.0 / np.sum(w * np.sum((a[keep, :2] - a[keep, :2].mean(0)) ** 2, 1))))
+    fit = {"fixes": n_all, "in_drive": int(span.sum()), "rtk": int(rtk.sum()), "used": int(keep.sum()),
+           "outliers": int((~keep).sum()), "residual_rms_m": rms, "residual_max_m": float(r[keep].max()),
+           "yaw_sd_deg": math.degrees(yaw_sd), "spread_m": spread, "antenna_m": [float(v) for v in antenna],
+           "antenna_from_tf": bool(fixes.antenna_known), "topic": fixes.topic}
+    note = (f"fitted to {int(keep.sum())} RTK fixes on {fixes.topic} (of {n_all}; {int((~keep).sum())} outliers and "
+            f"{int(span.sum() - rtk.sum())} non-RTK fixes left out): residual RMS {100 * rms:.1f} cm, "
+            f"yaw sd {math.degrees(yaw_sd):.3f} deg{lever}")
+    return Georef("gnss", epsg, _wrap(yaw), float(t[0]), float(t[1]), k, up, note, fit)
+
+
+def _robust_fit(a, u, sig, k, thr, keep):
+    """Weighted fits, each leaving out the fixes beyond thr of the last, until the set holds."""
     for _ in range(20):
         yaw, t = _procrustes(a[keep, :2], u[keep], 1.0 / sig[keep] ** 2, k)
         r = np.linalg.norm(u - (a[:, :2] @ _rot(yaw, k).T + t), axis=1)
@@ -217,18 +250,28 @@ def fit_gnss(stamps: np.ndarray, rows: np.ndarray, fixes: Fixes, rtk_sigma: floa
         if new.sum() < 3 or np.array_equal(new, keep):
             break
         keep = new
-    w = 1.0 / sig[keep] ** 2
-    up = float(np.sum(w * (fixes.alt[rtk][keep] - a[keep, 2])) / np.sum(w))
-    rms = float(np.sqrt(np.mean(r[keep] ** 2)))
-    yaw_sd = float(np.sqrt(1.0 / np.sum(w * np.sum((a[keep, :2] - a[keep, :2].mean(0)) ** 2, 1))))
-    fit = {"fixes": n_all, "in_drive": int(span.sum()), "rtk": int(rtk.sum()), "used": int(keep.sum()),
-           "outliers": int((~keep).sum()), "residual_rms_m": rms, "residual_max_m": float(r[keep].max()),
-           "yaw_sd_deg": math.degrees(yaw_sd), "spread_m": spread, "antenna_m": [float(v) for v in fixes.antenna],
-           "topic": fixes.topic}
-    note = (f"fitted to {int(keep.sum())} RTK fixes on {fixes.topic} (of {n_all}; {int((~keep).sum())} outliers and "
-            f"{int(span.sum() - rtk.sum())} non-RTK fixes left out): residual RMS {100 * rms:.1f} cm, "
-            f"yaw sd {math.degrees(yaw_sd):.3f} deg")
-    return Georef("gnss", epsg, _wrap(yaw), float(t[0]), float(t[1]), k, up, note, fit)
+    return yaw, t, r, keep
+
+
+def _lever_arm(base: np.ndarray, heading: np.ndarray, u: np.ndarray, w: np.ndarray, k: float, yaw: float,
+               t: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """yaw, the antenna's (x, y) in base_link [m] and t, by weighted Gauss-Newton from (yaw, 0, t):
+    u = k R(yaw) (base + R(heading) a) + t, base (M, 2) base_link in the map, heading (M,) rad."""
+    c, s = np.cos(heading), np.sin(heading)
+    rb = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)             # (M, 2, 2)
+    x = np.array([yaw, 0.0, 0.0, t[0], t[1]])
+    sw = np.sqrt(w)[:, None]
+    for _ in range(10):
+        R, dR = _rot(x[0], k), _rot(x[0] + math.pi / 2, k)                      # dR/dyaw = R(yaw + 90 deg)
+        q = base + np.einsum("mij,j->mi", rb, x[1:3])
+        f = q @ R.T + x[3:] - u
+        J = np.concatenate([(q @ dR.T)[:, :, None], np.einsum("ij,mjk->mik", R, rb),
+                            np.broadcast_to(np.eye(2), (len(u), 2, 2))], 2)      # (M, 2, 5)
+        step, *_ = np.linalg.lstsq((J * sw[:, :, None]).reshape(-1, 5), -(f * sw).reshape(-1), rcond=None)
+        x += step
+        if np.abs(step).max() < 1e-6:
+            break
+    return float(x[0]), x[1:3], x[3:]
 
 
 def _consensus(a: np.ndarray, u: np.ndarray, k: float, thr: np.ndarray) -> np.ndarray:

@@ -30,7 +30,8 @@ class Fixes:
     cov_type: (N,) the message's position_covariance_type; status: (N,) NavSatStatus.status
     (-1 no fix, 0 fix, 1 SBAS, 2 GBAS: RTK drivers report 2); frame: the antenna's frame;
     antenna: (3,) the antenna in base_link, m (zeros when the transforms do not say, with a
-    note in `problems`); topic: where they were read; problems: notes on skipped messages.
+    note in `problems`, and antenna_known False); topic: where they were read; problems: notes
+    on skipped messages.
     """
 
     t: np.ndarray
@@ -44,6 +45,7 @@ class Fixes:
     antenna: np.ndarray
     topic: str
     problems: list[str]
+    antenna_known: bool = True
 
     def __len__(self) -> int:
         return len(self.t)
@@ -107,7 +109,7 @@ def read_fixes(path: str | Path, topic: str = "", base_frame: str = "base_link")
         antenna = frames[frame][:3, 3].copy()
     elif n:
         problems.append(f"{topic}: no transform from {base_frame} to the antenna frame '{frame}' in /tf_static "
-                        "or /tf; the antenna is taken to be at base_link")
+                        "or /tf; the antenna's offset is fitted with the map where the drive turns enough")
     return Fixes(col(0), col(1), col(2), col(3), np.stack([r[4] for r in rows]) if n else np.zeros((0, 3, 3)),
                  np.array([r[5] for r in rows], dtype=np.int64), np.array([r[6] for r in rows], dtype=np.int64),
-                 frame, antenna, topic, problems)
+                 frame, antenna, topic, problems, frame in frames or not n)
