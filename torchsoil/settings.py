@@ -113,7 +113,10 @@ class OnlineConfig(Section):
                                                   "when the fits fall this far behind (bounded memory)")
     spill: bool = Field(True, description="heightmap tiles far from the robot written to OUT/tiles (bounded memory)")
     max_cells: int = Field(3_000_000, ge=1, description="a drive whose terrain pair would hold more cells is left "
-                                                        "as tiles (no terrain_pair.npz, simulated.npz, fig6)")
+                                                        "as tiles (no terrain_pair.npz, simulated.npz, fig6) and "
+                                                        "written as terrain pairs of pieces of the drive")
+    piece_length: float = Field(50.0, gt=0, description="a drive left as tiles: path length of each piece in "
+                                                        "OUT/pieces/ (a terrain pair each, for export), m")
 
 
 class EstimatorConfig(Section):

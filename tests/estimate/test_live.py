@@ -230,3 +230,37 @@ def test_a_run_stopped_inside_a_stretch_resumes_to_the_straight_run(streamed, st
         again = _cli(bag, out, "--resume")
         assert again.wait(timeout=600) == 0, again.stderr.read().decode()[-2000:]
         _same_rows(_rows(out / "params.csv"), full)
+
+
+def test_a_drive_too_long_for_one_pair_is_written_as_pieces_that_export_reads(streamed, tmp_path):
+    """Over estimator.online.max_cells the heightmaps stay as tiles and the drive is written as
+    terrain pairs of piece_length m: consecutive, on one lattice, holding the whole drive's
+    heights (those of the fixture's own run of the pipeline, all but a few cells), and
+    `export` paints the rows over them."""
+    from torchsoil.geo.layers import load_run, raster_layers
+    from torchsoil.io.terrain_pair import TerrainPair
+    from torchsoil.jobs.estimate import estimate
+
+    bag, robot, _, live, _, _ = streamed
+    settings = load_settings(overrides=["pipeline.raster.max_range=8", "estimator.online.max_pending=1",
+                                        "estimator.online.max_cells=1000", "estimator.online.piece_length=4"])
+    out = estimate(bag, tmp_path / "run", settings, robot=robot, tensorboard=False, progress=False)
+    assert not (out / "terrain_pair.npz").exists()
+    pieces = sorted((out / "pieces").glob("piece_*.npz"))
+    assert len(pieces) >= 3
+    arc0 = [float(TerrainPair.load(p).extras["arc0"]) for p in pieces]
+    assert arc0[0] == 0.0 and np.all(np.diff(arc0) == pytest.approx(4.0, abs=0.2))
+    run = load_run(out)
+    whole = live.pipeline.terrain()
+    g, w = run.grid, whole.grid
+    oi, oj = (int(round((w.origin[d] - g.origin[d]) / g.dx)) for d in (0, 1))
+    layers = raster_layers(run)
+    X, Y = w.shape
+    for name in ("h_front", "h_back"):   # the same up to a few cells (0.04 % seen, under 1 mm)
+        mine = layers[name][oi:oi + X, oj:oj + Y]
+        ref = getattr(whole, name)
+        assert mine.shape == ref.shape
+        same = (mine == ref) | (np.isnan(mine) & np.isnan(ref))
+        assert same.mean() > 0.999 and np.nanmax(np.abs(mine - ref)) < 0.002
+    d1 = layers["d1"][oi:oi + X, oj:oj + Y]
+    assert np.isfinite(d1).mean() > 0.3 and np.nanmedian(d1) == pytest.approx(0.03, abs=0.008)

@@ -39,7 +39,8 @@ def write_geotiff(path: str | Path, grid: Grid, georef: Georef, units: dict[str,
     y_top = grid.origin[1] + (Y - 1) * dx + dx / 2
     profile = {"driver": "GTiff", "width": X, "height": Y, "count": len(units), "dtype": "float32",
                "nodata": np.nan, "transform": Affine(*georef.affine(x0, y_top, dx)), "tiled": True,
-               "blockxsize": 256, "blockysize": 256, "compress": "deflate", "BIGTIFF": "IF_SAFER"}
+               "blockxsize": 256, "blockysize": 256, "compress": "deflate", "BIGTIFF": "IF_SAFER",
+               "SPARSE_OK": "TRUE"}
     if georef.crs is not None:
         profile["crs"] = georef.crs
     names = list(units)
@@ -58,12 +59,19 @@ def write_geotiff(path: str | Path, grid: Grid, georef: Georef, units: dict[str,
                 for j0 in range(0, Y, block_cells):
                     i1, j1 = min(i0 + block_cells, X), min(j0 + block_cells, Y)
                     arrays = block(i0, i1, j0, j1)
+                    if _empty(arrays):     # ground the drive never saw (a field's box): left sparse, nodata
+                        continue
                     win = rasterio.windows.Window(i0, Y - j1, i1 - i0, j1 - j0)
                     for b, name in enumerate(names, 1):
                         dst.write(np.ascontiguousarray(arrays[name].T[::-1]).astype(np.float32), b, window=win)
         rio_copy(staged, path, driver="COG", COMPRESS="DEFLATE", PREDICTOR="3", BLOCKSIZE="256",
-                 OVERVIEWS="AUTO", OVERVIEW_RESAMPLING="NEAREST", BIGTIFF="IF_SAFER")
+                 OVERVIEWS="AUTO", OVERVIEW_RESAMPLING="NEAREST", BIGTIFF="IF_SAFER", SPARSE_OK="TRUE")
     return path
+
+
+def _empty(arrays: dict[str, np.ndarray]) -> bool:
+    """No layer holds a finite non-zero value (NaN, or counts and bits of nothing)."""
+    return not any(np.any(np.nan_to_num(a)) for a in arrays.values())
 
 
 def read_layer(path: str | Path, name: str) -> tuple[np.ndarray, tuple]:

@@ -111,6 +111,8 @@ def write_gridmap_bag(path: str | Path, grid: Grid, names: list[str],
             t_ns = max(int(round(t * 1e9)), last + 1)   # strictly increasing stamps
             last = t_ns
             arrays = block(i0, i1, j0, j1)
+            if not any(np.any(np.nan_to_num(a)) for a in arrays.values()):
+                continue          # ground the drive never saw
             msg = gridmap_message(store, sub, {n: arrays[n] for n in names}, frame, t_ns)
             writer.write(conn, t_ns, store.serialize_cdr(msg, GRIDMAP))
     return next(path.glob("*.mcap"))

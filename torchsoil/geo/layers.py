@@ -42,13 +42,16 @@ class RunError(ValueError):
 
 @dataclass
 class Run:
-    """A run's results (module docstring). pair: the terrain pair (grid, poses, wheels);
-    h_sim: (X, Y) simulated H_b or None; passes: (X, Y) wheel passes or None; rows: params.csv
-    rows (dicts of floats and the flags string), empty without a fit; names: the fitted
-    parameters (d1, d2, chi, beta); window: window length, m; corridor: the ground a window
-    fits, m wide; bag: the recording the run came from, when run.json names one that exists."""
+    """A run's results (module docstring). pair: the terrain pair (grid, poses, wheels), or None
+    for a drive written as pieces (`pieces`: each piece's terrain pair file and grid, on the
+    same lattice; `track`: the whole drive's poses (N, 7) from trajectory.csv); h_sim: (X, Y)
+    simulated H_b or None; passes: (X, Y) wheel passes or None; rows: params.csv rows (dicts of
+    floats and the flags string), empty without a fit; names: the fitted parameters (d1, d2,
+    chi, beta); window: window length, m; corridor: the ground a window fits, m wide; bag: the
+    recording the run came from, when run.json names one that exists; arc0: the path length
+    before the pair's first pose (a piece of a longer drive), m."""
 
-    pair: TerrainPair
+    pair: TerrainPair | None
     path: Path
     h_sim: np.ndarray | None = None
     passes: np.ndarray | None = None
@@ -57,10 +60,30 @@ class Run:
     window: float = 0.8
     corridor: float = 3.0
     bag: Path | None = None
+    arc0: float = 0.0
+    pieces: list[tuple[Path, Grid]] = field(default_factory=list)
+    track: np.ndarray | None = None
+    wheels: np.ndarray | None = None
+    wheel_width: float = 0.0
+
+    def __post_init__(self):
+        if self.pair is not None:
+            self.track, self.wheels, self.wheel_width = self.pair.poses, self.pair.wheels, self.pair.wheel_width
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(N, 7) base_link poses t, x, y, z, roll, pitch, yaw of the whole drive."""
+        return self.track
 
     @property
     def grid(self) -> Grid:
-        return self.pair.grid
+        """The run's grid: the pair's, or the lattice box covering every piece."""
+        if self.pair is not None:
+            return self.pair.grid
+        lo = np.min([g.origin for _, g in self.pieces], 0)
+        hi = np.max([np.asarray(g.origin) + (np.asarray(g.shape) - 1) * g.dx for _, g in self.pieces], 0)
+        dx = self.pieces[0][1].dx
+        return Grid(dx, tuple(lo), tuple(int(v) for v in np.round((hi - lo) / dx) + 1))
 
     def final_rows(self) -> list[dict]:
         """Each window's last visit (the row painted on its cells), in order of s."""
@@ -70,6 +93,12 @@ class Run:
             if key not in last or r.get("visit", 0) >= last[key].get("visit", 0):
                 last[key] = r
         return [last[k] for k in sorted(last)]
+
+    def piece(self, k: int) -> Run:
+        """Piece k as a run of its own (its pair, h_sim and arc0; the run's rows)."""
+        pair = TerrainPair.load(self.pieces[k][0])
+        return Run(pair, self.pieces[k][0], h_sim=pair.extras.get("h_sim"), rows=self.rows, names=self.names,
+                   window=self.window, corridor=self.corridor, arc0=float(pair.extras.get("arc0", 0.0)))
 
 
 def load_run(path: str | Path) -> Run:
@@ -82,13 +111,17 @@ def load_run(path: str | Path) -> Run:
     sim = path / "simulated.npz"
     pairs = [sim, path / "terrain_pair.npz", path / "terrain.npz", path / "pipeline" / "terrain.npz"]
     found = next((p for p in pairs if p.is_file()), None)
-    if found is None:
-        tiles = " (its heightmaps were left as tiles in tiles/: a drive longer than estimator.online.max_cells, " \
-                "which export does not read yet)" if (path / "tiles").is_dir() else ""
-        raise RunError(f"{path}: holds none of simulated.npz, terrain_pair.npz, terrain.npz{tiles}")
-    pair = TerrainPair.load(found)
-    run = Run(pair, path, h_sim=pair.extras.get("h_sim"))
-    if found != sim and sim.is_file():
+    pieces = sorted((path / "pieces").glob("piece_*.npz"))
+    if found is None and pieces and (path / "trajectory.csv").is_file():
+        run = _pieces_run(path, pieces)
+    elif found is None:
+        tiles = " (its heightmaps were left as tiles in tiles/ and no pieces/ were written: an estimate of an " \
+                "earlier version; estimate it again)" if (path / "tiles").is_dir() else ""
+        raise RunError(f"{path}: holds none of simulated.npz, terrain_pair.npz, terrain.npz, pieces/{tiles}")
+    else:
+        pair = TerrainPair.load(found)
+        run = Run(pair, path, h_sim=pair.extras.get("h_sim"))
+    if found is not None and found != sim and sim.is_file():
         with np.load(sim) as f:
             run.h_sim = f["h_sim"] if "h_sim" in f.files else None
     if (path / "passes.npz").is_file():
@@ -104,6 +137,21 @@ def load_run(path: str | Path) -> Run:
         bag = Path((rec.get("input") or {}).get("path", ""))
         run.bag = bag if bag.suffix != ".npz" and bag.exists() and str(bag) not in ("", ".") else None
     return run
+
+
+def _pieces_run(path: Path, pieces: list[Path]) -> Run:
+    """A drive written as pieces (jobs.estimate.write_pieces): each piece's grid from its keys,
+    the drive's poses from trajectory.csv, the wheels from the first piece."""
+    grids = []
+    for p in pieces:
+        with np.load(p) as f:
+            grids.append(Grid(float(f["dx"]), tuple(f["origin"]), tuple(int(v) for v in f["grid_shape"])))
+        if len(grids) == 1:
+            with np.load(p) as f:
+                wheels, width = f["wheels"], float(f["wheel_width"])
+    track = np.loadtxt(path / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2)
+    return Run(None, path, pieces=list(zip(pieces, grids, strict=True)), track=track, wheels=wheels,
+               wheel_width=width)
 
 
 def read_params(path: Path) -> tuple[list[dict], list[str]]:
@@ -128,7 +176,7 @@ def _num(v: str) -> float:
 def layer_units(run: Run) -> dict[str, tuple[str, str]]:
     """The layers this run has, in band order: name -> (unit, description)."""
     out = {k: v for k, v in LAYERS.items() if k not in ("h_sim", "residual") or run.rows or k == "h_sim"}
-    if run.h_sim is None:
+    if run.h_sim is None and not run.pieces:
         out.pop("h_sim", None)
     if not run.rows:
         out.pop("residual", None)
@@ -149,11 +197,54 @@ def raster_layers(run: Run, i0: int = 0, i1: int | None = None, j0: int = 0, j1:
     corridor / 2 of the path) whose arc length lies nearer its centre than any other
     window's: the central stride of each window. beta in degrees, as params.csv.
     """
+    X, Y = run.grid.shape
+    i1, j1 = X if i1 is None else i1, Y if j1 is None else j1
+    if run.pieces:
+        return _pieces_layers(run, i0, i1, j0, j1)
+    return _pair_layers(run, i0, i1, j0, j1)
+
+
+def _pieces_layers(run: Run, i0: int, i1: int, j0: int, j1: int) -> dict[str, np.ndarray]:
+    """raster_layers of a drive in pieces: each piece overlapping the block in time order, a
+    later piece's finite values over an earlier's (the last visit's fit), passes added up."""
+    grid = run.grid
+    names = layer_units(run)
+    out = {n: np.full((i1 - i0, j1 - j0), np.nan, np.float32) for n in names}
+    out["passes"][:] = 0.0
+    out["validity"][:] = 0.0
+    fitted = {*run.names, "residual"}
+    for k, (_, g) in enumerate(run.pieces):
+        oi, oj = (int(round((g.origin[d] - grid.origin[d]) / grid.dx)) for d in (0, 1))
+        a0, a1 = max(i0, oi), min(i1, oi + g.shape[0])
+        b0, b1 = max(j0, oj), min(j1, oj + g.shape[1])
+        if a0 >= a1 or b0 >= b1:
+            continue
+        part = _pair_layers(run.piece(k), a0 - oi, a1 - oi, b0 - oj, b1 - oj, joined=k > 0)
+        own = part.pop("_own")   # cells behind a piece's first pose are the piece before's (its fill differs)
+        painted = part.pop("_painted")
+        here = (slice(a0 - i0, a1 - i0), slice(b0 - j0, b1 - j0))
+        for n in names:
+            was = out[n][here]
+            if n in fitted:       # a window's values, NaN ones too, over an earlier piece's on its ground
+                out[n][here] = np.where(painted, part[n], was)
+            elif n == "passes":
+                out[n][here] += np.nan_to_num(part[n])
+            elif n == "validity":   # a later fit's bits over an earlier's
+                out[n][here] = np.where(own & (part[n] > 0), part[n], np.maximum(was, part[n]))
+            elif n in part:
+                take = np.isfinite(part[n]) & (own | np.isnan(was))
+                out[n][here] = np.where(take, part[n], was)
+    return out
+
+
+def _pair_layers(run: Run, i0: int, i1: int, j0: int, j1: int, joined: bool | None = None
+                 ) -> dict[str, np.ndarray]:
+    """raster_layers on a pair. joined (a piece of a longer drive; None: not a piece): whether
+    it continues a piece before it, whose cells (nearest the first pose) it leaves unpainted;
+    a piece's layers then come with `_own`, the cells it speaks for over earlier pieces."""
     from torchsoil.estimate.windows import path_index
 
     p = run.pair
-    X, Y = p.h_front.shape
-    i1, j1 = X if i1 is None else i1, Y if j1 is None else j1
     sub = p.grid.crop(i0, i1, j0, j1)
     hf, hb = p.h_front[i0:i1, j0:j1].astype(np.float32), p.h_back[i0:i1, j0:j1].astype(np.float32)
     robot = p.robot
@@ -169,11 +260,12 @@ def raster_layers(run: Run, i0: int = 0, i1: int | None = None, j0: int = 0, j1:
         out["h_sim"] = run.h_sim[i0:i1, j0:j1].astype(np.float32)
     measured = np.isfinite(hf) & np.isfinite(hb)
     validity = measured.astype(np.float32)
+    interior = ~(index.s <= 0.0) if joined else np.ones(index.s.shape, dtype=bool)
     rows = run.final_rows()
     if rows:
         centres = np.array([r["s"] for r in rows])
-        s = index.s
-        ok = np.isfinite(s) & (index.offset <= run.corridor / 2)
+        s = index.s + run.arc0
+        ok = np.isfinite(s) & (index.offset <= run.corridor / 2) & interior
         k = np.clip(np.searchsorted(centres, np.where(ok, s, 0.0)), 1, len(centres)) if len(centres) > 1 else \
             np.zeros(s.shape, np.int64)
         if len(centres) > 1:
@@ -186,7 +278,27 @@ def raster_layers(run: Run, i0: int = 0, i1: int | None = None, j0: int = 0, j1:
         flagged = np.array([bool(str(r.get("flags", "") or "").strip()) for r in rows])
         validity += 2.0 * ok + 4.0 * (ok & flagged[k])
     out["validity"] = validity.astype(np.float32)
-    return {name: out[name] for name in layer_units(run)}
+    layers = {name: out[name] for name in layer_units(run)}
+    if joined is not None:
+        layers["_own"] = interior
+        layers["_painted"] = ok if rows else np.zeros(interior.shape, dtype=bool)
+    return layers
+
+
+def rut_depth_at(run: Run, xy: np.ndarray) -> np.ndarray:
+    """(M,) max(h_front - h_back, 0) [m] at the cells under the (M, 2) map points (NaN outside
+    the measured ground); a drive in pieces is read a piece at a time."""
+    out = np.full(len(xy), np.nan)
+    for pair in ([run.pair] if run.pair is not None else (run.piece(k).pair for k in range(len(run.pieces)))):
+        ij = pair.grid.index(xy)
+        X, Y = pair.h_front.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < X) & (ij[:, 1] >= 0) & (ij[:, 1] < Y)
+        ii, jj = ij[inside, 0], ij[inside, 1]
+        d = np.maximum(pair.h_front[ii, jj] - pair.h_back[ii, jj], 0.0)
+        idx = np.flatnonzero(inside)
+        fin = np.isfinite(d)
+        out[idx[fin]] = d[fin]
+    return out
 
 
 def _wheel_passes(pair: TerrainPair, sub: Grid) -> np.ndarray:

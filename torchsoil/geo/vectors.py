@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from torchsoil.geo.georef import Georef
-from torchsoil.geo.layers import Run
+from torchsoil.geo.layers import Run, rut_depth_at
 
 RUT_STEP = 0.2    # m: the rut centrelines in segments of this length
 PATH_STEP = 0.25  # m: the path likewise
@@ -35,7 +35,7 @@ def window_polygons(run: Run, rows: list[dict]) -> list:
 def _path_line(run: Run):
     import shapely
 
-    xy = run.pair.poses[:, 1:3]
+    xy = run.poses[:, 1:3]
     keep = np.r_[True, np.linalg.norm(np.diff(xy, axis=0), axis=1) > 1e-6]
     return shapely.LineString(xy[keep])
 
@@ -43,12 +43,11 @@ def _path_line(run: Run):
 def track_lines(run: Run) -> dict[int, np.ndarray]:
     """Each track's centreline in the map, (M, 2) per track: the mean contact point of the
     track's wheels along the poses, m."""
-    p = run.pair
-    poses = p.poses
+    poses, wheels = run.poses, run.wheels
     out = {}
     c, s = np.cos(poses[:, 6]), np.sin(poses[:, 6])
-    for track in np.unique(p.wheels[:, 2]).astype(int):
-        wx, wy = p.wheels[p.wheels[:, 2] == track, :2].mean(0)
+    for track in np.unique(wheels[:, 2]).astype(int):
+        wx, wy = wheels[wheels[:, 2] == track, :2].mean(0)
         out[track] = np.column_stack([poses[:, 1] + c * wx - s * wy, poses[:, 2] + s * wx + c * wy])
     return out
 
@@ -87,23 +86,18 @@ def write_geopackage(path: str | Path, run: Run, georef: Georef) -> Path:
         write("windows", [{c: r.get(c) for c in cols} for r in rows], window_polygons(run, rows))
         if len(run.rows) > len(rows):
             write("window_visits", [{c: r.get(c) for c in cols} for r in run.rows], window_polygons(run, run.rows))
-    grid = run.grid
     records, geoms = [], []
     for track, xy in track_lines(run).items():
-        ij = grid.index(xy)
-        inside = (ij[:, 0] >= 0) & (ij[:, 0] < grid.shape[0]) & (ij[:, 1] >= 0) & (ij[:, 1] < grid.shape[1])
-        depth = np.full(len(xy), np.nan)
-        ii, jj = ij[inside, 0], ij[inside, 1]
-        depth[inside] = np.maximum(run.pair.h_front[ii, jj] - run.pair.h_back[ii, jj], 0.0)
+        depth = rut_depth_at(run, xy)
         arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
         for a, b in _segments(xy, RUT_STEP):
             d = depth[a:b + 1]
             records.append({"track": track, "s_start": float(arc[a]), "s_end": float(arc[b]),
                             "depth_m": float(np.nanmedian(d)) if np.isfinite(d).any() else math.nan,
-                            "t_start": float(run.pair.poses[a, 0]), "t_end": float(run.pair.poses[b, 0])})
+                            "t_start": float(run.poses[a, 0]), "t_end": float(run.poses[b, 0])})
             geoms.append(shapely.LineString(xy[a:b + 1]))
     write("ruts", records, geoms)
-    poses = run.pair.poses
+    poses = run.poses
     xy = poses[:, 1:3]
     arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))]
     records, geoms = [], []

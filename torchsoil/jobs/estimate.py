@@ -31,7 +31,7 @@ DEMO = Path("data") / "demo"  # the bundled demo recording, in a source checkout
 SAVE_EVERY = 10  # windows between rewrites of simulated.npz
 OUTPUTS = ("params.csv", "reference.csv", "simulated.npz", "summary.md", "fig4_parameters.png",
            "fig6_difference_maps.png", "tensorboard", "terrain_pair.npz", "terrain_pair.json", "pipeline", "tiles",
-           "trajectory.csv", "passes.npz", "passes.png", "multipass.png", "export")
+           "trajectory.csv", "passes.npz", "passes.png", "multipass.png", "export", "pieces")
 
 
 def demo_input() -> tuple[Path, Path]:
@@ -212,10 +212,13 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
 
         np.savetxt(out / "trajectory.csv", poses_to_rows(stamps, poses), delimiter=",", fmt="%.9f",
                    header="t,x,y,z,roll,pitch,yaw", comments="")
+        n = write_pieces(live.pipeline, sims, out / "pieces", e.online.piece_length, e.front_smoothing)
         meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
                            f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
                            "(torchsoil.pipeline.raster.Tiles) and the simulated change stitched over windows "
-                           "in tiles/sim (estimate.tiles.SimTiles), not assembled into one terrain pair")
+                           f"in tiles/sim (estimate.tiles.SimTiles), and written as {n} terrain pairs of "
+                           f"{e.online.piece_length:g} m of the drive each in pieces/ (`torchsoil export` reads "
+                           "them), not assembled into one")
     figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
 
 
@@ -238,6 +241,36 @@ def _finish_whole(live, bag: Path, out: Path, settings: Settings, sims: SimTiles
     h_sim = (est.h_start + stitch_tiles(pair, sims)).astype(np.float32)   # each window's change on the final H_f
     save_simulated(out / "simulated.npz", pair, h_sim)
     figures.difference_maps(pair, est.h_start, h_sim, rows, out / "fig6_difference_maps.png", h_back=est.h_back)
+
+
+def write_pieces(pipeline, sims: SimTiles, folder: Path, length: float, front_smoothing: float) -> int:
+    """The drive's terrain as pieces of `length` m of its path, one at a time (bounded memory):
+    folder/piece_NNN.npz, each a terrain pair (docs/formats.md section 3) of its stretch with
+    extras h_sim (the simulated H_b, as simulated.npz), arc0 (the path length before the
+    piece's first pose, m) and grid_shape; returns how many. Cells near a piece's ends are in
+    the next piece too, with the same values (both from the drive's tiles)."""
+    import shutil
+
+    from torchsoil.estimate.windows import path_arc, smooth_heightmap
+    from torchsoil.io.trajectory import poses_to_rows
+
+    if folder.exists():
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True)
+    stamps, poses = pipeline.trajectory()
+    arc = path_arc(poses_to_rows(stamps, poses))
+    cuts = np.unique(np.r_[np.searchsorted(arc, np.arange(0.0, arc[-1], length)), len(arc) - 1])
+    for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:], strict=True)):
+        piece = pipeline.terrain(stamps[a], stamps[b])
+        h_sim = smooth_heightmap(np.asarray(piece.h_front, np.float64), front_smoothing) + stitch_tiles(piece, sims)
+        keep = {"h_sim": h_sim.astype(np.float32), "arc0": np.float64(arc[a]),
+                "grid_shape": np.asarray(piece.h_front.shape, np.int64)}
+        TerrainPair(piece.dx, piece.origin, piece.h_front, piece.h_back, piece.poses, piece.wheels, piece.wheel_width,
+                    piece.wheel_flat_fraction, keep, visit_front=piece.visit_front, visit_back=piece.visit_back,
+                    visit_time=piece.visit_time).save(folder / f"piece_{k:03d}.npz")
+        del piece, h_sim
+        release()
+    return len(cuts) - 1
 
 
 def _param_names(robot: Robot) -> list[str]:

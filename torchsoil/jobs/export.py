@@ -32,7 +32,7 @@ def resolve_georef(run: Run, anchor: tuple[float, float, float] | None = None, b
     """The run's Georef (module docstring) and what was said on the way (bad GNSS, no GNSS)."""
     notes: list[str] = []
     if anchor is not None:
-        return from_anchor(*anchor, run.pair.poses[0]), notes
+        return from_anchor(*anchor, run.poses[0]), notes
     own = run.path / "georef.json" if run.path.is_dir() else None
     if own is not None and own.is_file() and bag is None:
         return Georef.load(own), notes
@@ -46,7 +46,7 @@ def resolve_georef(run: Run, anchor: tuple[float, float, float] | None = None, b
         return Georef.local(f"{bag} has no sensor_msgs/NavSatFix topic; give --anchor LAT,LON,HEADING_DEG"), notes
     notes += fixes.problems
     try:
-        g = fit_gnss(run.pair.poses[:, 0], run.pair.poses, fixes)
+        g = fit_gnss(run.poses[:, 0], run.poses, fixes)
     except GeorefError as e:
         notes.append(f"GNSS not used: {e}")
         return Georef.local(str(e)), notes
@@ -82,7 +82,7 @@ def export(run_path: str | Path, out_dir: str | Path, anchor: tuple[float, float
         written.append(write_geopackage(out / "soil.gpkg", run, georef))
     if "mcap" in formats:
         names = [n for n in (*GRIDMAP_LAYERS, *run.names) if n in units]
-        written.append(write_gridmap_bag(out / "soil_gridmap", run.grid, names, block, run.pair.poses, topic=topic))
+        written.append(write_gridmap_bag(out / "soil_gridmap", run.grid, names, block, run.poses, topic=topic))
     if "geotiff" in formats:
         from torchsoil.geo.preview import preview
 
