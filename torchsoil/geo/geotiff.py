@@ -18,7 +18,7 @@ import numpy as np
 from torchsoil.geo.georef import Georef
 from torchsoil.grid import Grid
 
-BLOCK = 1024    # cells per side of the blocks computed and written at a time
+BLOCK = 512     # cells per side of the blocks computed and written at a time
 CACHE_MB = 64   # GDAL's block cache while writing (its default, 5 % of the machine's memory, grows with the file)
 
 
@@ -72,6 +72,19 @@ def write_geotiff(path: str | Path, grid: Grid, georef: Georef, units: dict[str,
 def _empty(arrays: dict[str, np.ndarray]) -> bool:
     """No layer holds a finite non-zero value (NaN, or counts and bits of nothing)."""
     return not any(np.any(np.nan_to_num(a)) for a in arrays.values())
+
+
+def read_block(path: str | Path, names: list[str], i0: int, i1: int, j0: int, j1: int) -> dict[str, np.ndarray]:
+    """Bands `names` of cells [i0:i1, j0:j1] of an exported GeoTIFF, (i1-i0, j1-j0) float32 each,
+    in the run's orientation (a block read back, for the other formats)."""
+    import rasterio
+    from rasterio.windows import Window
+
+    with rasterio.open(path) as src:
+        H = src.height
+        bands = [list(src.descriptions).index(n) + 1 for n in names]
+        data = src.read(bands, window=Window(i0, H - j1, i1 - i0, j1 - j0))
+    return {n: np.ascontiguousarray(d[::-1].T) for n, d in zip(names, data, strict=True)}
 
 
 def read_layer(path: str | Path, name: str) -> tuple[np.ndarray, tuple]:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-MAX_PIXELS = 1600   # the warped image's longer side
+MAX_PIXELS = 900    # the warped image's longer side (about the figure's own pixels)
 
 
 def preview(export_dir: str | Path, png: str | Path | None = None, band: str = "rut_depth") -> Path:
@@ -18,7 +18,7 @@ def preview(export_dir: str | Path, png: str | Path | None = None, band: str = "
     import geopandas as gpd
     import rasterio
     from matplotlib.figure import Figure
-    from rasterio.transform import from_origin
+    from rasterio.transform import Affine, from_origin
     from rasterio.warp import Resampling, reproject
 
     export_dir = Path(export_dir)
@@ -33,10 +33,15 @@ def preview(export_dir: str | Path, png: str | Path | None = None, band: str = "
         w, h = int(math.ceil((e1 - e0) / step)), int(math.ceil((n1 - n0) / step))
         if src.crs is None:       # a local frame: north up already (no rotation), only resampled
             img = src.read(b, out_shape=(h, w), resampling=Resampling.nearest)
-        else:
+        else:                     # decimated first (from the overviews), so memory is set by the picture
+            f = max(1, math.ceil(max(src.width, src.height) / MAX_PIXELS))
+            small = src.read(b, out_shape=(math.ceil(src.height / f), math.ceil(src.width / f)),
+                             resampling=Resampling.nearest)
+            at = src.transform * Affine.scale(src.width / small.shape[1], src.height / small.shape[0])
             img = np.full((h, w), np.nan, np.float32)
-            reproject(rasterio.band(src, b), img, dst_transform=from_origin(e0, n1, step, step), dst_crs=src.crs,
-                      dst_nodata=np.nan, resampling=Resampling.nearest)
+            reproject(small, img, src_transform=at, src_crs=src.crs, src_nodata=np.nan,
+                      dst_transform=from_origin(e0, n1, step, step), dst_crs=src.crs, dst_nodata=np.nan,
+                      resampling=Resampling.nearest)
         crs = src.crs
         unit = src.tags(b).get("unit", "")
     fig = Figure(figsize=(9, 9 * max(h / w, 0.3) + 1.0), layout="constrained")

@@ -14,11 +14,12 @@ local engineering frame, said in georef.json, the GeoTIFF's tags and the returne
 
 from __future__ import annotations
 
+import tempfile
 import time
 from pathlib import Path
 
 from torchsoil.geo.georef import Georef, GeorefError, fit_gnss, from_anchor
-from torchsoil.geo.geotiff import write_geotiff
+from torchsoil.geo.geotiff import read_block, write_geotiff
 from torchsoil.geo.gridmap import write_gridmap_bag
 from torchsoil.geo.layers import Run, layer_units, load_run, raster_layers
 from torchsoil.geo.vectors import write_geopackage
@@ -75,18 +76,22 @@ def export(run_path: str | Path, out_dir: str | Path, anchor: tuple[float, float
     lines = [f"warning: {n}" for n in notes] + [f"georeference: {georef.note}"
                                                 + (f" ({georef.crs})" if georef.crs else "")]
     written = []
-    if "geotiff" in formats:
-        written.append(write_geotiff(out / "soil.tif", run.grid, georef, units, block,
-                                     tags={"source": str(run.path)}))
-    if "gpkg" in formats:
-        written.append(write_geopackage(out / "soil.gpkg", run, georef))
-    if "mcap" in formats:
-        names = [n for n in (*GRIDMAP_LAYERS, *run.names) if n in units]
-        written.append(write_gridmap_bag(out / "soil_gridmap", run.grid, names, block, run.poses, topic=topic))
-    if "geotiff" in formats:
-        from torchsoil.geo.preview import preview
+    with tempfile.TemporaryDirectory(dir=out) as tmp:
+        # the layers are computed once, block by block, into the GeoTIFF; the other formats read it back
+        tif = out / "soil.tif" if "geotiff" in formats else Path(tmp) / "soil.tif"
+        write_geotiff(tif, run.grid, georef, units, block, tags={"source": str(run.path)})
+        if "geotiff" in formats:
+            written.append(tif)
+        if "gpkg" in formats:
+            written.append(write_geopackage(out / "soil.gpkg", run, georef))
+        if "geotiff" in formats:     # after the GeoPackage, whose windows and path it draws
+            from torchsoil.geo.preview import preview
 
-        written.append(preview(out))
+            written.append(preview(out))
+        if "mcap" in formats:
+            names = [n for n in (*GRIDMAP_LAYERS, *run.names) if n in units]
+            written.append(write_gridmap_bag(out / "soil_gridmap", run.grid, names,
+                                             lambda *b: read_block(tif, names, *b), run.poses, topic=topic))
     X, Y = run.grid.shape
     lines += [f"wrote {p}" for p in written]
     lines.append(f"exported {len(units)} layers of {X} x {Y} cells ({run.grid.dx:g} m) and "
