@@ -30,7 +30,7 @@ sys.path.pop(0)  # not the current directory: scripts/*.py must find the install
 import open3d, rosbags, gymnasium, numba, pytest, xdist, hypothesis, pydantic, ray, sphinx, myst_parser, furo, torchsoil
 import pyproj, rasterio, shapely, geopandas, pyogrio, mcap, mcap_ros2  # export, and its second reader in the tests
 here = pathlib.Path(torchsoil.__file__).resolve().parents[1] == pathlib.Path.cwd().resolve()
-sys.exit(not here or shutil.which("torchsoil") is None)  # the command comes with the install
+sys.exit(not here or shutil.which('torchsoil') is None)  # the command comes with the install
 " 2>/dev/null; then
   echo "[setup] installing torchsoil and its dependencies (with Ray and the manual's tools: extras fleet, docs)"
   "$PY" -m pip install -q -e ".[dev,fleet,docs]"
