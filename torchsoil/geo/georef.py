@@ -218,7 +218,7 @@ def fit_gnss(stamps: np.ndarray, rows: np.ndarray, fixes: Fixes, rtk_sigma: floa
         turned = float(np.degrees(np.ptp(heading[keep])))
         if turned >= MIN_TURN_DEG:
             base = antenna_track(stamps, rows, np.zeros(3), fixes.t[rtk])
-            for _ in range(3):
+            for _ in range(3):   # the offset for the fixes kept, then the fixes kept for the offset
                 yaw, antenna[:2], t = _lever_arm(base[keep, :2], heading[keep], u[keep], 1.0 / sig[keep] ** 2, k,
                                                  yaw, t)
                 a = antenna_track(stamps, rows, antenna, fixes.t[rtk])
@@ -230,7 +230,7 @@ def fit_gnss(stamps: np.ndarray, rows: np.ndarray, fixes: Fixes, rtk_sigma: floa
     w = 1.0 / sig[keep] ** 2
     up = float(np.sum(w * (fixes.alt[rtk][keep] - a[keep, 2])) / np.sum(w))
     rms = float(np.sqrt(np.mean(r[keep] ** 2)))
-    yaw_sd = float(np.sqrt(1.0 / np.sum(w * np.sum((a[keep, :2] - a[keep, :2].mean(0)) ** 2, 1))))
+    yaw_sd = float(np.sqrt(1.0 / np.sum(w * np.sum((k * (a[keep, :2] - a[keep, :2].mean(0))) ** 2, 1))))
     fit = {"fixes": n_all, "in_drive": int(span.sum()), "rtk": int(rtk.sum()), "used": int(keep.sum()),
            "outliers": int((~keep).sum()), "residual_rms_m": rms, "residual_max_m": float(r[keep].max()),
            "yaw_sd_deg": math.degrees(yaw_sd), "spread_m": spread, "antenna_m": [float(v) for v in antenna],
