@@ -141,9 +141,9 @@ def test_the_geotransform_puts_each_pixel_centre_on_its_cell():
     assert math.hypot(a, d) == pytest.approx(0.9996 * dx)
 
 
-def test_a_saved_georef_reads_back():
+def test_a_saved_georef_reads_back(tmp_path):
     g = Georef("gnss", EPSG, 0.7, E0, N0, 0.9996, UP, "n", {"used": 3})
-    assert Georef.load(g.save(__import__("tempfile").mktemp(suffix=".json"))) == g
+    assert Georef.load(g.save(tmp_path / "georef.json")) == g
 
 
 def test_an_antenna_missing_from_tf_is_fitted_where_the_drive_turns():

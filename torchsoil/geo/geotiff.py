@@ -93,5 +93,5 @@ def read_layer(path: str | Path, name: str) -> tuple[np.ndarray, tuple]:
     import rasterio
 
     with rasterio.open(path) as src:
-        b = list(src.descriptions).index(name) + 1
-        return np.ascontiguousarray(src.read(b)[::-1].T), tuple(src.transform)[:6]
+        X, Y, transform = src.width, src.height, tuple(src.transform)[:6]
+    return read_block(path, [name], 0, X, 0, Y)[name], transform

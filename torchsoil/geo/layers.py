@@ -175,7 +175,7 @@ def _num(v: str) -> float:
 
 def layer_units(run: Run) -> dict[str, tuple[str, str]]:
     """The layers this run has, in band order: name -> (unit, description)."""
-    out = {k: v for k, v in LAYERS.items() if k not in ("h_sim", "residual") or run.rows or k == "h_sim"}
+    out = dict(LAYERS)
     if run.h_sim is None and not run.pieces:
         out.pop("h_sim", None)
     if not run.rows:
