@@ -77,6 +77,9 @@ class LiveEstimator:
         self.fitter = WindowFitter(settings)
         self.pending: list[tuple] = []     # (future, pair) of the stretches queued or being fitted, in order
         self.worker: ThreadPoolExecutor | None = None   # with estimator.online.worker=thread
+        self.clock = time.perf_counter     # when a window became ready (a node: the sweep's arrival)
+        self.when_behind = "wait"          # fits max_pending behind: "wait" for them, or "skip" the new windows
+        self.skipped = 0                   # windows skipped because the fits were behind
 
     # ---------------------------------------------------------------- input
     def add_message(self, topic: str, msg, msgtype: str = "sensor_msgs/msg/PointCloud2") -> None:
@@ -111,30 +114,41 @@ class LiveEstimator:
         (with `final`: all that are left) is cut out and queued for fitting; with
         `estimator.online.worker` = thread (the default) the fitting runs on a worker thread while the caller feeds
         the next sweeps, and its windows come out of a later call (`finish` waits for them all)."""
-        job = self._job(final)
-        if job is not None:
+        out = self._collect(final=False)
+        full = len(self.pending) >= self.settings.estimator.online.max_pending
+        skip = full and self.when_behind == "skip" and not final
+        job = self._job(final, skip)
+        if job is not None and skip:
+            out += self._skipped(job[5])
+        elif job is not None:
             if self.settings.estimator.online.worker == "none":
                 done = Future()
                 done.set_result(self.fitter(*job))
                 self.pending.append((done, job[0]))
             else:
-                if len(self.pending) >= self.settings.estimator.online.max_pending:
+                if full:
                     wait([self.pending[0][0]])      # bounded queue: the oldest stretch first (taken below)
                 if self.worker is None:
                     self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit")
                 self.pending.append((self.worker.submit(self.fitter, *job), job[0]))
+        out += self._collect(final)
+        now = time.perf_counter()
+        return [w._replace(done=now) for w in out]
+
+    def _collect(self, final: bool) -> list[LiveWindow]:
+        """The windows of the stretches fitted so far, in order (with `final`: all, waiting)."""
         out = []
         while self.pending and (final or self.pending[0][0].done()):
             future, pair = self.pending.pop(0)
             out += [w._replace(pair=pair) for w in future.result()]   # a failed fit raises here
-        now = time.perf_counter()
-        return [w._replace(done=now) for w in out]
+        return out
 
-    def _job(self, final: bool) -> tuple | None:
+    def _job(self, final: bool, skip: bool = False) -> tuple | None:
         """The WindowFitter arguments of the windows whose ground became complete (the stretch cut
         out of the tiles, its first pose's arc length along the drive, the indices along the drive
         of its windows, the first and last to fit, when each became ready, the warm start of a
-        resumed run); None when there are none."""
+        resumed run); None when there are none. With `skip`, nothing is cut out: only the
+        windows' ready times (argument 5) count, the rest is None."""
         pipe, e = self.pipeline, self.settings.estimator
         if pipe.L is None or pipe.mapper is None or (not final and pipe.ground_stamp == self.polled):
             return None   # no new ground since the last call: nothing can have become ready
@@ -150,11 +164,15 @@ class LiveEstimator:
             last = int(math.floor((done_arc - 2 * e.window) / e.stride + 1e-9))
         if last < self.next:
             return None
-        now = time.perf_counter()
+        now = self.clock()
         for k in range(self.next, last + 1):
             self.ready_at.setdefault(k, now)
         if not final and last - self.next + 1 < e.online.batch:
             return None   # wait for a few: each stretch cut out and indexed costs as much as a fit
+        if skip:
+            ready = {k: self.ready_at.pop(k, now) for k in range(self.next, last + 1) if k >= self.skip}
+            self.next = last + 1
+            return (None, None, None, None, None, ready, None) if ready else None
         a0 = max(0.0, self.next * e.stride - e.online.context)
         a1 = min(arc[-1], (last * e.stride + 2 * e.window) + self.reach + 0.5)   # + poses past it
         t0, t1 = np.interp([a0, a1], arc, stamps)
@@ -173,6 +191,20 @@ class LiveEstimator:
         if not take:
             return None
         return pair, arc0, index, take[0], take[-1], {k: ready[k] for k in take}, self.last_row
+
+    def _skipped(self, ready: dict[int, float]) -> list[LiveWindow]:
+        """Windows `ready` (index -> when its ground was complete) as skipped (no fit: the fits
+        are max_pending stretches behind): rows with NaN parameters, flag `skipped_behind`. The
+        next fitted window starts from the last fit, as after any gap."""
+        e = self.settings.estimator
+        now = time.perf_counter()
+        out = []
+        for k in sorted(ready):
+            self.skipped += 1
+            row = {"s": k * e.stride + e.window / 2, "visit": 0, "flags": "skipped_behind", "iterations": 0}
+            out.append(LiveWindow(k, WindowOutput(row, {"signal": math.nan, "floor": math.nan}, None, None, None),
+                                  None, ready[k], now))
+        return out
 
     def resume(self, rows: list[dict]) -> None:
         """Continue after the windows of `rows` (params.csv rows of an interrupted run, in order):
