@@ -657,6 +657,26 @@ class FleetConfig(Section):
                                               "error raised by the task is not retried; rerun the command), -")
 
 
+# ---------------------------------------------------------------------------- on the robot
+class NodeConfig(Section):
+    """The live ROS node (torchsoil.node): what it publishes and how it stays bounded."""
+
+    queue: int = Field(10, ge=1, description="sweeps of each lidar waiting to be processed at most; the oldest is "
+                                            "dropped (and said on /diagnostics) when the pipeline falls behind")
+    map_rate: float = Field(1.0, ge=0, description="terrain near the robot published this often, Hz (0: never)")
+    map_length: float = Field(6.0, gt=0, description="path behind the robot the published terrain covers, m")
+    map_frame: str = Field("soil_map", description="frame of the published soil and terrain (the pipeline's map)")
+    publish_tf: bool = Field(True, description="publish map_frame on /tf as a child of pipeline.read.base_frame")
+    rut_full: float = Field(0.05, gt=0, description="rut depth shown as 100 in the OccupancyGrid, m")
+    gridmap: Literal["auto", "on", "off"] = Field(
+        "auto", description="publish grid_map_msgs/GridMap: auto where the ROS 2 package is installed")
+    diagnostics_rate: float = Field(1.0, gt=0, description="/diagnostics published this often, Hz")
+    silence: float = Field(1.0, gt=0, description="a lidar silent this long is a warning on /diagnostics, s")
+    clock_jump: float = Field(1.0, gt=0, description="a lidar stamp this far before the last ends the drive "
+                                                     "(a bag played again) and begins a new one, s")
+    tensorboard: bool = Field(True, description="TensorBoard logs in the run folder, as `estimate`")
+
+
 # ---------------------------------------------------------------------------- the tree
 class Settings(Section):
     """All of torchsoil's settings, one section per part."""
@@ -669,6 +689,7 @@ class Settings(Section):
     synth: SynthConfig = SynthConfig()
     fleet: FleetConfig = Field(FleetConfig(), description="per task of a many-recordings run: cpus_per_task "
                                                           "cores, memory_mb_per_task MiB, retries")
+    node: NodeConfig = Field(NodeConfig(), description="the live ROS node: queues, published terrain, diagnostics")
 
     def to_yaml(self, sections: Iterable[str] | None = None) -> str:
         """The settings as YAML, each leaf with its description (unit) as a comment."""

@@ -154,76 +154,109 @@ def _estimate_live(bag: Path, robot: Robot, out: Path, settings: Settings, resum
     the pipeline outputs, terrain_pair.npz, simulated.npz, figures and summary.md. On resume the
     recording is streamed through the pipeline again, but the windows already in params.csv are
     not refitted (simulated.npz then holds the windows fitted after the resume)."""
-    import shutil
-    import time
+    from torchsoil.estimate.live import play
 
-    from torchsoil.estimate.live import LiveEstimator, play
-
-    e = settings.estimator
-    tiles = out / "tiles"
-    if tiles.exists() and not resume:
-        shutil.rmtree(tiles)
-    live = LiveEstimator(robot, settings, spill_dir=str(tiles) if e.online.spill else None)
-    names = _param_names(robot)
-    params, reference, n_done = window_logs(out, names, resume)
-    live.resume(params.rows)
-    tb = TensorBoardLog(out / "tensorboard", tensorboard)
-    sims = SimTiles(tiles / "sim" if e.online.spill else None)   # each window's simulated change, stitched
-    whole = True                  # the drive still fits in one terrain pair (estimator.online.max_cells)
-    latency: list[float] = []
-    t_start = time.perf_counter()
+    run = LiveRun(out, robot, settings, resume, tensorboard)
     bar = tqdm(unit="window", disable=None if progress and not realtime else True, desc="estimating")
     try:
-        for w in play(bag, live, realtime=realtime):
-            o, k = w.output, w.index
-            latency.append(w.done - w.ready)
-            params.append({**o.row, "latency": w.done - w.ready})
-            reference.append({"s": o.row["s"], "visit": o.row["visit"], **o.reference})
-            tb.window(k, o.row, o.reference, names)
-            whole = whole and live.pipeline.grid_cells() <= e.online.max_cells
-            if o.h_sim is not None:
-                sims.add(*sim_piece(w))
+        for w in play(bag, run.live, realtime=realtime):
+            run.add(w)
             if realtime:
-                r = o.row
-                print(f"window {k:4d}  s {r['s']:7.2f} m  d1 {1e3 * r['d1']:6.1f} mm  chi {r['chi']:.2f}  "
+                r = w.output.row
+                print(f"window {w.index:4d}  s {r['s']:7.2f} m  d1 {1e3 * r['d1']:6.1f} mm  chi {r['chi']:.2f}  "
                       f"beta {r['beta']:5.1f} deg  latency {1e3 * (w.done - w.ready):4.0f} ms  {r['flags']}")
             bar.update(1)
     finally:
-        live.close()
+        run.close()
         bar.close()
-        tb.close()
-    wall = time.perf_counter() - t_start
-    lat = np.asarray(latency) if latency else np.full(1, np.nan)
-    meta = {"input": str(bag), "window": e.window, "stride": e.stride, "grad": e.grad,
-            "removed": "map offset and tilt fitted per stretch as the windows came (see map_offset)"
-            if e.nuisance.offset else "no map offset"}
-    duration = float(np.ptp(live.pipeline.trajectory()[0])) if live.pipeline.ok_stamps else 0.0
-    meta["online"] = (f"streamed in {wall:.1f} s for a {duration:.1f} s drive ({wall / max(duration, 1e-9):.2f} x "
-                      f"real time); window latency median {1e3 * np.median(lat):.0f} ms, "
-                      f"max {1e3 * np.max(lat):.0f} ms")
-    figures.parameter_curves(params.rows, reference.rows, names, out / "fig4_parameters.png")
-    if whole:
-        _finish_whole(live, bag, out, settings, sims, params.rows, wall, cache)
-    else:
-        live.pipeline.flush()
-        sims.flush()
-        stamps, poses = live.pipeline.trajectory()
-        from torchsoil.io.trajectory import poses_to_rows
-
-        np.savetxt(out / "trajectory.csv", poses_to_rows(stamps, poses), delimiter=",", fmt="%.9f",
-                   header="t,x,y,z,roll,pitch,yaw", comments="")
-        n = write_pieces(live.pipeline, sims, out / "pieces", e.online.piece_length, e.front_smoothing)
-        meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
-                           f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
-                           "(torchsoil.pipeline.raster.Tiles) and the simulated change stitched over windows "
-                           f"in tiles/sim (estimate.tiles.SimTiles), and written as {n} terrain pairs of "
-                           f"{e.online.piece_length:g} m of the drive each in pieces/ (`torchsoil export` reads "
-                           "them), not assembled into one")
-    figures.write_summary(out / "summary.md", params.rows, reference.rows, meta)
+    run.finish(bag, cache)
 
 
-def _finish_whole(live, bag: Path, out: Path, settings: Settings, sims: SimTiles, rows: list[dict], wall: float,
-                  cache: dict) -> None:
+class LiveRun:
+    """The outputs of a streamed run, written as its windows come (params.csv, reference.csv,
+    TensorBoard, the simulated change stitched in tiles) and at its end (`finish`: the pipeline
+    outputs, terrain pair or pieces, figures, summary.md). `live` is its LiveEstimator (spilling
+    far tiles to out/tiles); resume: continue params.csv (the windows in it are not refitted)."""
+
+    def __init__(self, out: Path, robot: Robot, settings: Settings, resume: bool, tensorboard: bool = True):
+        import shutil
+        import time
+
+        from torchsoil.estimate.live import LiveEstimator
+
+        self.out, self.settings = out, settings
+        e = settings.estimator
+        tiles = out / "tiles"
+        if tiles.exists() and not resume:
+            shutil.rmtree(tiles)
+        self.live = LiveEstimator(robot, settings, spill_dir=str(tiles) if e.online.spill else None)
+        self.names = _param_names(robot)
+        self.params, self.reference, _ = window_logs(out, self.names, resume)
+        self.live.resume(self.params.rows)
+        self.tb = TensorBoardLog(out / "tensorboard", tensorboard)
+        self.sims = SimTiles(tiles / "sim" if e.online.spill else None)   # each window's simulated change
+        self.whole = True          # the drive still fits in one terrain pair (estimator.online.max_cells)
+        self.latency: list[float] = []
+        self.t_start = time.perf_counter()
+
+    def add(self, w) -> None:
+        """One LiveWindow: its rows written (latency: from its ground complete to its row, s)."""
+        o, k = w.output, w.index
+        self.latency.append(w.done - w.ready)
+        row = {c: math.nan for c in self.params.columns} | o.row | {"latency": w.done - w.ready}
+        self.params.append(row)
+        self.reference.append({"s": o.row["s"], "visit": o.row["visit"], **o.reference})
+        self.tb.window(k, row, o.reference, self.names)
+        self.whole = self.whole and self.live.pipeline.grid_cells() <= self.settings.estimator.online.max_cells
+        if o.h_sim is not None:
+            self.sims.add(*sim_piece(w))
+
+    def close(self) -> None:
+        """Stop the fits' worker thread and close TensorBoard."""
+        self.live.close()
+        self.tb.close()
+
+    def finish(self, source, cache: dict | None = None) -> None:
+        """After the last window (live.finish() fed to `add`, `close` called): figures,
+        summary.md, and the drive's terrain as one pair (pipeline/, terrain_pair.npz,
+        simulated.npz, Fig. 6) or, over estimator.online.max_cells, as pieces/. source: the
+        recording's name for the outputs; cache: terrain_pair.npz's cache key (None: none)."""
+        import time
+
+        out, settings, live, e = self.out, self.settings, self.live, self.settings.estimator
+        wall = time.perf_counter() - self.t_start
+        lat = np.asarray(self.latency) if self.latency else np.full(1, np.nan)
+        meta = {"input": str(source), "window": e.window, "stride": e.stride, "grad": e.grad,
+                "removed": "map offset and tilt fitted per stretch as the windows came (see map_offset)"
+                if e.nuisance.offset else "no map offset"}
+        duration = float(np.ptp(live.pipeline.trajectory()[0])) if live.pipeline.ok_stamps else 0.0
+        meta["online"] = (f"streamed in {wall:.1f} s for a {duration:.1f} s drive ({wall / max(duration, 1e-9):.2f} x "
+                          f"real time); window latency median {1e3 * np.nanmedian(lat):.0f} ms, "
+                          f"max {1e3 * np.nanmax(lat):.0f} ms")
+        rows = self.params.rows
+        figures.parameter_curves(rows, self.reference.rows, self.names, out / "fig4_parameters.png")
+        if self.whole:
+            _finish_whole(live, source, out, settings, self.sims, rows, wall, cache)
+        else:
+            live.pipeline.flush()
+            self.sims.flush()
+            stamps, poses = live.pipeline.trajectory()
+            from torchsoil.io.trajectory import poses_to_rows
+
+            np.savetxt(out / "trajectory.csv", poses_to_rows(stamps, poses), delimiter=",", fmt="%.9f",
+                       header="t,x,y,z,roll,pitch,yaw", comments="")
+            n = write_pieces(live.pipeline, self.sims, out / "pieces", e.online.piece_length, e.front_smoothing)
+            meta["online"] += (f"; the drive's heightmaps ({live.pipeline.grid_cells():,} cells, more than "
+                               f"estimator.online.max_cells) are left as tiles in tiles/front and tiles/back "
+                               "(torchsoil.pipeline.raster.Tiles) and the simulated change stitched over windows "
+                               f"in tiles/sim (estimate.tiles.SimTiles), and written as {n} terrain pairs of "
+                               f"{e.online.piece_length:g} m of the drive each in pieces/ (`torchsoil export` reads "
+                               "them), not assembled into one")
+        figures.write_summary(out / "summary.md", rows, self.reference.rows, meta)
+
+
+def _finish_whole(live, bag, out: Path, settings: Settings, sims: SimTiles, rows: list[dict], wall: float,
+                  cache: dict | None) -> None:
     """The whole drive as one terrain pair: pipeline outputs, terrain_pair.npz (the cache of a
     later run), simulated.npz and the difference maps."""
     from torchsoil.pipeline.outputs import write_outputs
@@ -236,7 +269,8 @@ def _finish_whole(live, bag: Path, out: Path, settings: Settings, sims: SimTiles
     write_outputs(result, out / "pipeline")
     pair = result.terrain
     pair.save(out / "terrain_pair.npz")
-    provenance.mark_cache(out / "terrain_pair.npz", cache)
+    if cache is not None:
+        provenance.mark_cache(out / "terrain_pair.npz", cache)
     est = Estimator(pair, settings.estimator, settings.sim)
     h_sim = (est.h_start + stitch_tiles(pair, sims)).astype(np.float32)   # each window's change on the final H_f
     save_simulated(out / "simulated.npz", pair, h_sim)
