@@ -114,6 +114,27 @@ def _add_estimate(sub) -> None:
     _fleet_options(p)
 
 
+def _add_node(sub) -> None:
+    p = sub.add_parser("node", help="run as a live ROS node on the robot (ROS 2 or ROS 1): soil, terrain and "
+                                    "health published as the robot drives",
+                       description="Subscribe to the lidars, /tf, /tf_static and the IMU; publish each window's "
+                                   "estimate on ~/soil and ~/soil/values, the terrain near the robot on "
+                                   "~/terrain/cloud, ~/terrain/rut_depth (and ~/terrain/grid_map), the node's "
+                                   "health on /diagnostics; write OUT as `estimate` does. Arguments after the "
+                                   "options are ROS arguments (remappings from:=to, __name:=, __ns:=). Manual: "
+                                   "docs/node.md.")
+    _robot_option(p, required=True)
+    p.add_argument("--out", default="out/node", help="run folder (default out/node)")
+    p.add_argument("--ros", choices=["auto", "1", "2"], default="auto",
+                   help="which ROS (default: the one sourced, ROS 2 first)")
+    _bag_options(p)
+    p.add_argument("--resume", action="store_true", help="continue the run in --out (its recording replayed)")
+    p.add_argument("--overwrite", action="store_true", help="replace the outputs of another run in --out")
+    p.add_argument("ros_args", nargs="*", metavar="ROS_ARG",
+                   help="remappings (/lidar_front/points:=/ouster/points, __name:=soil, __ns:=/robot); ROS 2 "
+                        "style `--ros-args -r from:=to ...` at the end is passed on whole")
+
+
 def _anchor_option(p) -> None:
     p.add_argument("--anchor", metavar="LAT,LON,HEADING_DEG",
                    help="place the first pose at this latitude, longitude (deg, WGS 84) and compass heading (deg "
@@ -259,14 +280,18 @@ def parser() -> argparse.ArgumentParser:
                                         "`python3 -m sphinx -b html docs out/docs`).",
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_estimate, _add_process_bag, _add_diagnose, _add_export, _add_record, _add_rollout, _add_bench,
+    for add in (_add_estimate, _add_node, _add_process_bag, _add_diagnose, _add_export, _add_record, _add_rollout, _add_bench,
                 _add_ablation, _add_study, _add_settings):
         add(sub)
     return ap
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parser().parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []   # ROS 2's own, for the node
+    args = parser().parse_args(argv[:len(argv) - len(ros_args)])
+    if ros_args:
+        args.ros_args = [*getattr(args, "ros_args", []), *ros_args]
     # before torch or numba start their OpenMP runtimes: threads that spin while waiting starve
     # the other pool (3-10x slower on 2 busy cores)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -278,7 +303,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return COMMANDS[args.command](args)
     except (SettingsError, OutputMismatch, EngineError, FileNotFoundError, FileExistsError, ValueError,
-            KeyError) as e:
+            KeyError, ImportError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     except OSError as e:   # a full disk (ENOSPC), wherever it is met: one clear line
@@ -393,6 +418,18 @@ def _anchor(text: str | None) -> tuple[float, float, float] | None:
     return lat, lon, heading
 
 
+def cmd_node(args) -> int:
+    from torchsoil.node.run import run_node
+
+    settings, given = _bag_settings(args)
+    robot_yaml = _robot_yaml(args.robot)
+    from torchsoil.io.extrinsics import pipeline_settings
+
+    settings = settings.replace(pipeline=pipeline_settings(settings, robot_yaml, given))
+    return run_node(_robot(args.robot), settings, args.out, ros=args.ros, resume=args.resume,
+                    overwrite=args.overwrite, argv=args.ros_args)
+
+
 def cmd_export(args) -> int:
     from torchsoil.jobs.export import export
 
@@ -477,7 +514,7 @@ def cmd_settings(args) -> int:
 
 
 COMMANDS = {"estimate": cmd_estimate, "process-bag": cmd_process_bag, "diagnose": cmd_diagnose, "export": cmd_export,
-            "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench, "ablation": cmd_ablation,
+            "node": cmd_node, "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench, "ablation": cmd_ablation,
             "study": cmd_study, "settings": cmd_settings}
 
 

@@ -65,11 +65,13 @@ class Health:
         self.span = span
         self.arrivals: dict[str, deque] = {}
         self.dropped: dict[str, int] = {}
+        self.count: dict[str, int] = {}
         self.problems: dict[str, list] = {}      # kind -> [count, last text, wall time]
 
     def arrived(self, topic: str, now: float) -> None:
         q = self.arrivals.setdefault(topic, deque())
         q.append(now)
+        self.count[topic] = self.count.get(topic, 0) + 1
         while q and q[0] < now - self.span:
             q.popleft()
 
@@ -102,6 +104,7 @@ class NodeBody:
         self.resume, self.gridmap, self.log = resume, gridmap, log
         r = settings.pipeline.read
         self.lidars = (r.front_topic, r.back_topic)
+        self.imu_topic = {"": "/imu/data", "none": None}.get(r.imu_topic, r.imu_topic)   # a live graph: the usual name
         self.cfg = settings.node
         self.queue: deque = deque()
         self.waiting = {t: 0 for t in self.lidars}  # sweeps of each lidar in the queue
@@ -334,7 +337,7 @@ class NodeBody:
         h, cfg = self.health, self.cfg
         statuses = []
         r = self.settings.pipeline.read
-        for topic in (*self.lidars, r.imu_topic or "", "/tf_static"):
+        for topic in (*self.lidars, self.imu_topic or "", r.tf_topic):
             if not topic:
                 continue
             age, rate = h.age(topic, now), h.rate(topic, now)
@@ -347,7 +350,7 @@ class NodeBody:
             elif lidar and h.dropped.get(topic):
                 level, msg = m.WARN, f"{rate:.1f} Hz, {h.dropped[topic]} sweeps dropped (the pipeline behind)"
             statuses.append(m.status(st, f"torchsoil: input {topic}", level if lidar else m.OK, msg,
-                                     {"rate_hz": rate, "last_message_age_s": age,
+                                     {"messages": h.count.get(topic, 0), "rate_hz": rate, "last_message_age_s": age,
                                       "dropped": h.dropped.get(topic, 0)}))
         lat = np.asarray(self.latency) if self.latency else np.zeros(1)
         live = self.run.live if self.run is not None else None

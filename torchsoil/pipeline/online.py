@@ -73,6 +73,7 @@ class OnlinePipeline:
         self.imu: list[ImuSample] = []
         self.gyro = mapping.Gyro()                       # rate gyro in base_link, for the mapper
         self.gyro_R: np.ndarray | None = None            # base_link <- IMU rotation
+        self.gyro_early: list[ImuSample] = []            # samples before the IMU's transform was known
         self.L: np.ndarray | None = None                 # levelling (4, 4)
         self.D = np.eye(3)                               # its later correction (gravity_and_bias)
         self.refined = False
@@ -113,10 +114,16 @@ class OnlinePipeline:
         if not self.refined:
             self.imu.append(sample)
         if self.gyro_R is None:
+            self.gyro_early.append(sample)
             try:
                 self.gyro_R = self._imu_pose(sample)[:3, :3]
-            except ValueError:         # its transform not known yet
+            except ValueError:         # its transform not known yet: the samples wait for it (the last 1000)
+                del self.gyro_early[:-1000]
                 return
+            early, self.gyro_early = self.gyro_early, []
+            for s in early:
+                self.gyro.add(s.t, self.gyro_R @ np.asarray(s.gyro, np.float64))
+            return
         self.gyro.add(sample.t, self.gyro_R @ np.asarray(sample.gyro, np.float64))
 
     def finish(self) -> None:
