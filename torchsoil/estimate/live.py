@@ -38,6 +38,10 @@ from torchsoil.robot import Robot
 from torchsoil.settings import Settings
 
 
+class CloudError(ValueError):
+    """A lidar message that cannot be decoded (its fields, layout or times); the message says why."""
+
+
 class LiveWindow(NamedTuple):
     """index: the window's number along the whole drive; output: its estimator output (row
     with the drive's arc length `s`); pair: the stretch it was fitted on; ready: wall time
@@ -61,6 +65,7 @@ class LiveEstimator:
         self.robot = robot
         self.rec = rec if rec is not None else Recording([], [])
         self.pipeline = OnlinePipeline(robot, settings.pipeline, self.rec, spill_dir)
+        self.pipeline.on_ground = self._advance
         self.next = 0                      # next window index
         self.skip = 0                      # windows before this one were written by an interrupted run
         self.polled = -np.inf              # pipeline.ground_stamp at the last poll
@@ -83,9 +88,13 @@ class LiveEstimator:
 
     # ---------------------------------------------------------------- input
     def add_message(self, topic: str, msg, msgtype: str = "sensor_msgs/msg/PointCloud2") -> None:
-        """A lidar message of the front or back topic (PointCloud2 or Livox CustomMsg)."""
+        """A lidar message of the front or back topic (PointCloud2 or Livox CustomMsg); CloudError
+        when it cannot be decoded (nothing of it is kept)."""
         name, stream = self.streams[topic]
-        stream.add(msg, msgtype, stream.yielded + len(stream.clouds), 0.0)
+        try:
+            stream.add(msg, msgtype, stream.yielded + len(stream.clouds), 0.0)
+        except ValueError as e:   # PointTimeError included
+            raise CloudError(f"{topic}: {e}") from e
         for cloud in stream.take():
             self.pipeline.add_cloud(name, cloud)
 
@@ -110,30 +119,41 @@ class LiveEstimator:
 
     # --------------------------------------------------------------- output
     def poll(self, final: bool = False) -> list[LiveWindow]:
-        """Windows fitted since the last call, in order. Every window whose ground is now complete
-        (with `final`: all that are left) is cut out and queued for fitting; with
-        `estimator.online.worker` = thread (the default) the fitting runs on a worker thread while the caller feeds
-        the next sweeps, and its windows come out of a later call (`finish` waits for them all)."""
-        out = self._collect(final=False)
-        full = len(self.pending) >= self.settings.estimator.online.max_pending
-        skip = full and self.when_behind == "skip" and not final
-        job = self._job(final, skip)
-        if job is not None and skip:
-            out += self._skipped(job[5])
-        elif job is not None:
-            if self.settings.estimator.online.worker == "none":
-                done = Future()
-                done.set_result(self.fitter(*job))
-                self.pending.append((done, job[0]))
-            else:
-                if full:
-                    wait([self.pending[0][0]])      # bounded queue: the oldest stretch first (taken below)
-                if self.worker is None:
-                    self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit")
-                self.pending.append((self.worker.submit(self.fitter, *job), job[0]))
-        out += self._collect(final)
+        """Windows fitted since the last call, in order. Each time the pipeline rasterizes new
+        ground, the windows whose ground it completed are cut out and queued for fitting (at the
+        pipeline's own step, so that the rows do not depend on how the sweeps were grouped or
+        interleaved on arrival); with `final` all that are left. With `estimator.online.worker`
+        = thread (the default) the fitting runs on a worker thread while the caller feeds the
+        next sweeps, and its windows come out of a later call (`finish` waits for them all)."""
+        if final:
+            self._advance(final=True)
+        out = self._collect(final)
         now = time.perf_counter()
         return [w._replace(done=now) for w in out]
+
+    def _advance(self, final: bool = False) -> None:
+        """Queue the windows whose ground became complete (called by the pipeline each time it
+        rasterizes ground, `OnlinePipeline.on_ground`): cut out and fitted, or, with the fits
+        `max_pending` stretches behind and `when_behind` = skip, queued as skipped."""
+        fitting = sum(1 for f, pair in self.pending if pair is not None and not f.done())
+        full = fitting >= self.settings.estimator.online.max_pending
+        skip = full and self.when_behind == "skip" and not final
+        job = self._job(final, skip)
+        if job is None:
+            return
+        done = Future()
+        if skip:
+            done.set_result(self._skipped(job[5]))
+            self.pending.append((done, None))
+        elif self.settings.estimator.online.worker == "none":
+            done.set_result(self.fitter(*job))
+            self.pending.append((done, job[0]))
+        else:
+            if full:   # bounded queue: wait for the oldest stretch being fitted
+                wait([next(f for f, pair in self.pending if pair is not None and not f.done())])
+            if self.worker is None:
+                self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit")
+            self.pending.append((self.worker.submit(self.fitter, *job), job[0]))
 
     def _collect(self, final: bool) -> list[LiveWindow]:
         """The windows of the stretches fitted so far, in order (with `final`: all, waiting)."""

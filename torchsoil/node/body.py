@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from torchsoil.estimate.live import CloudError
 from torchsoil.node import messages as m
 from torchsoil.robot import Robot
 from torchsoil.settings import Settings
@@ -114,7 +115,7 @@ class NodeBody:
         self.running = False
         self.drive = 0
         self.run = None                      # torchsoil.jobs.estimate.LiveRun of the current drive
-        self.last_stamp = {t: -math.inf for t in self.lidars}
+        self.last_stamp: dict[str, float] = {}   # each stamped topic's latest, s
         self.arrival = time.perf_counter()   # arrival of the message being processed
         self.windows = 0
         self.skipped = 0
@@ -194,8 +195,10 @@ class NodeBody:
 
     # -------------------------------------------------------------- messages
     def _handle(self, topic: str, msgtype: str, msg, arrival: float) -> None:
-        live = self.run.live
         self.arrival = arrival
+        if msgtype != TFMESSAGE:
+            self._check_clock(topic, stamp_of(msg))
+        live = self.run.live
         if msgtype == TFMESSAGE:
             live.add_transforms(msg)
         elif msgtype == IMU:
@@ -205,25 +208,37 @@ class NodeBody:
         for w in live.poll():
             self._window(w)
 
+    def _check_clock(self, topic: str, t: float) -> None:
+        """A stamp `node.clock_jump` s before the last of its topic ends the drive and begins a
+        new one (the transforms known go on: /tf_static comes once)."""
+        last = self.last_stamp.get(topic, -math.inf)
+        if t < last - self.cfg.clock_jump:
+            self.health.problem("clock", f"{topic}: the clock jumped back {last - t:.1f} s (a bag played again?): "
+                                         f"drive {self.drive} ended, a new one begins")
+            known = dict(self.run.live.edges)
+            self._end_drive()
+            self._open_drive(new=True, edges=known)
+            last = -math.inf
+        self.last_stamp[topic] = max(last, t)
+
     def _lidar(self, topic: str, msgtype: str, msg) -> None:
         t = stamp_of(msg)
-        if t < self.last_stamp[topic] - self.cfg.clock_jump:
-            jump = self.last_stamp[topic] - t
-            self.health.problem("clock", f"{topic}: the clock jumped back {jump:.1f} s (a bag played again?): "
-                                         f"drive {self.drive} ended, a new one begins")
-            self._end_drive()
-            self._open_drive(new=True)
-        self.last_stamp[topic] = max(self.last_stamp[topic], t)
         live = self.run.live
         try:
             live.add_message(topic, msg, msgtype)
-        except Exception as e:
             pipe = live.pipeline
-            if pipe.ext is None:
-                del pipe.held[:-50]          # waiting for the transforms: the last 50 sweeps kept
-                self.health.problem("tf", f"{topic}: no transform to its frame yet ({e})")
-            else:
-                self.health.problem("cloud", f"{topic}: sweep at t={t:.3f} s skipped: {type(e).__name__}: {e}")
+            if pipe.ext is None and pipe.held:
+                frames = ", ".join(sorted(set(pipe.frames.values())))
+                self.health.problem("tf", f"{len(pipe.held)} sweeps wait for the transforms of {frames} to "
+                                          f"{self.settings.pipeline.read.base_frame} (is /tf_static published?)")
+        except CloudError as e:
+            self.health.problem("cloud", f"sweep at t={t:.3f} s skipped: {e}")
+        except ValueError as e:
+            pipe = live.pipeline
+            if pipe.ext is not None:
+                raise
+            del pipe.held[:-50]          # waiting for the transforms: the last 50 sweeps kept
+            self.health.problem("tf", f"{topic}: no transform to its frame yet ({e})")
 
     def _window(self, w) -> None:
         """A fitted (or skipped) window: rows written, published."""
@@ -243,11 +258,14 @@ class NodeBody:
                      m.soil_values(self.store, row | {"latency": lat}, ref))
 
     def _now_stamp(self) -> float:
-        stamps = [s for s in self.last_stamp.values() if math.isfinite(s)]
+        stamps = [self.last_stamp[t] for t in self.lidars if t in self.last_stamp]
         return max(stamps) if stamps else 0.0
 
     # ----------------------------------------------------------------- drives
-    def _open_drive(self, new: bool = False) -> None:
+    def _open_drive(self, new: bool = False, edges: dict | None = None) -> None:
+        """A drive's run folder and LiveRun (OUT, then OUT/restart_NNN); edges: the transforms
+        known so far (frame -> edge, LiveEstimator.edges)."""
+        from torchsoil.io.extrinsics import frame_name, resolve_frames
         from torchsoil.jobs.estimate import LiveRun
 
         self.drive += 1
@@ -256,7 +274,11 @@ class NodeBody:
         self.run = LiveRun(out, self.robot, self.settings, self.resume and not new, tensorboard=self.cfg.tensorboard)
         self.run.live.clock = lambda: self.arrival
         self.run.live.when_behind = "skip"
-        self.last_stamp = {t: -math.inf for t in self.lidars}
+        if edges:
+            live = self.run.live
+            live.edges.update(edges)
+            live.rec.extrinsics = resolve_frames(live.edges, frame_name(self.settings.pipeline.read.base_frame))
+        self.last_stamp = {}
         self.recent.clear()
 
     def _end_drive(self) -> None:

@@ -91,6 +91,7 @@ class OnlinePipeline:
         self.target_at = (np.full(3, np.inf), 0)
         self.timings: dict[str, float] = defaultdict(float)
         self.ground_stamp = -np.inf
+        self.on_ground = None    # called (no arguments) each time a sweep's mapping rasterized new back ground
         self.n_final = 0
         self.finished = False
         edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
@@ -104,6 +105,7 @@ class OnlinePipeline:
             self.frames.setdefault(name, cloud.frame)
             if not self._resolve(final=False):
                 return
+            self._start_gyro()          # the transforms have come: the IMU's too, before the sweeps are mapped
             held, self.held = self.held, []
             for n, c in held:
                 self._take(n, c)
@@ -115,16 +117,22 @@ class OnlinePipeline:
             self.imu.append(sample)
         if self.gyro_R is None:
             self.gyro_early.append(sample)
-            try:
-                self.gyro_R = self._imu_pose(sample)[:3, :3]
-            except ValueError:         # its transform not known yet: the samples wait for it (the last 1000)
-                del self.gyro_early[:-1000]
-                return
-            early, self.gyro_early = self.gyro_early, []
-            for s in early:
-                self.gyro.add(s.t, self.gyro_R @ np.asarray(s.gyro, np.float64))
+            del self.gyro_early[:-1000]
+            self._start_gyro()
             return
         self.gyro.add(sample.t, self.gyro_R @ np.asarray(sample.gyro, np.float64))
+
+    def _start_gyro(self) -> None:
+        """The rate gyro from the samples that waited for the IMU's transform, once it is known."""
+        if self.gyro_R is not None or not self.gyro_early:
+            return
+        try:
+            self.gyro_R = self._imu_pose(self.gyro_early[-1])[:3, :3]
+        except ValueError:         # its transform not known yet: the samples wait for it (the last 1000)
+            return
+        early, self.gyro_early = self.gyro_early, []
+        for s in early:
+            self.gyro.add(s.t, self.gyro_R @ np.asarray(s.gyro, np.float64))
 
     def finish(self) -> None:
         """The end of the recording: everything still held is registered and rasterized."""
@@ -238,7 +246,10 @@ class OnlinePipeline:
             self._final(k)
         self._level(final=False)
         self._refine(final=False)
+        ground = self.ground_stamp
         self._reregister(final=False)
+        if self.on_ground is not None and self.ground_stamp != ground:
+            self.on_ground()
 
     def _final(self, k: int) -> None:
         m = self.mapper
