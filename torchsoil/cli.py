@@ -130,6 +130,7 @@ def _add_node(sub) -> None:
     _bag_options(p)
     p.add_argument("--resume", action="store_true", help="continue the run in --out (its recording replayed)")
     p.add_argument("--overwrite", action="store_true", help="replace the outputs of another run in --out")
+    p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1, as `estimate`)")
     p.add_argument("ros_args", nargs="*", metavar="ROS_ARG",
                    help="remappings (/lidar_front/points:=/ouster/points, __name:=soil, __ns:=/robot); ROS 2 "
                         "style `--ros-args -r from:=to ...` at the end is passed on whole")
@@ -280,7 +281,8 @@ def parser() -> argparse.ArgumentParser:
                                         "`python3 -m sphinx -b html docs out/docs`).",
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_estimate, _add_node, _add_process_bag, _add_diagnose, _add_export, _add_record, _add_rollout, _add_bench,
+    for add in (_add_estimate, _add_node, _add_process_bag, _add_diagnose, _add_export, _add_record, _add_rollout,
+                _add_bench,
                 _add_ablation, _add_study, _add_settings):
         add(sub)
     return ap
@@ -427,7 +429,7 @@ def cmd_node(args) -> int:
 
     settings = settings.replace(pipeline=pipeline_settings(settings, robot_yaml, given))
     return run_node(_robot(args.robot), settings, args.out, ros=args.ros, resume=args.resume,
-                    overwrite=args.overwrite, argv=args.ros_args)
+                    overwrite=args.overwrite, argv=args.ros_args, threads=args.threads)
 
 
 def cmd_export(args) -> int:
@@ -514,7 +516,8 @@ def cmd_settings(args) -> int:
 
 
 COMMANDS = {"estimate": cmd_estimate, "process-bag": cmd_process_bag, "diagnose": cmd_diagnose, "export": cmd_export,
-            "node": cmd_node, "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench, "ablation": cmd_ablation,
+            "node": cmd_node, "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench,
+            "ablation": cmd_ablation,
             "study": cmd_study, "settings": cmd_settings}
 
 

@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 
 import torchsoil
+from tests.node.bagfeed import DEMO, Published, demo_messages, feed
 from torchsoil.geo.gridmap import typestore
 from torchsoil.node import messages as m
 from torchsoil.node.body import NodeBody
 from torchsoil.settings import load_settings
-from tests.node.bagfeed import DEMO, Published, demo_messages, feed
 
 FAST = ["node.queue=100000", "node.map_rate=0", "node.tensorboard=false"]   # nothing dropped: results repeat
 
@@ -176,6 +176,7 @@ def test_a_silent_lidar_is_a_warning(tmp_path):
     body.receive(*front)
     body.health.arrivals["/lidar_front/points"][-1] -= 5.0       # its last sweep 5 s ago
     status = {st.name: st for st in body.diagnostics().status}
-    front_status, back_status = status["torchsoil: input /lidar_front/points"], status["torchsoil: input /lidar_back/points"]
+    front_status = status["torchsoil: input /lidar_front/points"]
+    back_status = status["torchsoil: input /lidar_back/points"]
     assert front_status.level == m.WARN and "silent for 5" in front_status.message
     assert back_status.level == m.ERROR and back_status.message == "no message yet"

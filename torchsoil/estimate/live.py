@@ -150,7 +150,7 @@ class LiveEstimator:
             self.pending.append((done, job[0]))
         else:
             if full:   # bounded queue: wait for the oldest stretch being fitted
-                wait([next(f for f, pair in self.pending if pair is not None and not f.done())])
+                wait([f for f, pair in self.pending if pair is not None and not f.done()][:1])
             if self.worker is None:
                 self.worker = ThreadPoolExecutor(1, thread_name_prefix="torchsoil-fit")
             self.pending.append((self.worker.submit(self.fitter, *job), job[0]))

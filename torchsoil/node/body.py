@@ -45,7 +45,8 @@ OUTPUTS = {
     "soil_values": ("std_msgs/msg/Float64MultiArray", "~/soil/values", "each window's numbers, labelled"),
     "terrain_cloud": (POINTCLOUD2, "~/terrain/cloud", "measured cells near the robot: x, y, z=H_b, h_delta, rut_depth"),
     "rut_grid": ("nav_msgs/msg/OccupancyGrid", "~/terrain/rut_depth", "rut depth near the robot, 100 = node.rut_full"),
-    "grid_map": ("grid_map_msgs/msg/GridMap", "~/terrain/grid_map", "the layers near the robot (ROS 2 with grid_map_msgs)"),
+    "grid_map": ("grid_map_msgs/msg/GridMap", "~/terrain/grid_map",
+                 "the layers near the robot (ROS 2 with grid_map_msgs)"),
     "diagnostics": ("diagnostic_msgs/msg/DiagnosticArray", "/diagnostics", "the node's health"),
     "tf": (TFMESSAGE, "/tf", "the soil map frame under the robot's base frame"),
 }
@@ -163,6 +164,11 @@ class NodeBody:
         if self.thread is not None:
             self.thread.join()
         self._end_drive()
+        self.publish("diagnostics", OUTPUTS["diagnostics"][0], self.diagnostics())   # the final count
+        h = self.health
+        self.log("torchsoil node: " + ", ".join(f"{t}: {h.count.get(t, 0)} messages, {h.dropped.get(t, 0)} dropped"
+                                                 for t in sorted(h.count)) +
+                 f"; {self.windows} windows, {self.skipped} skipped")
 
     def _loop(self) -> None:
         while True:

@@ -67,7 +67,8 @@ def soil_status(store, t: float, frame: str, index: int, row: dict, reference: d
     level = STALE if "skipped" in flags else WARN if flags else OK
     msg = (f"window {index} s {row['s']:.2f} m: skipped ({flags})" if level == STALE else
            f"window {index} s {row['s']:.2f} m d1 {1e3 * row.get('d1', math.nan):.1f} mm "
-           f"chi {row.get('chi', math.nan):.2f} beta {row.get('beta', math.nan):.1f} deg" + (f" [{flags}]" if flags else ""))
+           f"chi {row.get('chi', math.nan):.2f} beta {row.get('beta', math.nan):.1f} deg"
+           + (f" [{flags}]" if flags else ""))
     values = {"window": index, **row, "signal": reference.get("signal", math.nan),
               "floor": reference.get("floor", math.nan)}
     return diagnostic_array(store, t, [status(store, "torchsoil/soil", level, msg, values)])
@@ -111,7 +112,8 @@ def rut_grid(store, t: float, frame: str, grid: Grid, rut_depth: np.ndarray, ful
     info = T["nav_msgs/msg/MapMetaData"](
         map_load_time=stamp(store, t), resolution=float(grid.dx), width=X, height=Y,
         origin=T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=grid.origin[0] - grid.dx / 2, y=grid.origin[1] - grid.dx / 2, z=0.0),
+            position=T["geometry_msgs/msg/Point"](x=grid.origin[0] - grid.dx / 2, y=grid.origin[1] - grid.dx / 2,
+                                                  z=0.0),
             orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0)))
     return T["nav_msgs/msg/OccupancyGrid"](header=header(store, t, frame), info=info,
                                            data=occ.T.ravel().astype(np.int8))

@@ -30,7 +30,7 @@ def run(robot, settings, out, resume: bool = False, argv: list[str] | None = Non
     windows and the run's outputs. argv: ROS arguments (`--ros-args -r from:=to ...`)."""
     try:
         import rclpy
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from rclpy.executors import SingleThreadedExecutor
     except ImportError:
         raise ImportError("ROS 2 is not installed: source /opt/ros/<distro>/setup.bash, or `pip install ros-rclpy "
                           "ros-sensor-msgs ros-diagnostic-msgs ros-nav-msgs ros-std-msgs` (docs/node.md)") from None
@@ -46,12 +46,33 @@ def run(robot, settings, out, resume: bool = False, argv: list[str] | None = Non
     gridmap = settings.node.gridmap != "off" and message_class(OUTPUTS["grid_map"][0]) is not None
     if settings.node.gridmap == "on" and not gridmap:
         log.warning("grid_map_msgs is not installed: no ~/terrain/grid_map (apt install ros-$ROS_DISTRO-grid-map-msgs)")
+    publish = _publishers(node, store, gridmap)
+    body = NodeBody(robot, settings, out, publish, store, resume=resume, gridmap=gridmap, log=log.info)
+    subs = _subscribe(node, store, body, settings)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    body.start()
+    log.info(f"listening on {', '.join(s.topic_name for s in subs)}; writing {out}")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    while not stop.is_set() and rclpy.ok():
+        executor.spin_once(timeout_sec=0.1)
+    body.stop()                      # the last windows are still published
+    node.destroy_node()
+    rclpy.try_shutdown()
+    return 0
+
+
+def _publishers(node, store, gridmap: bool):
+    """publish(key, typename, msg) over a publisher per OUTPUTS entry whose type is installed."""
     pubs = {}
     for key, (typename, topic, _) in OUTPUTS.items():
         cls = message_class(typename)
-        if cls is None or (key == "grid_map" and not gridmap):
-            if key != "grid_map":
-                log.warning(f"{typename} is not installed: {topic} not published")
+        if key == "grid_map" and not gridmap:
+            continue
+        if cls is None:
+            node.get_logger().warning(f"{typename} is not installed: {topic} not published")
             continue
         pubs[key] = node.create_publisher(cls, topic, 10)
     lock = threading.Lock()
@@ -62,7 +83,12 @@ def run(robot, settings, out, resume: bool = False, argv: list[str] | None = Non
             with lock:
                 pub.publish(bytes(store.serialize_cdr(msg, typename)))
 
-    body = NodeBody(robot, settings, out, publish, store, resume=resume, gridmap=gridmap, log=log.info)
+    return publish
+
+
+def _subscribe(node, store, body: NodeBody, settings) -> list:
+    """Raw subscriptions of the lidars, /tf, /tf_static and the IMU, handed to body.receive."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 
     def callback(topic: str, typename: str):
         def take(raw: bytes):
@@ -75,32 +101,19 @@ def run(robot, settings, out, resume: bool = False, argv: list[str] | None = Non
         return take
 
     r = settings.pipeline.read
+    best_effort = qos_profile_sensor_data.reliability
     latched = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-    sensor = QoSProfile(depth=settings.node.queue, reliability=qos_profile_sensor_data.reliability)
-    inputs = [(r.front_topic, POINTCLOUD2, sensor), (r.back_topic, POINTCLOUD2, sensor),
+    inputs = [(r.front_topic, POINTCLOUD2, QoSProfile(depth=settings.node.queue, reliability=best_effort)),
+              (r.back_topic, POINTCLOUD2, QoSProfile(depth=settings.node.queue, reliability=best_effort)),
               ("/tf", TFMESSAGE, QoSProfile(depth=100)), (r.tf_topic, TFMESSAGE, latched)]
     if body.imu_topic:
-        inputs.append((body.imu_topic, IMU, QoSProfile(depth=1000, reliability=qos_profile_sensor_data.reliability)))
+        inputs.append((body.imu_topic, IMU, QoSProfile(depth=1000, reliability=best_effort)))
     subs = []
-    for topic, typename, qos in dict((t[0], t) for t in inputs).values():
+    for topic, typename, qos in {t[0]: t for t in inputs}.values():
         cls = message_class(typename)
         if cls is None:
-            log.warning(f"{typename} is not installed: {topic} not read (extrinsics from the robot YAML `lidars:` "
-                        "or --extrinsic)" if typename == TFMESSAGE else f"{typename} is not installed: {topic} not read")
+            hint = " (extrinsics from the robot YAML `lidars:` or --extrinsic)" if typename == TFMESSAGE else ""
+            node.get_logger().warning(f"{typename} is not installed: {topic} not read{hint}")
             continue
         subs.append(node.create_subscription(cls, topic, callback(topic, typename), qos, raw=True))
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
-    body.start()
-    log.info(f"listening on {', '.join(s.topic_name for s in subs)}; writing {out}")
-    from rclpy.executors import SingleThreadedExecutor
-
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    while not stop.is_set() and rclpy.ok():
-        executor.spin_once(timeout_sec=0.1)
-    body.stop()                      # the last windows are still published
-    node.destroy_node()
-    rclpy.try_shutdown()
-    return 0
+    return subs

@@ -33,10 +33,11 @@ def ros_version(asked: str = "auto") -> int:
 
 
 def run_node(robot: Robot, settings: Settings, out: str | Path, ros: str = "auto", resume: bool = False,
-             overwrite: bool = False, argv: list[str] | None = None) -> int:
+             overwrite: bool = False, argv: list[str] | None = None, threads: int | None = 1) -> int:
     """Run the node into run folder `out` until shut down (SIGINT, SIGTERM); argv: ROS
     arguments (remappings). An out holding another run is refused unless `overwrite`;
-    `resume` continues its params.csv (the same messages replayed from their start)."""
+    `resume` continues its params.csv (the same messages replayed from their start); threads:
+    torch intra-op threads (1, as `estimate`: the same rows; None: torch's default)."""
     version = ros_version(ros)
     out = Path(out)
     from torchsoil import __version__
@@ -49,4 +50,7 @@ def run_node(robot: Robot, settings: Settings, out: str | Path, ros: str = "auto
         from torchsoil.node import ros1 as transport
     else:
         from torchsoil.node import ros2 as transport
-    return transport.run(robot, settings, out, resume=resume, argv=argv)
+    from torchsoil.jobs.common import torch_threads
+
+    with torch_threads(threads):
+        return transport.run(robot, settings, out, resume=resume, argv=argv)
