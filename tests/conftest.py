@@ -22,7 +22,9 @@ if _workers > 1:
 SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed": "streamed",
                    "moving_bag": "moving_bag", "side_slope": "side_slope", "rec": "recording",
                    "drives": "fleet", "ray_instance": "fleet", "keyhole": "keyhole",
-                   "out_and_back": "out_and_back", "out_and_back_pair": "out_and_back"}
+                   "out_and_back": "out_and_back", "out_and_back_pair": "out_and_back",
+                   "ros1_run": "node_ros1", "ros2_run": "node_ros2", "in_order": "node_body",
+                   "first_seconds": "node_body"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks

@@ -124,7 +124,7 @@ def _add_node(sub) -> None:
                                    "options are ROS arguments (remappings from:=to, __name:=, __ns:=). Manual: "
                                    "docs/node.md.")
     _robot_option(p, required=True)
-    p.add_argument("--out", default="out/node", help="run folder (default out/node)")
+    p.add_argument("--out", help="run folder (default: out/node-<UTC date and time>, a new one per start)")
     p.add_argument("--ros", choices=["auto", "1", "2"], default="auto",
                    help="which ROS (default: the one sourced, ROS 2 first)")
     _bag_options(p)
@@ -132,8 +132,9 @@ def _add_node(sub) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace the outputs of another run in --out")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default 1, as `estimate`)")
     p.add_argument("ros_args", nargs="*", metavar="ROS_ARG",
-                   help="remappings (/lidar_front/points:=/ouster/points, __name:=soil, __ns:=/robot); ROS 2 "
-                        "style `--ros-args -r from:=to ...` at the end is passed on whole")
+                   help="remappings (/lidar_front/points:=/ouster/points, __name:=soil, __ns:=/robot)")
+    p.add_argument("--ros-args", nargs=argparse.REMAINDER, default=[], dest="ros2_args", metavar="ARG",
+                   help="ROS 2 arguments, the rest of the line (--ros-args -r from:=to -p ...)")
 
 
 def _anchor_option(p) -> None:
@@ -289,11 +290,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    ros_args = argv[argv.index("--ros-args"):] if "--ros-args" in argv else []   # ROS 2's own, for the node
-    args = parser().parse_args(argv[:len(argv) - len(ros_args)])
-    if ros_args:
-        args.ros_args = [*getattr(args, "ros_args", []), *ros_args]
+    args = parser().parse_args(argv)
     # before torch or numba start their OpenMP runtimes: threads that spin while waiting starve
     # the other pool (3-10x slower on 2 busy cores)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
@@ -428,8 +425,12 @@ def cmd_node(args) -> int:
     from torchsoil.io.extrinsics import pipeline_settings
 
     settings = settings.replace(pipeline=pipeline_settings(settings, robot_yaml, given))
-    return run_node(_robot(args.robot), settings, args.out, ros=args.ros, resume=args.resume,
-                    overwrite=args.overwrite, argv=args.ros_args, threads=args.threads)
+    import time
+
+    out = args.out or f"out/node-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}"
+    return run_node(_robot(args.robot), settings, out, ros=args.ros, resume=args.resume,
+                    overwrite=args.overwrite, argv=[*args.ros_args, *(["--ros-args", *args.ros2_args] if args.ros2_args else [])],
+                    threads=args.threads)
 
 
 def cmd_export(args) -> int:

@@ -16,7 +16,7 @@ import torchsoil
 from tests.node.bagfeed import DEMO, Published, demo_messages, feed
 from torchsoil.geo.gridmap import typestore
 from torchsoil.node import messages as m
-from torchsoil.node.body import NodeBody
+from torchsoil.node.body import NodeBody, stamp_of
 from torchsoil.settings import load_settings
 
 FAST = ["node.queue=100000", "node.map_rate=0", "node.tensorboard=false"]   # nothing dropped: results repeat
@@ -157,16 +157,20 @@ def test_fits_behind_skip_windows_instead_of_queueing_them(first_seconds, tmp_pa
     assert status.level == m.WARN and f"{len(skipped)} skipped" in status.message
 
 
-def test_the_queue_is_bounded_per_lidar_and_drops_the_oldest(tmp_path):
+def test_the_queue_is_bounded_and_thins_both_lidars_alike(tmp_path):
     body, _ = make_body(tmp_path)
     body.cfg = body.cfg.replace(queue=4)
-    msgs = [msg for msg in demo_messages(t_max=2.0) if msg[0] in ("/lidar_front/points", "/imu/data")]
+    lidars = ("/lidar_front/points", "/lidar_back/points")
+    msgs = [msg for msg in demo_messages(t_max=2.0) if msg[0] in (*lidars, "/imu/data")]
     for topic, msgtype, msg in msgs:              # no processing thread: nothing is taken
         body.receive(topic, msgtype, msg)
-    fronts = [msg for t, _, msg in msgs if t == "/lidar_front/points"]
-    queued = [item[2] for item in body.queue if item[0] == "/lidar_front/points"]
-    assert body.waiting["/lidar_front/points"] == 4 and queued == fronts[-4:]
-    assert body.health.dropped["/lidar_front/points"] == len(fronts) - 4
+    assert body.keep_every > 1                    # behind: one sweep in keep_every periods is kept
+    kept = {t: [stamp_of(item[2]) for item in body.queue if item[0] == t] for t in lidars}
+    for t in lidars:
+        fed = sum(1 for topic, _, _ in msgs if topic == t)
+        assert body.waiting[t] == len(kept[t]) <= 4 and body.health.dropped[t] == fed - len(kept[t])
+    assert kept[lidars[0]] == kept[lidars[1]]      # the same sweeps of both: they still pair up
+    assert kept[lidars[0]] == sorted(kept[lidars[0]]) and kept[lidars[0]][-1] >= 1.9 + stamp_of(msgs[0][2])
     assert sum(1 for item in body.queue if item[0] == "/imu/data") == sum(1 for t, _, _ in msgs if t == "/imu/data")
 
 

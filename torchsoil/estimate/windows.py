@@ -478,8 +478,11 @@ def prepare_window(pair, index: PathIndex, spec: WindowSpec, est: EstimatorConfi
     ground_xy = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
     if poses is None:
         a0, a1 = visit_span(pair, index, ground_xy, spec.s0, spec.s1, sim_reach(robot, sim))
-        sel = (index.arc >= min(spec.s0 - reach, a0)) & (index.arc <= max(spec.s1 + reach, a1))
-        first, last = np.flatnonzero(sel)[[0, -1]]
+        sel = np.flatnonzero((index.arc >= min(spec.s0 - reach, a0)) & (index.arc <= max(spec.s1 + reach, a1)))
+        if len(sel) == 0:   # poses sparser than the window (sweeps dropped): the nearest on either side
+            k = int(np.searchsorted(index.arc, spec.s0))
+            sel = np.array([max(k - 1, 0), min(k, len(index.arc) - 1)])
+        first, last = sel[[0, -1]]
         poses = pair.poses[max(first - 1, 0):last + 2]
     else:
         first = int(np.searchsorted(pair.poses[:, 0], poses[0, 0]))

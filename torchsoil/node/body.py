@@ -110,6 +110,11 @@ class NodeBody:
         self.cfg = settings.node
         self.queue: deque = deque()
         self.waiting = {t: 0 for t in self.lidars}  # sweeps of each lidar in the queue
+        self.keep_every = 1                  # lidar sweeps kept: one per keep_every periods (`_admit`)
+        self.changed = -math.inf             # when keep_every last changed (perf_counter)
+        self.slot: dict[str, int | None] = {}
+        self.last_t: dict[str, float] = {}
+        self.steps: dict[str, deque] = {}
         self.cond = threading.Condition()
         self.health = Health()
         self.thread: threading.Thread | None = None
@@ -128,12 +133,16 @@ class NodeBody:
 
     # ------------------------------------------------------------------ input
     def receive(self, topic: str, msgtype: str, msg) -> None:
-        """A message from a callback (any thread): queued, returns at once. A lidar's oldest
-        queued sweep is dropped when `node.queue` of its sweeps wait."""
+        """A message from a callback (any thread): queued, returns at once. When the pipeline
+        falls behind, the lidars are thinned together (`_admit`), and a lidar's oldest queued
+        sweep is dropped when `node.queue` of its sweeps still wait."""
         now = time.perf_counter()
         with self.cond:
             self.health.arrived(topic, time.monotonic())
             if topic in self.waiting:
+                if not self._admit(topic, stamp_of(msg), now):
+                    self.health.dropped[topic] = self.health.dropped.get(topic, 0) + 1
+                    return
                 if self.waiting[topic] >= self.cfg.queue:
                     for k, item in enumerate(self.queue):
                         if item[0] == topic:
@@ -146,6 +155,30 @@ class NodeBody:
                 return     # the processing thread has stopped: keep memory bounded
             self.queue.append((topic, msgtype, msg, now))
             self.cond.notify()
+
+    def _admit(self, topic: str, t: float, now: float) -> bool:
+        """Whether a lidar sweep stamped t [s] is queued: one per `keep_every` sweep periods of
+        each lidar, on the same slots for both (so that the sweeps kept still pair up and come
+        at a steady rate, which the mapper needs). keep_every doubles (up to 8) while half of
+        `node.queue` sweeps of a lidar wait, and halves after 5 s with at most one waiting."""
+        steps = self.steps.setdefault(topic, deque(maxlen=10))
+        if topic in self.last_t and t > self.last_t[topic]:
+            steps.append(t - self.last_t[topic])
+        self.last_t[topic] = t
+        backlog = max(self.waiting.values())
+        if backlog >= max(self.cfg.queue // 2, 1) and self.keep_every < 8 and now - self.changed > 0.5:
+            self.keep_every, self.changed = 2 * self.keep_every, now
+        elif backlog <= 1 and self.keep_every > 1 and now - self.changed > 5.0:
+            self.keep_every, self.changed = self.keep_every // 2, now
+        if self.keep_every == 1:
+            self.slot[topic] = None
+            return True
+        period = float(np.median(steps)) if steps else 0.1
+        slot = math.floor((t + period / 2) / (self.keep_every * period))
+        if slot == self.slot.get(topic):
+            return False
+        self.slot[topic] = slot
+        return True
 
     # ----------------------------------------------------------------- thread
     def start(self) -> None:
@@ -206,7 +239,8 @@ class NodeBody:
             self._check_clock(topic, stamp_of(msg))
         live = self.run.live
         if msgtype == TFMESSAGE:
-            live.add_transforms(msg)
+            if any(t.child_frame_id.lstrip("/") != self.cfg.map_frame for t in msg.transforms):
+                live.add_transforms(msg)      # not the node's own soil_map frame
         elif msgtype == IMU:
             live.add_imu(msg)
         elif topic in self.lidars:
@@ -230,6 +264,7 @@ class NodeBody:
     def _lidar(self, topic: str, msgtype: str, msg) -> None:
         t = stamp_of(msg)
         live = self.run.live
+        live.pipeline.keep_every = self.keep_every
         try:
             live.add_message(topic, msg, msgtype)
             pipe = live.pipeline
@@ -308,7 +343,10 @@ class NodeBody:
         except Exception as e:
             run.close()
             self.health.problem("finish", f"drive {self.drive}: {type(e).__name__}: {e}")
-            self.log(f"torchsoil node: drive {self.drive}: its outputs could not be finished: {type(e).__name__}: {e}")
+            import traceback
+
+            self.log(f"torchsoil node: drive {self.drive}: its outputs could not be finished: {type(e).__name__}: {e}"
+                     f"\n{traceback.format_exc(limit=-4)}")
         finally:
             self.run = None
 
@@ -384,13 +422,14 @@ class NodeBody:
         live = self.run.live if self.run is not None else None
         backlog = sum(self.waiting.values())
         pending = len(live.pending) if live is not None else 0
-        level = m.WARN if self.skipped or pending >= self.settings.estimator.online.max_pending else m.OK
-        statuses.append(m.status(st, "torchsoil: estimator", level,
+        behind = self.skipped or pending >= self.settings.estimator.online.max_pending or self.keep_every > 1
+        thinned = f", lidars thinned to 1 sweep in {self.keep_every} (behind)" if self.keep_every > 1 else ""
+        statuses.append(m.status(st, "torchsoil: estimator", m.WARN if behind else m.OK,
                                  f"{self.windows} windows, {self.skipped} skipped, latency median "
-                                 f"{np.nanmedian(lat):.2f} s",
+                                 f"{np.nanmedian(lat):.2f} s{thinned}",
                                  {"drive": self.drive, "windows": self.windows, "skipped": self.skipped,
                                   "latency_median_s": float(np.nanmedian(lat)), "latency_max_s": float(np.nanmax(lat)),
-                                  "queued_sweeps": backlog, "pending_stretches": pending}))
+                                  "queued_sweeps": backlog, "pending_stretches": pending, "keep_every": self.keep_every}))
         fresh = {k: v for k, v in h.problems.items() if now - v[2] < 30.0}
         level = m.ERROR if "error" in fresh else m.WARN if fresh else m.OK
         text = "; ".join(f"{k}: {v[1]}" for k, v in fresh.items()) or "none"

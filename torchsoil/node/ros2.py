@@ -38,8 +38,8 @@ def run(robot, settings, out, resume: bool = False, argv: list[str] | None = Non
 
     store = typestore()           # ROS 2 types, grid_map_msgs included
     args = list(argv or [])
-    if args and "--ros-args" not in args:
-        args = ["--ros-args", *[a for r in args for a in ("-r", r)]]   # rospy-style remappings
+    k = args.index("--ros-args") if "--ros-args" in args else len(args)
+    args = ["--ros-args", *[a for r in args[:k] for a in ("-r", r)], *args[k + 1:]]   # from:=to as ROS 1 gives them
     rclpy.init(args=["torchsoil", *args])
     node = rclpy.create_node(name)
     log = node.get_logger()

@@ -40,6 +40,10 @@ def run_node(robot: Robot, settings: Settings, out: str | Path, ros: str = "auto
     torch intra-op threads (1, as `estimate`: the same rows; None: torch's default)."""
     version = ros_version(ros)
     out = Path(out)
+    written = out / "params.csv"
+    if written.exists() and not (resume or overwrite) and len(written.read_text().splitlines()) > 1:
+        raise FileExistsError(f"{out} holds a run's windows already (params.csv): give --resume to continue it "
+                              "(its recording replayed), --overwrite to replace it, or another --out")
     from torchsoil import __version__
 
     used = {name: getattr(settings, name).model_dump(mode="json") for name in ("sim", "estimator", "pipeline")}

@@ -371,6 +371,7 @@ class Mapper:
     def __init__(self, cfg: MappingConfig | None = None, period: float = 0.1):
         self.cfg = cfg = cfg or MappingConfig()
         self.period = period
+        self.spacing = period          # expected time between sweeps (more when a live node thins them), s
         self.local = LocalMap(cfg.voxel, cfg.map_radius, cfg.normal_radius)
         self.stamps: list[float] = []
         self.poses: list[np.ndarray] = []
@@ -445,7 +446,7 @@ class Mapper:
         T_prev = self.poses[self.prev]
         fit = self._fit(sweep, T_prev, T_pred, dt, gate)
         turn = _angle_deg(np.linalg.inv(T_pred) @ fit.T)
-        if dt > 3 * self.period:   # no sweep for a while: the prediction is a guess
+        if dt > 3 * self.spacing:   # no sweep for a while: the prediction is a guess
             self.flags[k] |= GAP
         usual = float(np.median(self.costs)) if len(self.costs) >= 3 else np.inf
         if (fit.poor or fit.weak or turn > cfg.retry_turn or fit.cost > cfg.retry_cost * usual

@@ -92,6 +92,7 @@ class OnlinePipeline:
         self.timings: dict[str, float] = defaultdict(float)
         self.ground_stamp = -np.inf
         self.on_ground = None    # called (no arguments) each time a sweep's mapping rasterized new back ground
+        self.keep_every = 1      # one sweep in keep_every is fed (a live node behind thins them): no gap
         self.n_final = 0
         self.finished = False
         edge = robot.wheel_width / 2 + cfg.raster.wheel_margin
@@ -239,6 +240,7 @@ class OnlinePipeline:
         if self.mapper is None:
             self.mapper = Mapper(self.cfg.mapping, self.period)
             self.mapper.gyro = self.gyro
+        self.mapper.spacing = self.period * self.keep_every
         self.fuse_flags.append(flag)
         done = self.mapper.add(sweep)
         self.timings["mapping"] += time.perf_counter() - t0
