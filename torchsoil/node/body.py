@@ -159,14 +159,15 @@ class NodeBody:
     def _admit(self, topic: str, t: float, now: float) -> bool:
         """Whether a lidar sweep stamped t [s] is queued: one per `keep_every` sweep periods of
         each lidar, on the same slots for both (so that the sweeps kept still pair up and come
-        at a steady rate, which the mapper needs). keep_every doubles (up to 8) while half of
-        `node.queue` sweeps of a lidar wait, and halves after 5 s with at most one waiting."""
+        at a steady rate, which the mapper needs). keep_every doubles (up to 8, at most every
+        0.5 s) while `node.queue` - 1 sweeps of a lidar wait, and halves after 5 s with at most
+        one waiting."""
         steps = self.steps.setdefault(topic, deque(maxlen=10))
         if topic in self.last_t and t > self.last_t[topic]:
             steps.append(t - self.last_t[topic])
         self.last_t[topic] = t
         backlog = max(self.waiting.values())
-        if backlog >= max(self.cfg.queue // 2, 1) and self.keep_every < 8 and now - self.changed > 0.5:
+        if backlog >= self.cfg.queue - 1 and self.keep_every < 8 and now - self.changed > 0.5:
             self.keep_every, self.changed = 2 * self.keep_every, now
         elif backlog <= 1 and self.keep_every > 1 and now - self.changed > 5.0:
             self.keep_every, self.changed = self.keep_every // 2, now
