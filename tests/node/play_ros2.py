@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib
 import json
 import signal
 import time
@@ -19,19 +18,13 @@ import rclpy
 from rclpy.qos import QoSProfile
 from rosbags.highlevel import AnyReader
 
-
-def _class(msgtype: str):
-    pkg, _, name = msgtype.split("/")
-    try:
-        return getattr(importlib.import_module(f"{pkg}.msg"), name)
-    except (ImportError, AttributeError):
-        return None
+from torchsoil.node.ros2 import message_class
 
 
 def play(node, path: Path, delay: float) -> None:
     with AnyReader([path]) as bag:
-        pubs = {c.topic: node.create_publisher(_class(c.msgtype), c.topic, QoSProfile(depth=1000))
-                for c in bag.connections if _class(c.msgtype) is not None}
+        pubs = {c.topic: node.create_publisher(message_class(c.msgtype), c.topic, QoSProfile(depth=1000))
+                for c in bag.connections if message_class(c.msgtype) is not None}
         t_wait = time.monotonic()
         while any(p.get_subscription_count() == 0 for p in pubs.values()) and time.monotonic() - t_wait < 30:
             time.sleep(0.1)
