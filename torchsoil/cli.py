@@ -427,10 +427,10 @@ def cmd_node(args) -> int:
     settings = settings.replace(pipeline=pipeline_settings(settings, robot_yaml, given))
     import time
 
-    out = args.out or f"out/node-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}"
-    return run_node(_robot(args.robot), settings, out, ros=args.ros, resume=args.resume,
-                    overwrite=args.overwrite, argv=[*args.ros_args, *(["--ros-args", *args.ros2_args] if args.ros2_args else [])],
-                    threads=args.threads)
+    out = args.out or f"out/node-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}"   # a new folder per start
+    ros_args = [*args.ros_args, *(["--ros-args", *args.ros2_args] if args.ros2_args else [])]
+    return run_node(_robot(args.robot), settings, out, ros=args.ros, resume=args.resume, overwrite=args.overwrite,
+                    argv=ros_args, threads=args.threads)
 
 
 def cmd_export(args) -> int:

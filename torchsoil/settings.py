@@ -675,6 +675,8 @@ class NodeConfig(Section):
     clock_jump: float = Field(1.0, gt=0, description="a lidar stamp this far before the last ends the drive "
                                                      "(a bag played again) and begins a new one, s")
     tensorboard: bool = Field(True, description="TensorBoard logs in the run folder, as `estimate`")
+    reliable: bool = Field(False, description="ROS 2: lidars and IMU subscribed reliable (no sample lost; only "
+                                              "reliable publishers match) instead of best-effort (matches both)")
 
 
 # ---------------------------------------------------------------------------- the tree

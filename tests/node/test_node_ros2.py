@@ -55,8 +55,8 @@ def ros2_run(tmp_path_factory):
     log = (tmp / "node.log").open("w")
     node = subprocess.Popen([str(ROS2_PYTHON), "-m", "torchsoil", "node", "--ros", "2", "--robot",
                              str(DEMO / "demo.robot.yaml"), "--out", str(out), *ext, "--set", "node.queue=1000",
-                             "--set", "node.tensorboard=false"], cwd=ROOT, env=env, stdout=log,
-                            stderr=subprocess.STDOUT, start_new_session=True)
+                             "--set", "node.tensorboard=false", "--set", "node.reliable=true"], cwd=ROOT, env=env,
+                            stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     listener = subprocess.Popen([str(ROS2_PYTHON), str(PLAY), "listen", str(heard)], env=env, start_new_session=True)
     try:
         subprocess.run([str(ROS2_PYTHON), str(PLAY), "play", str(DEMO / "demo")], env=env, check=True, timeout=180)
@@ -78,8 +78,9 @@ def ros2_run(tmp_path_factory):
 def test_the_ros2_node_writes_the_rows_estimate_writes(ros2_run):
     out, _, est, log = ros2_run
     rows = _rows(out / "params.csv")
+    for topic in ("/lidar_front/points: 154", "/lidar_back/points: 154", "/imu/data: 1541"):
+        assert f"{topic} messages, 0 dropped" in log          # every message came (reliable QoS)
     assert len(rows) >= 40 and rows == _rows(est / "params.csv")
-    assert "/lidar_front/points: 154 messages, 0 dropped" in log
 
 
 def test_the_ros2_outputs_read_back_through_rclpy(ros2_run):

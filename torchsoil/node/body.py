@@ -430,7 +430,8 @@ class NodeBody:
                                  f"{np.nanmedian(lat):.2f} s{thinned}",
                                  {"drive": self.drive, "windows": self.windows, "skipped": self.skipped,
                                   "latency_median_s": float(np.nanmedian(lat)), "latency_max_s": float(np.nanmax(lat)),
-                                  "queued_sweeps": backlog, "pending_stretches": pending, "keep_every": self.keep_every}))
+                                  "queued_sweeps": backlog, "pending_stretches": pending,
+                                  "keep_every": self.keep_every}))
         fresh = {k: v for k, v in h.problems.items() if now - v[2] < 30.0}
         level = m.ERROR if "error" in fresh else m.WARN if fresh else m.OK
         text = "; ".join(f"{k}: {v[1]}" for k, v in fresh.items()) or "none"

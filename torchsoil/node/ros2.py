@@ -101,7 +101,7 @@ def _subscribe(node, store, body: NodeBody, settings) -> list:
         return take
 
     r = settings.pipeline.read
-    best_effort = qos_profile_sensor_data.reliability
+    best_effort = ReliabilityPolicy.RELIABLE if settings.node.reliable else qos_profile_sensor_data.reliability
     latched = QoSProfile(depth=100, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
     inputs = [(r.front_topic, POINTCLOUD2, QoSProfile(depth=settings.node.queue, reliability=best_effort)),
               (r.back_topic, POINTCLOUD2, QoSProfile(depth=settings.node.queue, reliability=best_effort)),
