@@ -1,6 +1,7 @@
 """The node's body fed the demo recording's messages as a transport hands them over: bounded
 queues, windows skipped (not queued without end) when the fits fall behind, a clock jumping
-back, a late /tf_static and malformed clouds, said and survived."""
+back, a late /tf_static, a late IMU and malformed clouds, said and survived; what arrives late
+changes no row."""
 
 from __future__ import annotations
 
@@ -91,6 +92,22 @@ def test_a_late_tf_static_changes_nothing(first_seconds, in_order, tmp_path):
     assert same_rows(rows(tmp_path / "params.csv"), in_order[0])
     assert body.health.problems["tf"][0] > 0            # said while it waited
     assert any(s.name == "torchsoil: problems" and "tf" in s.message for s in diag.status)
+
+
+def test_an_imu_half_a_second_late_changes_nothing(first_seconds, in_order, tmp_path):
+    late, held = [], []
+    for msg in first_seconds:                  # each IMU sample handed over 50 samples (0.5 s) late
+        if msg[0] == "/imu/data":
+            held.append(msg)
+            if len(held) > 50:
+                late.append(held.pop(0))
+        else:
+            late.append(msg)
+    body, _ = make_body(tmp_path)
+    body.start()
+    feed(body, late + held)
+    body.stop()
+    assert same_rows(rows(tmp_path / "params.csv"), in_order[0])
 
 
 def test_malformed_clouds_are_said_and_skipped(first_seconds, tmp_path):

@@ -65,6 +65,7 @@ class OnlinePipeline:
         self.back_pool: list[Sweep] = []                 # recent back sweeps, fusion partners
         self.back_wait: list[Sweep] = []                 # back sweeps not yet known to have a front partner
         self.last_front = self.mapped_front = -np.inf    # stamps, s
+        self.imu_last = -np.inf                          # the latest IMU sample's time, s
         self.queue: dict[str, list[Sweep]] = {n: [] for n in STREAMS}  # waiting for re-registration
         self.period: float | None = None
         self.first_stamps: list[float] = []
@@ -114,6 +115,7 @@ class OnlinePipeline:
         self._take(name, cloud)
 
     def add_imu(self, sample: ImuSample) -> None:
+        self.imu_last = max(self.imu_last, sample.t)
         if not self.refined:
             self.imu.append(sample)
         if self.gyro_R is None:
@@ -122,6 +124,15 @@ class OnlinePipeline:
             self._start_gyro()
             return
         self.gyro.add(sample.t, self.gyro_R @ np.asarray(sample.gyro, np.float64))
+        if self.front_wait and self.ext is not None and self.mapper is not None:
+            self._fuse(final=False)      # a sweep may have waited for these samples
+
+    def _imu_behind(self, t: float) -> bool:
+        """Whether the IMU, whose samples are coming, has not reached time t [s] yet: what is
+        done at t then waits for it, so that the result does not depend on whether the IMU's
+        messages came before or after the lidars' (on a live graph they race). An IMU more
+        than 1 s behind the front lidar is silent, not late: nothing waits for it."""
+        return -np.inf < self.imu_last < t and self.last_front - self.imu_last < 1.0
 
     def _start_gyro(self) -> None:
         """The rate gyro from the samples that waited for the IMU's transform, once it is known."""
@@ -222,6 +233,8 @@ class OnlinePipeline:
             waiting = not any(b.stamp >= f.stamp + P / 2 for b in self.back_pool[-3:])
             if not final and waiting and len(self.front_wait) < 10:   # a silent back lidar holds 1 s at most
                 return
+            if not final and self._imu_behind(f.stamp) and len(self.front_wait) < 10:   # the gyro up to f
+                return
             self.front_wait.pop(0)
             self.mapped_front = f.stamp
             near = [b for b in self.back_pool if abs(b.stamp - f.stamp) <= P / 2]
@@ -271,7 +284,8 @@ class OnlinePipeline:
         if not final:
             if cfg.source == "none":
                 pass
-            elif use_imu and self.ok_stamps[-1] < self.ok_stamps[0] + cfg.window + 2 * self.period:
+            elif use_imu and (self.ok_stamps[-1] < self.ok_stamps[0] + cfg.window + 2 * self.period
+                              or self._imu_behind(self.ok_stamps[0] + cfg.window + 2 * self.period)):
                 return
             elif not use_imu and np.linalg.norm(self.ok_poses[-1][:2, 3]) < cfg.radius:
                 return
@@ -299,7 +313,8 @@ class OnlinePipeline:
         cfg = self.cfg.level
         if self.refined or self.L is None or not self.imu:
             return
-        if not final and self.ok_stamps[-1] < self.ok_stamps[0] + cfg.bias_window:
+        if not final and (self.ok_stamps[-1] < self.ok_stamps[0] + cfg.bias_window
+                          or self._imu_behind(self.ok_stamps[0] + cfg.bias_window)):
             return
         imu = imu_data(self.imu)
         imu_T = self._imu_pose(imu)
