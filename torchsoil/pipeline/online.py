@@ -34,7 +34,7 @@ from torchsoil.settings import PipelineConfig
 
 STREAMS = ("front", "back")
 REF_OK = ~(mapping.POOR_FIT | mapping.EMPTY)
-
+IMU_WAIT = 3.0   # s: how long a sweep waits for a late IMU's samples (beyond, the IMU is taken as silent)
 
 class OnlinePipeline:
     """Sweeps in, rasterized ground out, as the robot drives.
@@ -131,8 +131,8 @@ class OnlinePipeline:
         """Whether the IMU, whose samples are coming, has not reached time t [s] yet: what is
         done at t then waits for it, so that the result does not depend on whether the IMU's
         messages came before or after the lidars' (on a live graph they race). An IMU more
-        than 1 s behind the front lidar is silent, not late: nothing waits for it."""
-        return -np.inf < self.imu_last < t and self.last_front - self.imu_last < 1.0
+        than IMU_WAIT s behind the front lidar is silent, not late: nothing waits for it."""
+        return -np.inf < self.imu_last < t and self.last_front - self.imu_last < IMU_WAIT
 
     def _start_gyro(self) -> None:
         """The rate gyro from the samples that waited for the IMU's transform, once it is known."""
@@ -233,7 +233,7 @@ class OnlinePipeline:
             waiting = not any(b.stamp >= f.stamp + P / 2 for b in self.back_pool[-3:])
             if not final and waiting and len(self.front_wait) < 10:   # a silent back lidar holds 1 s at most
                 return
-            if not final and self._imu_behind(f.stamp) and len(self.front_wait) < 10:   # the gyro up to f
+            if not final and self._imu_behind(f.stamp) and f.stamp > self.last_front - IMU_WAIT:   # gyro up to f
                 return
             self.front_wait.pop(0)
             self.mapped_front = f.stamp
