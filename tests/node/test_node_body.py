@@ -110,6 +110,27 @@ def test_an_imu_half_a_second_late_changes_nothing(first_seconds, in_order, tmp_
     assert same_rows(rows(tmp_path / "params.csv"), in_order[0])
 
 
+def test_a_restarted_node_resumes_without_refitting(first_seconds, in_order, tmp_path):
+    body, _ = make_body(tmp_path)                 # a run killed after its first 6 windows
+    body.start()
+    feed(body, first_seconds)
+    body.stop()
+    for name in ("params.csv", "reference.csv"):
+        lines = (tmp_path / name).read_text().splitlines(keepends=True)
+        (tmp_path / name).write_text("".join(lines[:7]))
+    body, pub = make_body(tmp_path)
+    body.resume = True                            # `torchsoil node --resume`, the recording played again
+    body.start()
+    feed(body, first_seconds)
+    body.stop()
+    got = rows(tmp_path / "params.csv")
+    assert [r["s"] for r in got] == [r["s"] for r in in_order[0]] and same_rows(got[:6], in_order[0][:6])
+    for a, b in zip(got, in_order[0], strict=True):   # warm-started from the last row as written (7 digits)
+        for key in ("d1", "d2", "chi", "beta", "residual"):
+            assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-4, nan_ok=True)
+    assert len(pub.by_name["soil"]) == len(in_order[0]) - 6     # the windows written are not fitted again
+
+
 def test_malformed_clouds_are_said_and_skipped(first_seconds, tmp_path):
     msgs = list(first_seconds)
     fronts = [k for k, (t, _, _) in enumerate(msgs) if t == "/lidar_front/points"]
