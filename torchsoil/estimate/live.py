@@ -84,7 +84,6 @@ class LiveEstimator:
         self.worker: ThreadPoolExecutor | None = None   # with estimator.online.worker=thread
         self.clock = time.perf_counter     # when a window became ready (a node: the sweep's arrival)
         self.when_behind = "wait"          # fits max_pending behind: "wait" for them, or "skip" the new windows
-        self.skipped = 0                   # windows skipped because the fits were behind
 
     # ---------------------------------------------------------------- input
     def add_message(self, topic: str, msg, msgtype: str = "sensor_msgs/msg/PointCloud2") -> None:
@@ -220,7 +219,6 @@ class LiveEstimator:
         now = time.perf_counter()
         out = []
         for k in sorted(ready):
-            self.skipped += 1
             row = {"s": k * e.stride + e.window / 2, "visit": 0, "flags": "skipped_behind", "iterations": 0}
             out.append(LiveWindow(k, WindowOutput(row, {"signal": math.nan, "floor": math.nan}, None, None, None),
                                   None, ready[k], now))

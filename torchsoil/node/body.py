@@ -37,7 +37,6 @@ from torchsoil.settings import Settings
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 TFMESSAGE = "tf2_msgs/msg/TFMessage"
 IMU = "sensor_msgs/msg/Imu"
-NAVSATFIX = "sensor_msgs/msg/NavSatFix"
 
 # name -> (message type, topic under the node's namespace, what it is): what the body publishes
 OUTPUTS = {

@@ -12,7 +12,8 @@ import signal
 import sys
 import threading
 
-from torchsoil.node.body import IMU, NAVSATFIX, OUTPUTS, POINTCLOUD2, TFMESSAGE, NodeBody
+from torchsoil.io.pointcloud import LIVOX_CUSTOM
+from torchsoil.node.body import IMU, OUTPUTS, POINTCLOUD2, TFMESSAGE, NodeBody
 
 DEBIAN_ROS = "/usr/lib/python3/dist-packages"
 
@@ -122,8 +123,7 @@ def run(robot, settings, out, resume: bool = False, argv: list[str] | None = Non
 
     body = NodeBody(robot, settings, out, publish, store, resume=resume, gridmap=False, log=rospy.loginfo)
     decode = Decoder(store)
-    wanted = {POINTCLOUD2, TFMESSAGE, IMU, NAVSATFIX, "livox_ros_driver/msg/CustomMsg",
-              "livox_ros_driver2/msg/CustomMsg"}
+    wanted = {POINTCLOUD2, TFMESSAGE, IMU, *LIVOX_CUSTOM}
 
     def callback(topic: str):
         def take(raw):

@@ -36,6 +36,7 @@ STREAMS = ("front", "back")
 REF_OK = ~(mapping.POOR_FIT | mapping.EMPTY)
 IMU_WAIT = 3.0   # s: how long a sweep waits for a late IMU's samples (beyond, the IMU is taken as silent)
 
+
 class OnlinePipeline:
     """Sweeps in, rasterized ground out, as the robot drives.
 
@@ -115,7 +116,7 @@ class OnlinePipeline:
         self._take(name, cloud)
 
     def add_imu(self, sample: ImuSample) -> None:
-        self.imu_last = max(self.imu_last, sample.t)
+        before, self.imu_last = self.imu_last, max(self.imu_last, sample.t)
         if not self.refined:
             self.imu.append(sample)
         if self.gyro_R is None:
@@ -124,8 +125,8 @@ class OnlinePipeline:
             self._start_gyro()
             return
         self.gyro.add(sample.t, self.gyro_R @ np.asarray(sample.gyro, np.float64))
-        if self.front_wait and self.ext is not None and self.mapper is not None:
-            self._fuse(final=False)      # a sweep may have waited for these samples
+        if self.front_wait and self.mapper is not None and before < self.front_wait[0].stamp <= self.imu_last:
+            self._fuse(final=False)      # the oldest waiting sweep may have waited for this sample
 
     def _imu_behind(self, t: float) -> bool:
         """Whether the IMU, whose samples are coming, has not reached time t [s] yet: what is
