@@ -103,7 +103,12 @@ class LiveEstimator:
 
     def add_transforms(self, msg) -> None:
         """A tf2_msgs/TFMessage (/tf_static or /tf): lidar and IMU extrinsics."""
-        for child, edge in tf_edges(msg).items():
+        self.add_edges(tf_edges(msg))
+
+    def add_edges(self, edges: dict[str, tuple]) -> None:
+        """Transforms {child frame: (parent frame, (4, 4) parent_T_child)}, as tf_edges gives
+        them (the first of each frame is kept)."""
+        for child, edge in edges.items():
             self.edges.setdefault(child, edge)
         self.rec.extrinsics = resolve_frames(self.edges, frame_name(self.settings.pipeline.read.base_frame))
 

@@ -306,7 +306,6 @@ class NodeBody:
     def _open_drive(self, new: bool = False, edges: dict | None = None) -> None:
         """A drive's run folder and LiveRun (OUT, then OUT/restart_NNN); edges: the transforms
         known so far (frame -> edge, LiveEstimator.edges)."""
-        from torchsoil.io.extrinsics import frame_name, resolve_frames
         from torchsoil.jobs.estimate import LiveRun
 
         self.drive += 1
@@ -316,9 +315,7 @@ class NodeBody:
         self.run.live.clock = lambda: self.arrival
         self.run.live.when_behind = "skip"
         if edges:
-            live = self.run.live
-            live.edges.update(edges)
-            live.rec.extrinsics = resolve_frames(live.edges, frame_name(self.settings.pipeline.read.base_frame))
+            self.run.live.add_edges(edges)
         self.last_stamp = {}
         self.recent.clear()
 
