@@ -21,7 +21,7 @@ def run_benchmarks(out_dir: str | Path, only: list[str] | None = None, quick: bo
     repeats); returns the path of bench.json."""
     import torch
 
-    names = [m.name for m in pkgutil.iter_modules(__path__)]
+    names = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]
     unknown = sorted(set(only or ()) - set(names))
     if unknown:
         raise ValueError(f"unknown benchmark module(s) {', '.join(unknown)}; known: {', '.join(names)}")

@@ -95,7 +95,7 @@ def _field_length(lengths: tuple[float, ...] = (20.0, 200.0), workers: tuple[int
     speed drive's stretches (5 m each at 1.0, 0.5, 1.5, 0.6, 1.4 m/s) repeated to each length,
     in one process and (keys ending _workers2) with --pass-workers 2: its peak is the largest
     process's (the main one or a worker), not their sum."""
-    from torchsoil.bench.online import peak_rss_mb
+    from torchsoil.bench._memory import peak_rss_mb
     from torchsoil.io.terrain_pair import TerrainPair
     from torchsoil.settings import merge
     from torchsoil.synth.scenario import load_scenario, make_terrain_pair

@@ -6,16 +6,13 @@ recording (5 s when quick), from the first message to the last window, / recordi
 (< 0.5: more than twice as fast as the robot drives). `online_latency_s_median` / `_max`: from
 the arrival of the sweep that completes a window's ground to that window's row.
 `online_peak_rss_mb_1min` / `_10min`: peak resident memory of `torchsoil estimate` (its own
-process) on 1- and 10-minute synthetic straight drives recorded with 16 beams x 512 columns
-(the 10-minute one is skipped when quick); `online_estimate_s_1min` / `_10min`: that process's
-wall time, s (docs/memory.md).
+process, started by a small launcher: `bench._memory`) on 1- and 10-minute synthetic straight
+drives recorded with 16 beams x 512 columns (the 10-minute one is skipped when quick);
+`online_estimate_s_1min` / `_10min`: that process's wall time, s (docs/memory.md).
 """
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -33,19 +30,10 @@ def _long_drive(out: Path, minutes: float) -> Path:
     return out
 
 
-def peak_rss_mb(args: list[str]) -> float:
-    """Peak resident memory [MB] of a child process running `python -m torchsoil ARGS`."""
-    proc = subprocess.Popen([sys.executable, "-m", "torchsoil", *args], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
-    _, status, usage = os.wait4(proc.pid, 0)
-    if status != 0:
-        raise RuntimeError(f"torchsoil {' '.join(args)} failed: {proc.stderr.read().decode()[-2000:]}")
-    return usage.ru_maxrss / 1024.0
-
-
 def run(quick: bool = False) -> dict[str, float]:
     import numpy as np
 
+    from torchsoil.bench._memory import peak_rss_mb
     from torchsoil.bench.pipeline import _recording
     from torchsoil.estimate.live import LiveEstimator, play
     from torchsoil.settings import load_settings
