@@ -12,6 +12,7 @@ from torchsoil.robot import Robot
 from torchsoil.settings import SimConfig
 from torchsoil.sim.cohesive import relax_two_angle
 from torchsoil.sim.deposition import deposit
+from torchsoil.sim.dig import dig
 from torchsoil.sim.geometry import WheelGeometry, footprint, wheel_geometry
 from torchsoil.sim.params import ParamSpec
 from torchsoil.sim.relaxation import relax
@@ -110,9 +111,8 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     if config.dig_order == "wheel" and geom.order is not None:
         h_pre, removed, added, lost = dig_in_turn(h, h_ref, geom, fp, depth, chi, config)
     else:
-        h_dug, removed = sink(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth)
-        added, lost = deposit(removed, geom.cell, fp.owner, fp.band, geom.bin, geom.n_bins * geom.n_wheels, chi)
-        h_pre = h_dug + added
+        h_pre, removed, added, lost = dig(h, h_ref, geom.cell, fp.covered, fp.s.to(dt), depth, fp.owner, fp.band,
+                                          geom.bin, geom.n_bins * geom.n_wheels, chi, config.backend)
 
     tan_beta = torch.tan(beta).clamp(max=MAX_TAN_BETA)
     relax_args = (geom.dx, geom.domain, config.tau, config.max_iter, config.fixed_iter, config.eps_scale)
