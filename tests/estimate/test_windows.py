@@ -299,3 +299,23 @@ def test_smoothing_along_a_rut_keeps_its_section_and_averages_the_noise():
     across = smooth_along(noisy, np.full(rut.shape, yaw + np.pi / 2), 3.5) - rut
     assert across[inner][np.abs(off[inner]) < 0.5].mean() > 0.008
     assert np.array_equal(smooth_along(noisy, np.full(rut.shape, np.nan), 3.5), noisy)
+
+
+def test_points_near_ground_as_by_brute_force():
+    """windows._within searches only the ground's edge cells: the same answer as every cell."""
+    from torchsoil.estimate.windows import _within
+
+    rng = np.random.default_rng(3)
+    grid = Grid(0.02, (-1.0, -0.5), (100, 60))
+    xs, ys = grid.centers()
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    blob = (np.hypot(X - 0.1, Y) < 0.3) & ~(np.hypot(X - 0.15, Y + 0.05) < 0.08)   # a disc with a hole
+    blob |= rng.random(blob.shape) < 0.01                                          # and specks
+    cells = np.argwhere(blob)
+    ground = np.stack([xs[cells[:, 0]], ys[cells[:, 1]]], 1)
+    pts = rng.uniform((-1.3, -0.8), (1.3, 0.8), (3000, 2))
+    for reach in (0.02, 0.05, 0.35):
+        brute = (np.hypot(*(pts[:, None] - ground[None]).transpose(2, 0, 1)) <= reach).any(1)
+        got = _within(pts, ground, grid, reach)
+        assert np.array_equal(got, brute), reach
+        assert 0 < got.sum() < len(pts)

@@ -150,6 +150,8 @@ class Estimator:
         self.free_names = tuple(dict.fromkeys(self._free_name(n) for n in self.names))
         # column of each simulator parameter among the optimizer's variables
         self.expand = [self.free_names.index(self._free_name(n)) for n in self.names]
+        self._expand = (None if self.expand == list(range(len(self.names)))
+                        else torch.tensor(self.expand, device=self.device))
         kw = dict(device=self.device, dtype=dtype)
         lo, hi = self.spec.bounds(torch.zeros(1, **kw))
         first = [self.expand.index(i) for i in range(len(self.free_names))]  # a parameter per variable
@@ -212,7 +214,7 @@ class Estimator:
 
     def full_theta(self, free: torch.Tensor) -> torch.Tensor:
         """(B, P_free) optimizer variables -> (B, P) simulator parameters."""
-        return free[:, self.expand]
+        return free if self._expand is None else free.index_select(1, self._expand)
 
     def forget_before(self, k: int) -> None:
         """Let go of the prepared data of the windows before window k (`data`, `visit_data`):

@@ -403,9 +403,30 @@ def visit_span(pair, index: PathIndex, ground_xy: np.ndarray, s0: float, s1: flo
         return math.inf, -math.inf
     lo, hi = max(near[0] - 1, 0), min(near[-1] + 2, len(index.arc))
     pts, arc = _wheel_samples(np.asarray(pair.poses[lo:hi], np.float64), pair.robot, pair.dx)
-    dist, _ = cKDTree(ground_xy).query(pts, distance_upper_bound=touch)
-    a = arc[np.isfinite(dist)] + index.arc[lo]
+    a = arc[_within(pts, ground_xy, pair.grid, touch)] + index.arc[lo]
     return (float(a.min()), float(a.max())) if len(a) else (math.inf, -math.inf)
+
+
+def _within(pts: np.ndarray, ground_xy: np.ndarray, grid, reach: float) -> np.ndarray:
+    """(M,) bool: the (M, 2) points lie within `reach` [m] of a ground cell ((G, 2) centres of
+    cells of `grid`), reach >= one cell.
+
+    The nearest ground cell of a point whose own cell is not ground has a 4-neighbour that is
+    not ground either (one step from any other cell towards the point would come closer), so
+    only those edge cells are searched; a point on a ground cell is within a cell of it."""
+    ij = grid.index(ground_xy)
+    lo = ij.min(0) - 1
+    mask = np.zeros(tuple(ij.max(0) - lo + 2), bool)
+    mask[ij[:, 0] - lo[0], ij[:, 1] - lo[1]] = True
+    i, j = (ij - lo).T
+    edge = ~(mask[i - 1, j] & mask[i + 1, j] & mask[i, j - 1] & mask[i, j + 1])
+    own = grid.index(pts) - lo
+    inside = np.all((own >= 0) & (own < mask.shape), axis=1)
+    on = np.zeros(len(pts), bool)
+    on[inside] = mask[own[inside, 0], own[inside, 1]]
+    dist, _ = cKDTree(ground_xy[edge]).query(pts[~on], distance_upper_bound=reach)
+    on[~on] = np.isfinite(dist)
+    return on
 
 
 def earlier_poses(pair, before: int, ground_xy: np.ndarray, reach: float) -> list[np.ndarray]:

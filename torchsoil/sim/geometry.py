@@ -148,7 +148,8 @@ def resample_poses(poses: np.ndarray, wheels_xy: np.ndarray, max_step: float) ->
     w = wheel_positions(p, wheels_xy)
     step = np.linalg.norm(np.diff(w, axis=1), axis=-1).max(axis=0)  # (N-1,)
     n_sub = np.maximum(1, np.ceil(step / max_step).astype(np.int64))
-    frac = np.concatenate([np.arange(n) / n for n in n_sub])
+    per = np.repeat(n_sub, n_sub)                                   # each inserted pose's n
+    frac = (np.arange(per.size) - np.repeat(np.cumsum(n_sub) - n_sub, n_sub)) / per   # k / n, k < n
     seg = np.repeat(np.arange(len(p) - 1), n_sub)
     out = p[seg] + frac[:, None] * (p[seg + 1] - p[seg])
     return np.vstack([out, p[-1:]])

@@ -7,6 +7,7 @@ after the base ones, so a parameter set is always addressed by name, never by a 
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -65,9 +66,8 @@ class ParamSpec:
             raise KeyError(f"no parameter {name!r} in {self.names}") from None
 
     def bounds(self, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(P,) lower and upper bounds on the device/dtype of `like`."""
-        kw = dict(device=like.device, dtype=like.dtype)
-        return torch.tensor(self.lower, **kw), torch.tensor(self.upper, **kw)
+        """(P,) lower and upper bounds on the device/dtype of `like` (shared: do not modify)."""
+        return _bounds(self.lower, self.upper, like.dtype, like.device)
 
     def clamp(self, theta: torch.Tensor) -> torch.Tensor:
         """Project theta (B, P) onto the bounds."""
@@ -101,3 +101,10 @@ class ParamSpec:
             raise KeyError(f"unknown parameters {sorted(unknown)}; known: {self.names}")
         row = [float(values.get(n, lo)) for n, lo in zip(self.names, self.lower, strict=True)]
         return torch.tensor([row] * batch, device=device, dtype=dtype)
+
+
+@functools.lru_cache(maxsize=256)
+def _bounds(lower: tuple[float, ...], upper: tuple[float, ...], dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """The bounds as tensors, made once per layout, dtype and device (simulate checks theta on
+    every call)."""
+    return torch.tensor(lower, dtype=dtype, device=device), torch.tensor(upper, dtype=dtype, device=device)
