@@ -70,3 +70,16 @@ def test_numba_dig_float32_and_no_grad():
 def test_unknown_backend_is_refused():
     with pytest.raises(ValueError, match="dig backend"):
         dig(*_case(B=1), backend="cuda-magic")
+
+
+def test_numba_dig_gradients_of_the_parameters_alone():
+    """As the estimator calls it: only depth and chi require gradients."""
+    h, h_ref, cell, covered, s, depth, owner, band, bins, n_bins, chi = _case(B=2)
+    grads = []
+    for backend in ("torch", "numba"):
+        d, c = depth.clone().requires_grad_(True), chi.clone().requires_grad_(True)
+        pre = dig(h, h_ref, cell, covered, s, d, owner, band, bins, n_bins, c, backend)[0]
+        grads.append(torch.autograd.grad((pre * pre).sum(), (d, c)))
+    for a, b in zip(*grads, strict=True):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-15)
+        assert a.abs().sum() > 0

@@ -180,13 +180,16 @@ class _Dig(torch.autograd.Function):
         (_bp if B > 1 else _bs)(*args, ctx.chi, floor, raw, gp, gr, ga, gl, gh, ghref, gs, gdepth, gchi)
         dev = g_pre.device if g_pre is not None else torch.device("cpu")
 
-        def out(a, shape):
+        def out(a, shape, needed):
+            if not needed:
+                return None
             t = torch.from_numpy(a)
             t = t.sum(0, keepdim=True) if shape[0] == 1 and B > 1 else t
             return t.reshape(shape).to(dev)
 
-        return (out(gh, h_shape), out(ghref, href_shape), out(gs, s_shape), torch.from_numpy(gdepth).to(dev),
-                torch.from_numpy(gchi).to(dev), None, None, None, None, None, None)
+        need = ctx.needs_input_grad
+        return (out(gh, h_shape, need[0]), out(ghref, href_shape, need[1]), out(gs, s_shape, need[2]),
+                out(gdepth, gdepth.shape, need[3]), out(gchi, gchi.shape, need[4]), None, None, None, None, None, None)
 
 
 def dig(h, h_ref, cell, covered, s, depth, owner, band, bins, n_bins, chi):
