@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from torchsoil.sim.stencil import EPS2, RelaxResult, face_masks
+from torchsoil.sim.stencil import EPS2, RelaxResult
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -123,7 +123,7 @@ class _Relax(torch.autograd.Function):
         hn = h.detach().cpu().numpy().copy()
         # a writable copy: a read-only view would compile the kernels a second time
         tb = np.array(np.broadcast_to(tan_beta.detach().cpu().numpy(), hn.shape), order="C")
-        fxn, fyn = fx.cpu().numpy().astype(np.uint8), fy.cpu().numpy().astype(np.uint8)
+        fxn, fyn = fx, fy
         B = hn.shape[0]
         done = np.zeros(B, np.uint8)
         iters = np.zeros(B, np.int64)
@@ -164,9 +164,18 @@ class _Relax(torch.autograd.Function):
                 None, None, None, None, None)
 
 
+def _face_masks(domain, shape) -> tuple[np.ndarray, np.ndarray]:
+    """`stencil.face_masks` as the kernels read them: (X, Y) uint8 numpy arrays."""
+    d = np.ones(tuple(shape), bool) if domain is None else domain.detach().cpu().numpy()
+    fx, fy = np.zeros(d.shape, np.uint8), np.zeros(d.shape, np.uint8)
+    fx[:-1] = d[:-1] & d[1:]
+    fy[:, :-1] = d[:, :-1] & d[:, 1:]
+    return fx, fy
+
+
 def relax(h, tan_beta, dx, domain, tau, max_iter, fixed_iter, eps_scale) -> RelaxResult:
     """Numba relaxation with autograd; arguments as `relaxation.relax` (tan_beta (B|1, 1|X, 1|Y))."""
-    fx, fy = face_masks(domain, h.shape[1:], h.device)
+    fx, fy = _face_masks(domain, h.shape[1:])
     tan_beta = tan_beta.to(h.dtype).expand(h.shape[0], -1, -1) if tan_beta.shape[0] == 1 else tan_beta
     out, iters, capped = _Relax.apply(h, tan_beta.to(h.dtype), fx, fy, float(dx), float(tau),
                                       int(max_iter), fixed_iter, float(eps_scale))
