@@ -39,16 +39,23 @@ def _serial_and_parallel(fn):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def relax_pass(h, tb, inv_dx, coef, tau, qx):
+def relax_pass(h, tb, inv_dx, coef, tau, qx, box):
     """One relaxation update of h (W, W) float32 in place, no flux across its edges: the
     update of `torchsoil.sim._relax_numba` (its float64 fluxes, the same sums), in one pass
     (a cell's fluxes read only cells not yet updated). tb: (W, W) face tan(beta); qx: (W,)
-    float64 scratch. Returns whether max |grad h| - tan(beta) >= tau before the update."""
+    float64 scratch. box: (4,) int64 rows i0..i1, columns j0..j1 (inclusive) that hold every
+    cell with a flux; only cells there or one row or column beyond can change, and only those
+    are visited. It becomes the box of the next update (empty: i0 > i1). Returns whether
+    max |grad h| - tan(beta) >= tau before the update."""
     X, Y = h.shape
+    lo_i, hi_i, lo_j, hi_j = box[0], min(box[1] + 1, X - 1), box[2], min(box[3] + 1, Y - 1)
+    box[0], box[1], box[2], box[3] = X, -1, Y, -1
     active = False
-    for i in range(X):
+    for j in range(lo_j, hi_j + 1):
+        qx[j] = 0.0
+    for i in range(lo_i, hi_i + 1):
         qy_left = 0.0                               # qy of the cell before, qx[j] of the row before
-        for j in range(Y):
+        for j in range(lo_j, hi_j + 1):
             hij = h[i, j]
             gx = (h[i + 1, j] - hij) * inv_dx if i + 1 < X else 0.0
             gy = (h[i, j + 1] - hij) * inv_dx if j + 1 < Y else 0.0
@@ -64,6 +71,8 @@ def relax_pass(h, tb, inv_dx, coef, tau, qx):
                 f = ex / n
                 fx = f * gx
                 fy = f * gy
+                box[0], box[1] = min(box[0], i), max(box[1], i)
+                box[2], box[3] = min(box[2], j), max(box[3], j)
             d = fx + fy
             if i > 0:
                 d -= qx[j]
@@ -72,6 +81,9 @@ def relax_pass(h, tb, inv_dx, coef, tau, qx):
             h[i, j] = hij + coef * d
             qx[j] = fx
             qy_left = fy
+    if box[0] <= box[1]:                            # fluxes of the next update: one cell further
+        box[0], box[1] = max(box[0] - 1, 0), min(box[1] + 1, X - 1)
+        box[2], box[3] = max(box[2] - 1, 0), min(box[3] + 1, Y - 1)
     return active
 
 
@@ -80,10 +92,11 @@ def relax_window(h, tb, inv_dx, coef, tau, n_iter, fixed, qx, save):
     """Relax one window h (W, W) float32 in place (`relax_pass`): exactly n_iter updates
     (fixed), or until max |grad h| - tan(beta) < tau, at most n_iter (save: (W, W) float32
     scratch). Returns the updates applied."""
+    box = np.array([0, h.shape[0] - 1, 0, h.shape[1] - 1])
     for it in range(n_iter):
         if not fixed:
             save[:] = h
-        if not relax_pass(h, tb, inv_dx, coef, tau, qx) and not fixed:
+        if not relax_pass(h, tb, inv_dx, coef, tau, qx, box) and not fixed:
             h[:] = save                             # converged before this update: undo it
             return it
     return n_iter
