@@ -8,6 +8,8 @@ is the update of `torchsoil.sim._relax_numba` (same order, same float64 fluxes),
 agree with the torch path with the numba backend to float32 rounding (tests/envs/test_fused.py).
 Each robot's K windows are cut from the field before the step and written back in wheel
 order (a later window overwrites an earlier one on a shared cell), as `index_copy_` does.
+The cost is mostly memory: a thread reads ahead the cache lines of its next robot's windows
+while it steps one (`touch`), and the relaxation visits only the cells a flux can reach.
 
 Lengths in metres, the field layers (N, X, Y) float32, windows W x W cells.
 """
@@ -248,8 +250,24 @@ def overlapping(w0, W):
     return False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def touch(h, ref, ref_odom, passes, n, w0, W):
+    """Read one cell of each cache line robot n's windows will use (every row of h, the
+    middle rows of the other layers), so that these memory loads run while the robot before
+    it is stepped (a software prefetch). Returns their sum, to be used by the caller."""
+    total = np.float32(0.0)
+    for k in range(w0.shape[1]):
+        i0, j0 = w0[n, k, 0], w0[n, k, 1]
+        for a in range(W):
+            total += h[n, i0 + a, j0] + h[n, i0 + a, j0 + W - 1]
+        for a in range(W // 4, W - W // 4):
+            j = j0 + W // 2
+            total += ref[n, i0 + a, j] + ref_odom[n, i0 + a, j] + passes[n, i0 + a, j]
+    return total
+
+
 def _soil_step_py(h, ref, ref_odom, passes, table, track, w0, W, seg, odom, disc, geo, n_bins, n_iter, fixed,
-                  tau, inv_dx, coef, out_removed, out_added, out_rut, out_repeat, out_iters):
+                  tau, inv_dx, coef, out_removed, out_added, out_rut, out_repeat, out_iters, lead_sums):
     """Dig, deposit, relax and write back every robot's K windows, in place.
 
     h, ref, ref_odom, passes: (N, X, Y) float32 layers (`core.TraverseState`).
@@ -261,7 +279,8 @@ def _soil_step_py(h, ref, ref_odom, passes, table, track, w0, W, seg, odom, disc
     origin x, y, dx, footprint radius, tyre taper f, 1 - f, radius + band width, 2 radius,
     2 dx, visit length [m], cell area [m^2]. n_bins: deposition bins per window (2 dx each).
     n_iter, fixed, tau: `relax_window`; inv_dx, coef: 1 / dx [1/m] and dx / eps_scale [m].
-    Out (N,): removed and added volume [m^3], deepest rut [m], repeat cells, updates.
+    Out (N,): removed and added volume [m^3], deepest rut [m], repeat cells, updates;
+    lead_sums (32,) float32 scratch for the sums of `touch`.
 
     Windows of a robot that share no cell are read and written in place; if any two
     overlap, all K are copied first and written back whole in wheel order.
@@ -277,7 +296,10 @@ def _soil_step_py(h, ref, ref_odom, passes, table, track, w0, W, seg, odom, disc
         binw = np.empty((W, W), np.int64)
         cov, vis, band = np.empty((W, W), np.bool_), np.empty((W, W), np.bool_), np.empty((W, W), np.bool_)
         vol, cnt, qx = np.empty(n_bins, np.float32), np.empty(n_bins, np.float32), np.empty(W)
-        for n in range(ch * N // chunks, (ch + 1) * N // chunks):
+        first, last, lead = ch * N // chunks, (ch + 1) * N // chunks, np.float32(0.0)
+        for n in range(first, last):
+            if n + 1 < last:
+                lead += touch(h, ref, ref_odom, passes, n + 1, w0, W)
             every = overlapping(w0[n], W)
             if every:                           # every window cut before any is written back
                 for k in range(K):
@@ -307,6 +329,7 @@ def _soil_step_py(h, ref, ref_odom, passes, table, track, w0, W, seg, odom, disc
             out_rut[n] = rut
             out_repeat[n] = repeat
             out_iters[n] = iters
+        lead_sums[ch] = lead                    # used, so the prefetch loads stay
 
 
 def _observe_py(h, table, pose, cos, sin, offsets, geo, height, soil):
@@ -381,7 +404,8 @@ def soil_step(params, state, start: torch.Tensor, end: torch.Tensor, heading: to
             raise ValueError("the fused step needs contiguous float32 field layers")
     _soil_step(state.h.numpy(), state.ref.numpy(), state.ref_odom.numpy(), state.passes.numpy(),
                _np(params.cell_table), _np(params.track), _np(w0), W, _np(seg), _np(odom), disc, geo, n_bins,
-               s.fixed_iter if fixed else s.max_iter, fixed, float(s.tau), 1.0 / g.dx, g.dx / s.eps_scale, *out)
+               s.fixed_iter if fixed else s.max_iter, fixed, float(s.tau), 1.0 / g.dx, g.dx / s.eps_scale, *out,
+               np.empty(32, np.float32))
     removed, added, rut, repeat = (torch.from_numpy(a) for a in out[:4])
     return dyn.Damage(removed, (removed - added).clamp_min(0), rut, repeat), torch.from_numpy(out[4])
 
