@@ -189,7 +189,9 @@ def transition(params: TraverseParams, state: TraverseState, action: torch.Tenso
 def soil_step(params: TraverseParams, state: TraverseState, start: torch.Tensor, end: torch.Tensor,
               heading: torch.Tensor, odom: torch.Tensor) -> tuple[dyn.Damage, torch.Tensor]:
     """The wheels dig, deposit and the surface relaxes in each wheel's window (`dynamics.deform`);
-    the field layers of `state` are updated in place (one gather and one write per layer).
+    the field layers of `state` are updated in place. With `params.fused` in one numba kernel
+    (`envs._step_numba.soil_step`), else in torch ops (`soil_step_torch`); the two agree to
+    float32 rounding.
 
     Args:
         start, end: (N, K, 2) wheel centres before and after the step, m.
@@ -198,6 +200,17 @@ def soil_step(params: TraverseParams, state: TraverseState, start: torch.Tensor,
     Returns:
         the step's damage and (N,) relaxation updates (most over a robot's windows).
     """
+    if params.fused:
+        from envs import _step_numba
+
+        return _step_numba.soil_step(params, state, start, end, heading, odom)
+    return soil_step_torch(params, state, start, end, heading, odom)
+
+
+def soil_step_torch(params: TraverseParams, state: TraverseState, start: torch.Tensor, end: torch.Tensor,
+                    heading: torch.Tensor, odom: torch.Tensor) -> tuple[dyn.Damage, torch.Tensor]:
+    """`soil_step` in torch ops over the E = N*K*W*W window entries (any device; one gather
+    and one write per layer). Arguments and result as `soil_step`."""
     s, g = params.config.sim, params.grid
     N, (X, Y), W = state.num_envs, g.shape, params.window
     win = dyn.wheel_windows(start, end, heading, W, g)
@@ -268,7 +281,31 @@ def observation(params: TraverseParams, state: TraverseState,
 
     rngs: one generator per episode for the soil-parameter noise (needed if soil_noise > 0).
     """
-    c, S, N, g = params.config, params.config.obs_size, state.num_envs, params.grid
+    c, N = params.config, state.num_envs
+    pose = state.pose
+    if params.fused:
+        from envs import _step_numba
+
+        height, soil = _step_numba.observe(params, pose, state.h)
+    else:
+        height, soil = _patches(params, state)
+    if c.soil_noise > 0:
+        if rngs is None or len(rngs) != N:
+            raise ValueError("soil_noise > 0 needs one random generator per environment")
+        noise = np.stack([r.standard_normal(soil.shape[1:]) for r in rngs]).astype(np.float32)
+        soil = np.clip(soil * (1 + c.soil_noise * noise), 0.0, params.soil_hi[:, None, None])
+    st = torch.stack([state.control[:, 0], state.control[:, 1], pose[:, 0], pose[:, 1], pose[:, 2]], 1)
+    goal = dyn.goal_in_body(pose, state.goal)
+    return {"heightmap": height,
+            "soil": soil.astype(np.float32, copy=False),
+            "state": st.clamp(-1e4, 1e4).cpu().numpy(),
+            "goal": goal.clamp(-1e4, 1e4).cpu().numpy()}
+
+
+def _patches(params: TraverseParams, state: TraverseState) -> tuple[np.ndarray, np.ndarray]:
+    """The heightmap (N, 2, S, S) [m] and true soil (N, T + 2, S, S) patches of `observation`
+    in torch ops (any device), as float32 numpy arrays."""
+    S, N, g = params.config.obs_size, state.num_envs, params.grid
     pose = state.pose
     flat, inside = dyn.body_grid_index(pose, params.obs_offsets, g)          # (N, M)
     base = torch.arange(N, device=params.device)[:, None] * (g.shape[0] * g.shape[1])
@@ -282,18 +319,8 @@ def observation(params: TraverseParams, state: TraverseState,
     height = torch.stack([torch.where(inside, rel, zero), torch.where(inside, h - h0, zero)], 1)
     height = height.reshape(N, 2, S, S).clamp(-2.0, 2.0)
     soil = torch.where(inside[..., None], cells[..., 2:], torch.zeros_like(cells[..., 2:]))
-    soil = soil.transpose(1, 2).reshape(N, -1, S, S).cpu().numpy()         # (N, T + 2, S, S)
-    if c.soil_noise > 0:
-        if rngs is None or len(rngs) != N:
-            raise ValueError("soil_noise > 0 needs one random generator per environment")
-        noise = np.stack([r.standard_normal(soil.shape[1:]) for r in rngs]).astype(np.float32)
-        soil = np.clip(soil * (1 + c.soil_noise * noise), 0.0, params.soil_hi[:, None, None])
-    st = torch.stack([state.control[:, 0], state.control[:, 1], pose[:, 0], pose[:, 1], pose[:, 2]], 1)
-    goal = dyn.goal_in_body(pose, state.goal)
-    return {"heightmap": height.cpu().numpy(),
-            "soil": soil.astype(np.float32, copy=False),
-            "state": st.clamp(-1e4, 1e4).cpu().numpy(),
-            "goal": goal.clamp(-1e4, 1e4).cpu().numpy()}
+    soil = soil.transpose(1, 2).reshape(N, -1, S, S)                       # (N, T + 2, S, S)
+    return height.cpu().numpy(), soil.cpu().numpy()
 
 
 # ------------------------------------------------------------------------------ render

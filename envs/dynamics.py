@@ -76,6 +76,34 @@ def window_size(start: torch.Tensor, end: torch.Tensor, radius: float, band_widt
     return int(math.ceil((longest + 2 * (radius + band_width)) / dx)) + 1 + 2 * margin
 
 
+def segment_frames(start: torch.Tensor, end: torch.Tensor, heading: torch.Tensor, window: int,
+                   grid: Grid) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per wheel, its window's first cell and its segment's direction and length.
+
+    Args:
+        start, end: (N, K, 2) wheel centres before and after the step, m.
+        heading: (N,) yaw used as the direction of a wheel that does not move, rad.
+        window: W, cells per side, centred on the segment and shifted onto the field.
+        grid: the field grid (at least W cells each way).
+
+    Returns:
+        w0 (N, K, 2) int64 field cell (i, j) of the window's first entry; ux, uy (N, K) unit
+        direction of the segment; length (N, K) segment length, m.
+    """
+    dt, dev = start.dtype, start.device
+    X, Y = grid.shape
+    mid = (start + end) / 2
+    o = torch.tensor(grid.origin, dtype=dt, device=dev)
+    w0 = torch.round((mid - o) / grid.dx).long() - window // 2
+    w0 = torch.minimum(w0.clamp_min(0), torch.tensor([X - window, Y - window], device=dev))
+    u = end - start
+    length = torch.linalg.vector_norm(u, dim=-1)                         # (N, K)
+    still = length < 1e-9
+    ux = torch.where(still, torch.cos(heading)[:, None], u[..., 0] / length.clamp_min(1e-9))
+    uy = torch.where(still, torch.sin(heading)[:, None], u[..., 1] / length.clamp_min(1e-9))
+    return w0, ux, uy, length
+
+
 def wheel_windows(start: torch.Tensor, end: torch.Tensor, heading: torch.Tensor, window: int,
                   grid: Grid) -> WheelWindows:
     """Geometry of the cells near each wheel's straight segment for one step.
@@ -88,21 +116,13 @@ def wheel_windows(start: torch.Tensor, end: torch.Tensor, heading: torch.Tensor,
     """
     N, K = start.shape[:2]
     dt, dev = start.dtype, start.device
-    X, Y = grid.shape
-    mid = (start + end) / 2
-    o = torch.tensor(grid.origin, dtype=dt, device=dev)
-    w0 = torch.round((mid - o) / grid.dx).long() - window // 2
-    w0 = torch.minimum(w0.clamp_min(0), torch.tensor([X - window, Y - window], device=dev))
+    Y = grid.shape[1]
+    w0, ux, uy, length = segment_frames(start, end, heading, window, grid)
     ar = torch.arange(window, device=dev)
     ii = w0[..., 0, None] + ar                                           # (N, K, W)
     jj = w0[..., 1, None] + ar
     xs = grid.origin[0] + ii.to(dt) * grid.dx
     ys = grid.origin[1] + jj.to(dt) * grid.dx
-    u = end - start
-    length = torch.linalg.vector_norm(u, dim=-1)                         # (N, K)
-    still = length < 1e-9
-    ux = torch.where(still, torch.cos(heading)[:, None], u[..., 0] / length.clamp_min(1e-9))
-    uy = torch.where(still, torch.sin(heading)[:, None], u[..., 1] / length.clamp_min(1e-9))
     rx = (xs - start[..., 0, None])[..., :, None]                        # (N, K, W, 1)
     ry = (ys - start[..., 1, None])[..., None, :]                        # (N, K, 1, W)
     ux4, uy4, len4 = ux[..., None, None], uy[..., None, None], length[..., None, None]

@@ -22,6 +22,7 @@ from torchsoil.robot import Robot, load_robot
 from torchsoil.settings import EnvConfig, Settings, SettingsError, merge, read_yaml, validate
 from torchsoil.sim.params import BETA_BOUNDS, CHI_BOUNDS, D_BOUNDS
 from torchsoil.sim.simulate import MAX_TAN_BETA
+from torchsoil.sim.stencil import numba_ok
 
 
 def env_config(config: EnvConfig | dict | str | Path | None = None) -> EnvConfig:
@@ -98,6 +99,9 @@ class TraverseParams:
         obs_offsets: (S*S, 2) body-frame points of the observation patch, m.
         soil_lo, soil_hi: (T + 2,) float32 bounds of the soil layers.
         weights: reward weights by name.
+        fused: step the soil and sample the observation in the fused CPU kernels of
+            `envs._step_numba` (on the CPU with numba, sim.backend auto or numba); else in
+            torch ops (CUDA, or sim.backend torch).
     """
 
     config: EnvConfig
@@ -117,6 +121,7 @@ class TraverseParams:
     soil_lo: np.ndarray
     soil_hi: np.ndarray
     weights: dict[str, float]
+    fused: bool = False
 
     @property
     def grid(self) -> Grid:
@@ -175,4 +180,5 @@ def make_params(config: EnvConfig | dict | str | Path | None = None,
         obs_offsets=obs_offsets,
         soil_lo=np.array([D_BOUNDS[0]] * T + [CHI_BOUNDS[0], BETA_BOUNDS[0]], np.float32),
         soil_hi=np.array([D_BOUNDS[1]] * T + [CHI_BOUNDS[1], BETA_BOUNDS[1]], np.float32),
-        weights=cfg.weights.model_dump())
+        weights=cfg.weights.model_dump(),
+        fused=device.type == "cpu" and cfg.sim.backend != "torch" and numba_ok())

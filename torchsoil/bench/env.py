@@ -1,8 +1,10 @@
 """Soil-traverse environment throughput: env steps per second of the batched vector env on
 the default 20 m x 10 m field (dx = 0.05 m), driving at 1 m/s on random arcs.
 
-Keys: env_steps_per_s_n{1,16,64,256} with capped relaxation (4 updates per step, numba
-kernel); _n256_torch_relax with the torch kernel; _n256_converged relaxed to convergence.
+Keys: env_steps_per_s_n{1,16,64,256} with capped relaxation (4 updates per step), the step's
+soil and observation in the fused numba kernels (`envs._step_numba`, sim.backend numba);
+_n256_torch_relax with sim.backend torch: the whole step in torch ops with the torch
+relaxation (the path CUDA runs); _n256_converged relaxed to convergence (fused kernels).
 Each figure comes from a fresh process with OMP_WAIT_POLICY=PASSIVE: the OpenMP pools of
 torch and numba then sleep instead of spinning, which on 2 shared cores is 3-10x faster
 (and a fresh process does not inherit the thread pools of the benchmarks run before).
