@@ -647,19 +647,21 @@ def within_range(points, max_range):
 # ---- heightmap tiles ----
 
 @njit(**_OPTS)
-def tile_sums(points, dx, size):
-    """Points (N, 3) -> the tiles of `size` x `size` lattice cells they fall in: keys (T, 2)
-    in order of first hit and per-tile sums (T, 3, size * size) of count, z and z^2 over each
-    cell (cell (I, J) centred at (I dx, J dx))."""
-    n = points.shape[0]
+def tile_cells(xy, dx, size):
+    """Points xy (N, >= 2) [m, columns x, y] -> the tiles of `size` x `size` lattice cells
+    they fall in (cell (I, J) centred at (I dx, J dx)): keys (T, 2) in order of first hit,
+    order (N,) of the points tile by tile (in point order within a tile), start (T + 1,) of
+    each tile's run in `order`, and cell (N,) each point's cell within its tile,
+    (I - A size) size + (J - B size)."""
+    n = xy.shape[0]
     keys = np.empty((16, 2), np.int64)
     slot = np.empty(n, np.int64)
     cell = np.empty(n, np.int64)
     t = 0
     last = -1
     for i in range(n):
-        ci = np.int64(np.rint(points[i, 0] / dx))
-        cj = np.int64(np.rint(points[i, 1] / dx))
+        ci = np.int64(np.rint(xy[i, 0] / dx))
+        cj = np.int64(np.rint(xy[i, 1] / dx))
         a, b = ci // size, cj // size
         if last < 0 or keys[last, 0] != a or keys[last, 1] != b:
             last = -1
@@ -677,11 +679,54 @@ def tile_sums(points, dx, size):
                 t += 1
         slot[i] = last
         cell[i] = (ci - a * size) * size + (cj - b * size)
-    sums = np.zeros((t, 3, size * size))
+    start = np.zeros(t + 1, np.int64)
     for i in range(n):
-        z = points[i, 2]
-        s, c = slot[i], cell[i]
-        sums[s, 0, c] += 1.0
-        sums[s, 1, c] += z
-        sums[s, 2, c] += z * z
-    return keys[:t].copy(), sums
+        start[slot[i] + 1] += 1
+    for u in range(t):
+        start[u + 1] += start[u]
+    fill = start[:t].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[slot[i]]] = i
+        fill[slot[i]] += 1
+    return keys[:t].copy(), order, start, cell
+
+
+@njit(**_OPTS)
+def tile_add(tile, scratch, z, order, cell, a, b):
+    """Add the points order[a:b] (one tile's run of `tile_cells`) of heights z (N,) [m] into
+    tile (3, size * size): per cell the count, the sum of z and of z^2 of its points, each
+    summed in point order from zero in `scratch` (3, size * size; all zero, and left so) and
+    then added to the tile (as numpy's `tile += sums` of the sweep's own sums)."""
+    touched = np.empty(b - a, np.int64)
+    m = 0
+    for q in range(a, b):
+        i = order[q]
+        c = cell[i]
+        if scratch[0, c] == 0.0:
+            touched[m] = c
+            m += 1
+        h = z[i]
+        scratch[0, c] += 1.0
+        scratch[1, c] += h
+        scratch[2, c] += h * h
+    for u in range(m):
+        c = touched[u]
+        for r in range(3):
+            tile[r, c] += scratch[r, c]
+            scratch[r, c] = 0.0
+
+
+@njit(**_OPTS)
+def tile_count_le(tile, row, t, order, cell, a, b, out):
+    """For the points order[a:b] (one tile's run of `tile_cells`): out[i] = how many of the
+    rows row, row + 2, ... of tile (R, size * size) hold at cell[i] a value <= t[i] (NaN
+    counts as none), as (tile[row::2][:, cell] <= t).sum(0)."""
+    for q in range(a, b):
+        i = order[q]
+        c = cell[i]
+        n = 0
+        for r in range(row, tile.shape[0], 2):
+            if tile[r, c] <= t[i]:
+                n += 1
+        out[i] = n

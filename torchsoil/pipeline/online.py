@@ -24,6 +24,7 @@ import numpy as np
 from torchsoil.io.bag import ImuSample, Recording, imu_data
 from torchsoil.io.pointcloud import Cloud
 from torchsoil.io.terrain_pair import TerrainPair
+from torchsoil.pipeline import _kernels as _k
 from torchsoil.pipeline import gravity, icp, mapping
 from torchsoil.pipeline.mapping import Mapper, Sweep
 from torchsoil.pipeline.raster import Heightmap, Tiles, corridor
@@ -396,7 +397,8 @@ class OnlinePipeline:
             return
         x = pts[:, 0]       # each lidar's ground: ahead of the front wheels, behind the rear ones
         beyond = x > self.keep_beyond[name] if name == "front" else x < self.keep_beyond[name]
-        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & beyond
+        sel = _k.within_range(sw.points, float(self.cfg.raster.max_range))
+        sel = sel[beyond[sel]]
         world = icp.apply(self.L @ T, pts[sel])
         passed = self.visits.passed(world[:, :2], sw.stamp + sw.t[sel])
         layer = passed if name == "front" else np.maximum(passed - 1, 0)
