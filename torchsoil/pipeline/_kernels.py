@@ -408,6 +408,92 @@ def grid_nn(q, r, h, table, ckeys, start, perm, sp):
 
 
 @njit(**_OPTS)
+def _nn2(x, y, z, R2, h, table, ckeys, start, sp):
+    """The nearest grid point (its position in sp, -1 if none) closer than sqrt(R2) to
+    (x, y, z), its squared distance, and the squared distance of the second nearest (R2
+    where there is none within; each a bound on every other point): as grid_nn, pruned by
+    the second distance."""
+    h2 = h * h
+    fx, fy, fz = math.floor(x / h), math.floor(y / h), math.floor(z / h)
+    a0, b0, c0 = np.int64(fx), np.int64(fy), np.int64(fz)
+    ux, uy, uz = x / h - fx, y / h - fy, z / h - fz
+    b1, b2, bi = R2, R2, -1
+    s = _slot(table, ckeys, _cell_key(a0, b0, c0))     # the query's own cell first
+    if s >= 0:
+        for t in range(start[s], start[s + 1]):
+            ex, ey, ez = sp[t, 0] - x, sp[t, 1] - y, sp[t, 2] - z
+            d2 = ex * ex + ey * ey + ez * ez
+            if d2 < b1:
+                b2, b1, bi = b1, d2, t
+            elif d2 < b2:
+                b2 = d2
+    reach = math.sqrt(b2) / h
+    lx, hx = np.int64(math.floor(ux - reach)), np.int64(math.floor(ux + reach))
+    ly, hy = np.int64(math.floor(uy - reach)), np.int64(math.floor(uy + reach))
+    lz, hz = np.int64(math.floor(uz - reach)), np.int64(math.floor(uz + reach))
+    for dx in range(lx, hx + 1):
+        bx = _box_d2(dx, ux)
+        for dy in range(ly, hy + 1):
+            bxy = bx + _box_d2(dy, uy)
+            for dz in range(lz, hz + 1):
+                if dx == 0 and dy == 0 and dz == 0:
+                    continue
+                if (bxy + _box_d2(dz, uz)) * h2 >= b2:
+                    continue
+                s = _slot(table, ckeys, _cell_key(a0 + dx, b0 + dy, c0 + dz))
+                if s < 0:
+                    continue
+                for t in range(start[s], start[s + 1]):
+                    ex, ey, ez = sp[t, 0] - x, sp[t, 1] - y, sp[t, 2] - z
+                    d2 = ex * ex + ey * ey + ez * ez
+                    if d2 < b1:
+                        b2, b1, bi = b1, d2, t
+                    elif d2 < b2:
+                        b2 = d2
+    return bi, b1, b2
+
+
+@njit(**_OPTS)
+def grid_match(q, r, R, h, table, ckeys, start, perm, sp, data, at, near, bound, idx):
+    """Nearest neighbours closer than r of the queries q (S, 3) into idx (S,) (index into
+    the grid's points `data` (M, 3), M where none): the same as grid_nn, but a query that
+    moved little since its last search keeps its answer when that cannot have changed.
+
+    Per query the state of its last search: at (S, 3) where it was made (NaN: none yet),
+    near (S,) the nearest point within R >= r (M: none) and bound (S,) the distance of the
+    second nearest (R where none: no other point is closer). A query now delta from `at`
+    keeps `near` as its nearest when its distance to it plus 1e-6 m is below bound - delta
+    (every other point is at least that far), and keeps having none within r when
+    r + 1e-6 < bound - delta; otherwise it is searched again (within R) and its state
+    renewed. The margin covers the rounding of these distances, so idx is what grid_nn
+    returns. Returns how many queries were searched."""
+    m = data.shape[0]
+    r2, R2 = r * r, R * R
+    searched = 0
+    for i in range(q.shape[0]):
+        x, y, z = q[i, 0], q[i, 1], q[i, 2]
+        ex, ey, ez = x - at[i, 0], y - at[i, 1], z - at[i, 2]
+        delta = math.sqrt(ex * ex + ey * ey + ez * ez)
+        j = near[i]
+        if j < m:
+            ex, ey, ez = data[j, 0] - x, data[j, 1] - y, data[j, 2] - z
+            d2 = ex * ex + ey * ey + ez * ez
+            if math.sqrt(d2) + 1e-6 < bound[i] - delta:
+                idx[i] = j if d2 < r2 else m
+                continue
+        elif r + 1e-6 < bound[i] - delta:
+            idx[i] = m
+            continue
+        searched += 1
+        bi, b1, b2 = _nn2(x, y, z, R2, h, table, ckeys, start, sp)
+        at[i, 0], at[i, 1], at[i, 2] = x, y, z
+        near[i] = perm[bi] if bi >= 0 else m
+        bound[i] = math.sqrt(b2)
+        idx[i] = perm[bi] if bi >= 0 and b1 < r2 else m
+    return searched
+
+
+@njit(**_OPTS)
 def grid_any_newer(q, since, born, r, h, table, ckeys, start, perm, sp, offs, lbs):
     """(Q,) True where some grid point closer than r to q[i] has born[point] > since[i]."""
     nq = q.shape[0]
