@@ -190,9 +190,13 @@ class ReferenceMap:
         index = icp.VoxelIndex(pts, 3 * self.voxel)
         todo = stamp[sel] < 0
         cached = sel[~todo]
-        if len(cached):
-            changed = index.any_newer(points[cached], stamp[cached], self.born[ext], self.normal_radius)
-            todo[np.flatnonzero(~todo)[changed]] = True
+        if len(cached):   # only points that entered after the oldest cached normal can have changed one
+            born = self.born[ext]
+            young = np.flatnonzero(born > stamp[cached].min())
+            if len(young):
+                changed = icp.VoxelIndex(pts[young], 3 * self.voxel).any_newer(points[cached], stamp[cached],
+                                                                               born[young], self.normal_radius)
+                todo[np.flatnonzero(~todo)[changed]] = True
         redo = sel[todo]
         if len(redo):
             n, _ = icp.pca_normals(pts, index, points[redo], radius=self.normal_radius)
