@@ -740,31 +740,35 @@ def tile_cells(xy, dx, size):
     each tile's run in `order`, and cell (N,) each point's cell within its tile,
     (I - A size) size + (J - B size)."""
     n = xy.shape[0]
-    keys = np.empty((16, 2), np.int64)
-    slot = np.empty(n, np.int64)
+    ta = np.empty(n, np.int64)
+    tb = np.empty(n, np.int64)
     cell = np.empty(n, np.int64)
-    t = 0
-    last = -1
     for i in range(n):
         ci = np.int64(np.rint(xy[i, 0] / dx))
         cj = np.int64(np.rint(xy[i, 1] / dx))
-        a, b = ci // size, cj // size
-        if last < 0 or keys[last, 0] != a or keys[last, 1] != b:
-            last = -1
-            for u in range(t):
-                if keys[u, 0] == a and keys[u, 1] == b:
-                    last = u
-                    break
-            if last < 0:
-                if t == keys.shape[0]:
-                    grown = np.empty((2 * t, 2), np.int64)
-                    grown[:t] = keys
-                    keys = grown
-                keys[t, 0], keys[t, 1] = a, b
-                last = t
+        ta[i], tb[i] = ci // size, cj // size
+        cell[i] = (ci - ta[i] * size) * size + (cj - tb[i] * size)
+    a0, b0 = (ta.min(), tb.min()) if n else (0, 0)
+    na, nb = (ta.max() - a0 + 1, tb.max() - b0 + 1) if n else (1, 1)
+    if na * nb <= 4 * n + 4096:    # tile -> slot by a table over the points' box of tiles
+        lookup = np.full(na * nb, -1, np.int64)
+        first = np.empty(n, np.int64)
+        slot = np.empty(n, np.int64)
+        t = 0
+        for i in range(n):
+            f = (ta[i] - a0) * nb + (tb[i] - b0)
+            if lookup[f] < 0:
+                lookup[f] = t
+                first[t] = i
                 t += 1
-        slot[i] = last
-        cell[i] = (ci - a * size) * size + (cj - b * size)
+            slot[i] = lookup[f]
+        first = first[:t]
+    else:                          # points spread far: hashed
+        first, slot = first_of_keys((ta - a0) * nb + (tb - b0))
+        t = first.shape[0]
+    keys = np.empty((t, 2), np.int64)
+    for u in range(t):
+        keys[u, 0], keys[u, 1] = ta[first[u]], tb[first[u]]
     start = np.zeros(t + 1, np.int64)
     for i in range(n):
         start[slot[i] + 1] += 1
@@ -775,7 +779,7 @@ def tile_cells(xy, dx, size):
     for i in range(n):
         order[fill[slot[i]]] = i
         fill[slot[i]] += 1
-    return keys[:t].copy(), order, start, cell
+    return keys, order, start, cell
 
 
 @njit(**_OPTS)
