@@ -5,7 +5,9 @@ keeps one `Target` (points, normals, search index) across many registrations, wh
 per-call library ICP would rebuild every time (measured: Open3D's tensor ICP and KISS-ICP's
 registration took 6 to 10 times our CPU time per sweep here, and neither has the ground,
 one-sided and degenerate-direction handling). The index is a `VoxelIndex` (exact, on a
-hashed voxel grid) or a scipy cKDTree; the inner loops are compiled (`_kernels`).
+hashed voxel grid) or a scipy cKDTree; the inner loops are compiled (`_kernels`). Over a
+VoxelIndex, the ICP's matches are tracked from iteration to iteration (`NearestTracker`):
+a source point is searched again only where its move could have changed its match.
 
 The update is parametrised about the current sensor position c: a point p moves to
 c + R(w) (p - c) + v with w, v (3,) each, so the 6 x 6 normal matrix separates rotation
