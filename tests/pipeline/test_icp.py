@@ -113,3 +113,18 @@ def test_facing_keeps_ground_and_structure_seen_from_the_sensor():
     p = np.array([[1.0, 0, 0], [1.0, 0, 0], [3.0, 0, 1]])   # ground above the sensor: kept anyway
     n = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0.0, 0, 1]])
     np.testing.assert_array_equal(icp.facing(p, n, np.zeros(3)), [True, False, True])
+
+
+def test_nearest_tracker_answers_as_a_fresh_search_while_the_queries_move():
+    rng = np.random.default_rng(3)
+    index = icp.VoxelIndex(icp.voxel_downsample(scene(rng), 0.2), 0.6)    # a map: one point per voxel
+    q = scene(rng)[::7] + rng.normal(0, 0.05, (1, 3))
+    tracker = index.tracker(len(q), 0.3)
+    for step in range(8):   # small moves (an ICP's updates), then a jump
+        T = transform([0, 0, 0.0005 * step], [0.002 * step, -0.001 * step, 0.001]) if step < 7 else transform(
+            [0, 0, 0.3], [0.5, 0.2, 0.0])
+        p = icp.apply(T, q)
+        np.testing.assert_array_equal(tracker.query(p), index.query(p, distance_upper_bound=0.3)[1])
+        if step == 6:
+            assert tracker.searched < 1.5 * len(q)    # most answers were kept while the moves were small
+    assert index.tracker(len(q), 3.0) is None   # beyond the grid's reach: plain queries

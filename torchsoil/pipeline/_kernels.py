@@ -408,6 +408,92 @@ def grid_nn(q, r, h, table, ckeys, start, perm, sp):
 
 
 @njit(**_OPTS)
+def _nn2(x, y, z, R2, h, table, ckeys, start, sp):
+    """The nearest grid point (its position in sp, -1 if none) closer than sqrt(R2) to
+    (x, y, z), its squared distance, and the squared distance of the second nearest (R2
+    where there is none within; each a bound on every other point): as grid_nn, pruned by
+    the second distance."""
+    h2 = h * h
+    fx, fy, fz = math.floor(x / h), math.floor(y / h), math.floor(z / h)
+    a0, b0, c0 = np.int64(fx), np.int64(fy), np.int64(fz)
+    ux, uy, uz = x / h - fx, y / h - fy, z / h - fz
+    b1, b2, bi = R2, R2, -1
+    s = _slot(table, ckeys, _cell_key(a0, b0, c0))     # the query's own cell first
+    if s >= 0:
+        for t in range(start[s], start[s + 1]):
+            ex, ey, ez = sp[t, 0] - x, sp[t, 1] - y, sp[t, 2] - z
+            d2 = ex * ex + ey * ey + ez * ez
+            if d2 < b1:
+                b2, b1, bi = b1, d2, t
+            elif d2 < b2:
+                b2 = d2
+    reach = math.sqrt(b2) / h
+    lx, hx = np.int64(math.floor(ux - reach)), np.int64(math.floor(ux + reach))
+    ly, hy = np.int64(math.floor(uy - reach)), np.int64(math.floor(uy + reach))
+    lz, hz = np.int64(math.floor(uz - reach)), np.int64(math.floor(uz + reach))
+    for dx in range(lx, hx + 1):
+        bx = _box_d2(dx, ux)
+        for dy in range(ly, hy + 1):
+            bxy = bx + _box_d2(dy, uy)
+            for dz in range(lz, hz + 1):
+                if dx == 0 and dy == 0 and dz == 0:
+                    continue
+                if (bxy + _box_d2(dz, uz)) * h2 >= b2:
+                    continue
+                s = _slot(table, ckeys, _cell_key(a0 + dx, b0 + dy, c0 + dz))
+                if s < 0:
+                    continue
+                for t in range(start[s], start[s + 1]):
+                    ex, ey, ez = sp[t, 0] - x, sp[t, 1] - y, sp[t, 2] - z
+                    d2 = ex * ex + ey * ey + ez * ez
+                    if d2 < b1:
+                        b2, b1, bi = b1, d2, t
+                    elif d2 < b2:
+                        b2 = d2
+    return bi, b1, b2
+
+
+@njit(**_OPTS)
+def grid_match(q, r, R, h, table, ckeys, start, perm, sp, data, at, near, bound, idx):
+    """Nearest neighbours closer than r of the queries q (S, 3) into idx (S,) (index into
+    the grid's points `data` (M, 3), M where none): the same as grid_nn, but a query that
+    moved little since its last search keeps its answer when that cannot have changed.
+
+    Per query the state of its last search: at (S, 3) where it was made (NaN: none yet),
+    near (S,) the nearest point within R >= r (M: none) and bound (S,) the distance of the
+    second nearest (R where none: no other point is closer). A query now delta from `at`
+    keeps `near` as its nearest when its distance to it plus 1e-6 m is below bound - delta
+    (every other point is at least that far), and keeps having none within r when
+    r + 1e-6 < bound - delta; otherwise it is searched again (within R) and its state
+    renewed. The margin covers the rounding of these distances, so idx is what grid_nn
+    returns. Returns how many queries were searched."""
+    m = data.shape[0]
+    r2, R2 = r * r, R * R
+    searched = 0
+    for i in range(q.shape[0]):
+        x, y, z = q[i, 0], q[i, 1], q[i, 2]
+        ex, ey, ez = x - at[i, 0], y - at[i, 1], z - at[i, 2]
+        delta = math.sqrt(ex * ex + ey * ey + ez * ez)
+        j = near[i]
+        if j < m:
+            ex, ey, ez = data[j, 0] - x, data[j, 1] - y, data[j, 2] - z
+            d2 = ex * ex + ey * ey + ez * ez
+            if math.sqrt(d2) + 1e-6 < bound[i] - delta:
+                idx[i] = j if d2 < r2 else m
+                continue
+        elif r + 1e-6 < bound[i] - delta:
+            idx[i] = m
+            continue
+        searched += 1
+        bi, b1, b2 = _nn2(x, y, z, R2, h, table, ckeys, start, sp)
+        at[i, 0], at[i, 1], at[i, 2] = x, y, z
+        near[i] = perm[bi] if bi >= 0 else m
+        bound[i] = math.sqrt(b2)
+        idx[i] = perm[bi] if bi >= 0 and b1 < r2 else m
+    return searched
+
+
+@njit(**_OPTS)
 def grid_any_newer(q, since, born, r, h, table, ckeys, start, perm, sp, offs, lbs):
     """(Q,) True where some grid point closer than r to q[i] has born[point] > since[i]."""
     nq = q.shape[0]
@@ -647,41 +733,90 @@ def within_range(points, max_range):
 # ---- heightmap tiles ----
 
 @njit(**_OPTS)
-def tile_sums(points, dx, size):
-    """Points (N, 3) -> the tiles of `size` x `size` lattice cells they fall in: keys (T, 2)
-    in order of first hit and per-tile sums (T, 3, size * size) of count, z and z^2 over each
-    cell (cell (I, J) centred at (I dx, J dx))."""
-    n = points.shape[0]
-    keys = np.empty((16, 2), np.int64)
-    slot = np.empty(n, np.int64)
+def tile_cells(xy, dx, size):
+    """Points xy (N, >= 2) [m, columns x, y] -> the tiles of `size` x `size` lattice cells
+    they fall in (cell (I, J) centred at (I dx, J dx)): keys (T, 2) in order of first hit,
+    order (N,) of the points tile by tile (in point order within a tile), start (T + 1,) of
+    each tile's run in `order`, and cell (N,) each point's cell within its tile,
+    (I - A size) size + (J - B size)."""
+    n = xy.shape[0]
+    ta = np.empty(n, np.int64)
+    tb = np.empty(n, np.int64)
     cell = np.empty(n, np.int64)
-    t = 0
-    last = -1
     for i in range(n):
-        ci = np.int64(np.rint(points[i, 0] / dx))
-        cj = np.int64(np.rint(points[i, 1] / dx))
-        a, b = ci // size, cj // size
-        if last < 0 or keys[last, 0] != a or keys[last, 1] != b:
-            last = -1
-            for u in range(t):
-                if keys[u, 0] == a and keys[u, 1] == b:
-                    last = u
-                    break
-            if last < 0:
-                if t == keys.shape[0]:
-                    grown = np.empty((2 * t, 2), np.int64)
-                    grown[:t] = keys
-                    keys = grown
-                keys[t, 0], keys[t, 1] = a, b
-                last = t
+        ci = np.int64(np.rint(xy[i, 0] / dx))
+        cj = np.int64(np.rint(xy[i, 1] / dx))
+        ta[i], tb[i] = ci // size, cj // size
+        cell[i] = (ci - ta[i] * size) * size + (cj - tb[i] * size)
+    a0, b0 = (ta.min(), tb.min()) if n else (0, 0)
+    na, nb = (ta.max() - a0 + 1, tb.max() - b0 + 1) if n else (1, 1)
+    if na * nb <= 4 * n + 4096:    # tile -> slot by a table over the points' box of tiles
+        lookup = np.full(na * nb, -1, np.int64)
+        first = np.empty(n, np.int64)
+        slot = np.empty(n, np.int64)
+        t = 0
+        for i in range(n):
+            f = (ta[i] - a0) * nb + (tb[i] - b0)
+            if lookup[f] < 0:
+                lookup[f] = t
+                first[t] = i
                 t += 1
-        slot[i] = last
-        cell[i] = (ci - a * size) * size + (cj - b * size)
-    sums = np.zeros((t, 3, size * size))
+            slot[i] = lookup[f]
+        first = first[:t]
+    else:                          # points spread far: hashed
+        first, slot = first_of_keys((ta - a0) * nb + (tb - b0))
+        t = first.shape[0]
+    keys = np.empty((t, 2), np.int64)
+    for u in range(t):
+        keys[u, 0], keys[u, 1] = ta[first[u]], tb[first[u]]
+    start = np.zeros(t + 1, np.int64)
     for i in range(n):
-        z = points[i, 2]
-        s, c = slot[i], cell[i]
-        sums[s, 0, c] += 1.0
-        sums[s, 1, c] += z
-        sums[s, 2, c] += z * z
-    return keys[:t].copy(), sums
+        start[slot[i] + 1] += 1
+    for u in range(t):
+        start[u + 1] += start[u]
+    fill = start[:t].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[slot[i]]] = i
+        fill[slot[i]] += 1
+    return keys, order, start, cell
+
+
+@njit(**_OPTS)
+def tile_add(tile, scratch, z, order, cell, a, b):
+    """Add the points order[a:b] (one tile's run of `tile_cells`) of heights z (N,) [m] into
+    tile (3, size * size): per cell the count, the sum of z and of z^2 of its points, each
+    summed in point order from zero in `scratch` (3, size * size; all zero, and left so) and
+    then added to the tile (as numpy's `tile += sums` of the sweep's own sums)."""
+    touched = np.empty(b - a, np.int64)
+    m = 0
+    for q in range(a, b):
+        i = order[q]
+        c = cell[i]
+        if scratch[0, c] == 0.0:
+            touched[m] = c
+            m += 1
+        h = z[i]
+        scratch[0, c] += 1.0
+        scratch[1, c] += h
+        scratch[2, c] += h * h
+    for u in range(m):
+        c = touched[u]
+        for r in range(3):
+            tile[r, c] += scratch[r, c]
+            scratch[r, c] = 0.0
+
+
+@njit(**_OPTS)
+def tile_count_le(tile, row, t, order, cell, a, b, out):
+    """For the points order[a:b] (one tile's run of `tile_cells`): out[i] = how many of the
+    rows row, row + 2, ... of tile (R, size * size) hold at cell[i] a value <= t[i] (NaN
+    counts as none), as (tile[row::2][:, cell] <= t).sum(0)."""
+    for q in range(a, b):
+        i = order[q]
+        c = cell[i]
+        n = 0
+        for r in range(row, tile.shape[0], 2):
+            if tile[r, c] <= t[i]:
+                n += 1
+        out[i] = n

@@ -5,7 +5,9 @@ keeps one `Target` (points, normals, search index) across many registrations, wh
 per-call library ICP would rebuild every time (measured: Open3D's tensor ICP and KISS-ICP's
 registration took 6 to 10 times our CPU time per sweep here, and neither has the ground,
 one-sided and degenerate-direction handling). The index is a `VoxelIndex` (exact, on a
-hashed voxel grid) or a scipy cKDTree; the inner loops are compiled (`_kernels`).
+hashed voxel grid) or a scipy cKDTree; the inner loops are compiled (`_kernels`). Over a
+VoxelIndex, the ICP's matches are tracked from iteration to iteration (`NearestTracker`):
+a source point is searched again only where its move could have changed its match.
 
 The update is parametrised about the current sensor position c: a point p moves to
 c + R(w) (p - c) + v with w, v (3,) each, so the 6 x 6 normal matrix separates rotation
@@ -146,6 +148,13 @@ class VoxelIndex:
         parts = list(_pool(workers).map(run, np.array_split(q, workers)))
         return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
+    def tracker(self, n_queries: int, r: float) -> NearestTracker | None:
+        """A NearestTracker of `n_queries` moving queries within `r` m on this index (None
+        where the index is empty or r is beyond the grid's reach: query then)."""
+        if self.n == 0 or not 0 < 1.25 * r <= 6 * self.cell:
+            return None
+        return NearestTracker(self, n_queries, r)
+
     def any_newer(self, query: np.ndarray, since: np.ndarray, born: np.ndarray, radius: float) -> np.ndarray:
         """(Q,) True where a point closer than `radius` to query (Q, 3) has born (n,) above
         since (Q,) (its neighbourhood changed after `since`)."""
@@ -155,6 +164,29 @@ class VoxelIndex:
         reach = int(np.ceil(radius / self.cell))
         return _k.grid_any_newer(q, np.ascontiguousarray(since, np.int64), np.ascontiguousarray(born, np.int64),
                                  float(radius), self.cell, *self._grid, *self.offsets(reach))
+
+
+class NearestTracker:
+    """Nearest neighbours within `r` m on a VoxelIndex of a fixed set of S queries that move a
+    little between calls (an ICP's source points, pose after pose): `query(p)` with p (S, 3)
+    returns the (S,) indices VoxelIndex.query(p, distance_upper_bound=r) would (n where none),
+    searching again only the queries whose answer may have changed since their last search
+    (each search also bounds the second nearest, within 1.25 r; `_kernels.grid_match`).
+    `searched` counts the searches."""
+
+    def __init__(self, index: VoxelIndex, n_queries: int, r: float):
+        self.index, self.r, self.R = index, float(r), 1.25 * float(r)
+        self.at = np.full((n_queries, 3), np.nan)        # where each query was last searched, m
+        self.near = np.full(n_queries, index.n, np.int64)
+        self.bound = np.zeros(n_queries)
+        self.searched = 0
+
+    def query(self, p: np.ndarray) -> np.ndarray:
+        ix = self.index
+        idx = np.empty(len(p), np.int64)
+        self.searched += _k.grid_match(np.ascontiguousarray(p, dtype=np.float64), self.r, self.R, ix.cell, *ix._grid,
+                                       ix.data, self.at, self.near, self.bound, idx)
+        return idx
 
 
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
@@ -273,10 +305,17 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
     H = np.zeros((6, 6))
     Hk, g = np.zeros((6, 6)), np.zeros(6)
     n_src = len(source)
+    tracker = target.tree.tracker(n_src, max_dist) if isinstance(target.tree, VoxelIndex) and workers == 1 else None
+
+    def nearest(p: np.ndarray) -> np.ndarray:
+        if tracker is not None:
+            return tracker.query(p)
+        return target.tree.query(p, distance_upper_bound=max_dist, workers=workers)[1]
+
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 - `it` is reported
         p = apply(T, source)
-        _, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
+        idx = nearest(p)
         c = T[:3, 3].copy()
         n_ok, n_used = _k.icp_system(p, idx, tp, tn, c, gz, use_ground, one_sided, STEEP, kernel, Hk, g)
         if n_ok < 6:
@@ -291,7 +330,7 @@ def register(source: np.ndarray, target: Target, init: np.ndarray, max_dist: flo
         idx = None
     p = apply(T, source)
     if idx is None:
-        _, idx = target.tree.query(p, distance_upper_bound=max_dist, workers=workers)
+        idx = nearest(p)
     n_used, sw, swr = _k.icp_residual(p, idx, tp, tn, T[:3, 3].copy(), one_sided, STEEP, kernel)
     if n_used == 0:
         return IcpResult(T, 0.0, np.inf, H, 0, it)

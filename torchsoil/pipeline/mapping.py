@@ -190,9 +190,13 @@ class ReferenceMap:
         index = icp.VoxelIndex(pts, 3 * self.voxel)
         todo = stamp[sel] < 0
         cached = sel[~todo]
-        if len(cached):
-            changed = index.any_newer(points[cached], stamp[cached], self.born[ext], self.normal_radius)
-            todo[np.flatnonzero(~todo)[changed]] = True
+        if len(cached):   # only points that entered after the oldest cached normal can have changed one
+            born = self.born[ext]
+            young = np.flatnonzero(born > stamp[cached].min())
+            if len(young):
+                changed = icp.VoxelIndex(pts[young], 3 * self.voxel).any_newer(points[cached], stamp[cached],
+                                                                               born[young], self.normal_radius)
+                todo[np.flatnonzero(~todo)[changed]] = True
         redo = sel[todo]
         if len(redo):
             n, _ = icp.pca_normals(pts, index, points[redo], radius=self.normal_radius)
@@ -312,12 +316,20 @@ def _velocity(T_prev: np.ndarray, T_curr: np.ndarray, dt: float) -> np.ndarray:
     return out
 
 
-def _prepare(sweep: Sweep, velocity: np.ndarray, period: float, cfg: MappingConfig) -> np.ndarray:
-    """Downsampled, range-limited, de-skewed points of a sweep (robot frame at its stamp)."""
+def _pick(sweep: Sweep, cfg: MappingConfig) -> Sweep:
+    """The sweep's points within max_range, one per voxel of edge voxel / 2 (as `voxel_pick`)."""
     pts = np.ascontiguousarray(sweep.points, dtype=np.float64)
     near = _k.within_range(pts, float(cfg.max_range))
     pick = near[voxel_pick(pts[near], cfg.voxel / 2)]
-    return deskew(pts[pick], sweep.t[pick], _motion_over(velocity, period), period)
+    return Sweep(sweep.stamp, pts[pick], sweep.t[pick])
+
+
+def _prepare(sweep: Sweep, velocity: np.ndarray, period: float, cfg: MappingConfig,
+             picked: Sweep | None = None) -> np.ndarray:
+    """Downsampled, range-limited, de-skewed points of a sweep (robot frame at its stamp);
+    `picked`: its `_pick`, when already taken."""
+    p = picked if picked is not None else _pick(sweep, cfg)
+    return deskew(p.points, p.t, _motion_over(velocity, period), period)
 
 
 class Gyro:
@@ -385,6 +397,7 @@ class Mapper:
         self.done: list[int] = []       # registered sweeps (velocity baselines)
         self.costs: deque[float] = deque(maxlen=10)   # truncated costs of the last registrations
         self.gyro: Gyro | None = None   # set by the caller when the recording has an IMU
+        self._picked: tuple[Sweep | None, Sweep | None] = (None, None)   # the last sweep fitted and its _pick
 
     def add(self, sweep: Sweep) -> list[int]:
         if self.stamps and sweep.stamp <= self.stamps[-1]:
@@ -495,7 +508,9 @@ class Mapper:
         `seed` onto the local map (first with a `wide` gate when given, then with `gate`), in
         at most `iters` ICP iterations (default mapping.max_iter)."""
         cfg = self.cfg
-        pts = _prepare(sweep, _velocity(T_prev, seed, dt), self.period, cfg)
+        if getattr(self, "_picked", (None,))[0] is not sweep:   # retries de-skew the same points with other motions
+            self._picked = (sweep, _pick(sweep, cfg))
+        pts = _prepare(sweep, _velocity(T_prev, seed, dt), self.period, cfg, self._picked[1])
         src = icp.thin(icp.voxel_downsample(pts, cfg.source_voxel), cfg.max_points, cfg.source_voxel)
         kw = {"workers": cfg.workers, "ground_z": cfg.ground_z, "one_sided": cfg.one_sided}
         start, iters = seed, iters or cfg.max_iter

@@ -16,14 +16,17 @@ its end.
 from __future__ import annotations
 
 import bisect
+import os
 import time
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from torchsoil.io.bag import ImuSample, Recording, imu_data
 from torchsoil.io.pointcloud import Cloud
 from torchsoil.io.terrain_pair import TerrainPair
+from torchsoil.pipeline import _kernels as _k
 from torchsoil.pipeline import gravity, icp, mapping
 from torchsoil.pipeline.mapping import Mapper, Sweep
 from torchsoil.pipeline.raster import Heightmap, Tiles, corridor
@@ -35,6 +38,19 @@ from torchsoil.settings import PipelineConfig
 STREAMS = ("front", "back")
 REF_OK = ~(mapping.POOR_FIT | mapping.EMPTY)
 IMU_WAIT = 3.0   # s: how long a sweep waits for a late IMU's samples (beyond, the IMU is taken as silent)
+
+
+_POOL: dict[int, ThreadPoolExecutor] = {}
+
+
+def _stream_pool() -> ThreadPoolExecutor:
+    """The lasting worker thread that re-registers the front stream (OnlinePipeline._reregister),
+    one per process (a forked child does not inherit the parent's thread)."""
+    pid = os.getpid()
+    if pid not in _POOL:
+        _POOL.clear()
+        _POOL[pid] = ThreadPoolExecutor(max_workers=1, thread_name_prefix="rereg-front")
+    return _POOL[pid]
 
 
 class OnlinePipeline:
@@ -339,15 +355,27 @@ class OnlinePipeline:
         return extrinsics_for(self.rec, self.cfg.read, {imu.topic: imu.frame})[imu.topic]
 
     def _reregister(self, final: bool) -> None:
-        """Re-register and rasterize every queued sweep whose time the trajectory now covers."""
+        """Re-register and rasterize every queued sweep whose time the trajectory now covers:
+        the two streams at once (the front's on a worker thread; the compiled loops release
+        the interpreter lock), each stream's sweeps in their order. Each sweep's pose window
+        and target are taken first, in the order of one stream after the other, so the result
+        does not depend on the threads."""
         if self.L is None or not self.ok_stamps:
             return
         t0 = time.perf_counter()
         self._track()
+        jobs = {}
         for name in STREAMS:
-            q = self.queue[name]
+            q, jobs[name] = self.queue[name], []
             while q and (final or q[0].stamp + self.period <= self.ok_stamps[-1]):
-                self._rasterize(name, q.pop(0))
+                jobs[name].append(self._job(q.pop(0)))
+        if jobs["front"] and jobs["back"]:
+            front = _stream_pool().submit(self._rasterize_all, "front", jobs["front"])
+            self._rasterize_all("back", jobs["back"])
+            front.result()
+        else:
+            for name in STREAMS:
+                self._rasterize_all(name, jobs[name])
         if self.spill_dir is not None and self.n_final % 50 == 0:
             self._bound_memory()
         self.timings["reregister_raster"] += time.perf_counter() - t0
@@ -379,24 +407,38 @@ class OnlinePipeline:
         reach = max(self.cfg.mapping.map_radius, self.cfg.reregister.max_range + 2.0) + 10.0
         self.mapper.local.forget(xy, reach)
 
-    def _rasterize(self, name: str, sw: Sweep) -> None:
-        st = self.stats[name]
-        st["stamp"].append(sw.stamp)
+    def _job(self, sw: Sweep) -> tuple:
+        """(sweep, its stamps (K,) and poses (K, 4, 4) of T_ref around it, target), the
+        target None for a sweep of fewer than 50 points (not registered)."""
         if len(sw.points) < 50:
-            st["fitness"].append(np.nan), st["rmse"].append(np.nan), st["ok"].append(False), st["empty"].append(True)
-            return
+            return sw, None, None, None
         i = max(bisect.bisect_left(self.ok_stamps, sw.stamp - 3 * self.period) - 1, 0)
         j = bisect.bisect_right(self.ok_stamps, sw.stamp + 3 * self.period) + 1
         stamps, poses = np.asarray(self.ok_stamps[i:j]), np.asarray(self.ok_poses[i:j])
         seed = poses[int(np.argmin(np.abs(stamps - sw.stamp)))]
-        pts, T, fit, rmse, ok, _ = register_sweep(sw.points, sw.t, sw.stamp, stamps, poses,
-                                                  self._target(seed[:3, 3]), self.cfg.reregister, self.period)
+        return sw, stamps, poses, self._target(seed[:3, 3])
+
+    def _rasterize_all(self, name: str, jobs: list[tuple]) -> None:
+        for job in jobs:
+            self._rasterize(name, *job)
+
+    def _rasterize(self, name: str, sw: Sweep, stamps, poses, target) -> None:
+        """One sweep of stream `name` re-registered onto `target` and rasterized (touches only
+        that stream's stats and tiles, and `ground_stamp` for the back stream)."""
+        st = self.stats[name]
+        st["stamp"].append(sw.stamp)
+        if target is None:
+            st["fitness"].append(np.nan), st["rmse"].append(np.nan), st["ok"].append(False), st["empty"].append(True)
+            return
+        pts, T, fit, rmse, ok, _ = register_sweep(sw.points, sw.t, sw.stamp, stamps, poses, target,
+                                                  self.cfg.reregister, self.period)
         st["fitness"].append(fit), st["rmse"].append(rmse), st["ok"].append(ok), st["empty"].append(False)
         if not ok:
             return
         x = pts[:, 0]       # each lidar's ground: ahead of the front wheels, behind the rear ones
         beyond = x > self.keep_beyond[name] if name == "front" else x < self.keep_beyond[name]
-        sel = (np.linalg.norm(sw.points, axis=1) < self.cfg.raster.max_range) & beyond
+        sel = _k.within_range(sw.points, float(self.cfg.raster.max_range))
+        sel = sel[beyond[sel]]
         world = icp.apply(self.L @ T, pts[sel])
         passed = self.visits.passed(world[:, :2], sw.stamp + sw.t[sel])
         layer = passed if name == "front" else np.maximum(passed - 1, 0)

@@ -113,9 +113,11 @@ class Tiles:
         """Add (N, 3) world points [m]."""
         if len(points) == 0:
             return
-        keys, sums = _k.tile_sums(np.ascontiguousarray(points, dtype=np.float64), float(self.dx), self.size)
-        for (a, b), add in zip(keys.tolist(), sums, strict=True):
-            self._tile((a, b), create=True).reshape(3, -1)[:] += add
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        keys, order, start, cell = _k.tile_cells(points, float(self.dx), self.size)
+        z, scratch = np.ascontiguousarray(points[:, 2]), np.zeros((3, self.size * self.size))
+        for u, k in enumerate(map(tuple, keys.tolist())):
+            _k.tile_add(self._tile(k, create=True).reshape(3, -1), scratch, z, order, cell, start[u], start[u + 1])
 
     def _path(self, k: tuple[int, int]) -> str:
         return f"{self.spill_dir}/tile_{k[0]}_{k[1]}.npy"

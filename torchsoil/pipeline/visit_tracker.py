@@ -20,6 +20,7 @@ import os
 
 import numpy as np
 
+from torchsoil.pipeline import _kernels as _k
 from torchsoil.robot import Robot
 
 PIECE = 1.0    # m: longer segments of the path are cut into pieces (bounded work areas)
@@ -237,17 +238,12 @@ class VisitTracker:
         out = np.zeros(len(xy), np.int64)
         if len(xy) == 0:
             return out
-        ij = np.rint(xy / self.dx).astype(np.int64)
-        key = ij // self.size
-        flat = (key[:, 0] - key[:, 0].min()) * (int(np.ptp(key[:, 1])) + 1) + (key[:, 1] - key[:, 1].min())
-        order = np.argsort(flat, kind="stable")                       # the points tile by tile
-        cut = np.flatnonzero(np.diff(flat[order])) + 1
-        for sel in np.split(order, cut):
-            k = (int(key[sel[0], 0]), int(key[sel[0], 1]))
+        t = np.ascontiguousarray(t)
+        keys, order, start, cell = _k.tile_cells(np.ascontiguousarray(xy), self.dx, self.size)
+        for u, k in enumerate(map(tuple, keys.tolist())):
             tile = self._tile(k, keep=False)
             if tile is not None:
-                ci, cj = (ij[sel] - np.asarray(k) * self.size).T
-                out[sel] = (tile[row::2][:, ci, cj] <= t[sel]).sum(0)
+                _k.tile_count_le(tile.reshape(len(tile), -1), row, t, order, cell, start[u], start[u + 1], out)
         return out
 
 
