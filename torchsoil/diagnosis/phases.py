@@ -450,19 +450,47 @@ def fit_candidates(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimCon
     _screen_shapes(ev, pair, cfg, est, sim, drive, base, progress, cache, pool)
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
-    if pool is not None:    # every candidate's first trial passes (and the per-visit pass), then the rest, as tasks
-        head = (est, sim, section_of(pair))
-        tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
-        visits = [("visits", (est, sim))] if getattr(pair, "visit_front", None) is not None else []
-        pool.run("pass", [(*head, i, side[0], *tail) for i in ranked for side in trial_sides(catalogue.get(i))],
-                 others=visits)
-        pool.run("refine", [(*head, i, None, *tail) for i in ranked])
+    if pool is not None:
+        _candidate_tasks(pool, pair, cfg, est, sim, ranked, tried)
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     return ev, ranked, fits
+
+
+def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, ranked: list[str],
+                     tried: tuple) -> None:
+    """The candidates' passes as tasks on `pool` (parallel.PassPool), in one batch: the per-visit
+    pass (on a pair with visit layers), then per candidate its first trial passes (`trial_sides`;
+    a footprint or wall term's section scores at them, `fit.fit_section` over `tried`, tasks of
+    their own that its pass waits for) and the rest of its fit, which waits for them. Wall and
+    footprint terms first (the longest fits), then in the order of `ranked`."""
+    head = (est, sim, section_of(pair))
+    tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
+    tasks: list[tuple[str, tuple]] = []
+    after: list[tuple[int, ...]] = []
+    if getattr(pair, "visit_front", None) is not None:
+        tasks.append(("visits", (est, sim)))
+        after.append(())
+    shape = sorted(ranked, key=lambda i: catalogue.get(i).kind not in ("radius", "wall"))
+    for i in shape:
+        ext, firsts = catalogue.get(i), []
+        for side in trial_sides(ext):
+            scores = []
+            if ext.kind in ("radius", "wall") and tried:
+                for sec in section_candidates(pair, tried):
+                    scores.append(len(tasks))
+                    tasks.append(("trial_section", (*head, i, side[0], sec)))
+                    after.append(())
+            firsts.append(len(tasks))
+            tasks.append(("pass", (*head, i, side[0], *tail)))
+            after.append(tuple(scores))
+        tasks.append(("refine", (*head, i, None, *tail)))
+        after.append(tuple(firsts))
+    if tasks:
+        pool.run(tasks[0][0], [], others=tasks, after=after)
 
 
 def choose_terms(fits: list[CandidateFit], ranked: list[str], ev: dict, cfg: DiagnosisConfig, base: Pass,
