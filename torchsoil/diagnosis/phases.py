@@ -466,7 +466,11 @@ def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim
     pass (on a pair with visit layers), then per candidate its first trial passes (`trial_sides`;
     a footprint or wall term's section scores at them, `fit.fit_section` over `tried`, tasks of
     their own that its pass waits for) and the rest of its fit, which waits for them. Wall and
-    footprint terms first (the longest fits), then in the order of `ranked`."""
+    footprint terms first (the longest fits), then in the order of `ranked`. A wall term's
+    passes are the slowest (the two-angle relaxation) and its fit the longest chain of passes:
+    the section scores of each side's second trial are tasks too (beside its first pass), which
+    the rest of its fit waits for (run ahead: the fit needs them where its first trial lowers
+    the cost)."""
     head = (est, sim, section_of(pair))
     tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
     tasks: list[tuple[str, tuple]] = []
@@ -487,6 +491,11 @@ def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim
             firsts.append(len(tasks))
             tasks.append(("pass", (*head, i, side[0], *tail)))
             after.append(tuple(scores))
+            if ext.kind == "wall" and tried and len(side) > 1:
+                for sec in section_candidates(pair, tried):
+                    firsts.append(len(tasks))
+                    tasks.append(("trial_section", (*head, i, side[1], sec)))
+                    after.append(())
         tasks.append(("refine", (*head, i, None, *tail)))
         after.append(tuple(firsts))
     if tasks:
