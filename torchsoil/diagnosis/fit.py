@@ -270,12 +270,12 @@ class AnySection:
     prepared window does not depend on the dig order, and on the section only through its wheel
     geometries' taper (flat fraction, exponent) and the nominal footprint made from them, so
     each window is prepared once and given the asked section's taper and footprint
-    (`with_taper`), the same as one prepared under that section. Kept in memory up to
-    `max_bytes` (beyond: prepared anew, as without a store)."""
+    (`with_taper`), the same as one prepared under that section. Kept in `store` (default: in
+    memory up to 64 MB, beyond that prepared anew, as without a store)."""
 
-    def __init__(self, index, surfaces, max_bytes: int = 64 << 20):
+    def __init__(self, index, surfaces, store: WindowStore | None = None):
         self.index, self.surfaces = index, surfaces
-        self.store = WindowStore(max_bytes, spill=False)
+        self.store = WindowStore(64 << 20, spill=False) if store is None else store
 
     def get(self, key: tuple, prepare) -> WindowData | None:
         (f, e, est_json, sim_json, *rest), s0, s1 = key

@@ -24,11 +24,13 @@ from pathlib import Path
 from torchsoil.diagnosis.checkpoint import PassCache, portable
 
 _LOADED: dict[tuple, tuple] = {}     # in a worker: the files last shared -> their unpickled contents
+_WINDOWS: dict[tuple, object] = {}   # in a worker: the files last shared -> the passes' prepared windows
 
 
 def _load(files: tuple[str, ...]) -> tuple:
     if files not in _LOADED:
         _LOADED.clear()                   # an older state (or another diagnosis's): let it go
+        _WINDOWS.clear()
         contents = []
         for path in files:
             with open(path, "rb") as fh:
@@ -37,17 +39,28 @@ def _load(files: tuple[str, ...]) -> tuple:
     return _LOADED[files]
 
 
+def _windows(files: tuple[str, ...], shared: dict):
+    """In a worker: the prepared windows its passes over the shared state share (a
+    windows.WindowStore, as the passes of a diagnosis in one process share the base pass's;
+    under every tyre section, `fit.AnySection`), kept for its next tasks on that state."""
+    from torchsoil.diagnosis.fit import AnySection
+    from torchsoil.estimate.windows import WindowStore
+
+    if files not in _WINDOWS:
+        _WINDOWS[files] = AnySection(shared.get("index"), shared.get("surfaces"), WindowStore())
+    return _WINDOWS[files]
+
+
 def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
     """In a worker: one section score (`fit.section_cost`; kind trial_section: under a candidate
     at a trial coefficient, as `fit.candidate_pass` scores it), one candidate pass
     (`fit.candidate_pass`), the rest of one candidate's fit (`fit.fit_extension`) or the
-    per-visit pass of the hardening test on ground driven again (`run.visit_pass`), kept in the
-    cache at cache_dir."""
+    per-visit pass of the hardening test on ground driven again and its pass-by-pass fit
+    (`phases.hardening_on_visits`), kept in the cache at cache_dir."""
     from torchsoil.diagnosis import catalogue
     from torchsoil.diagnosis.catalogue import ExtensionModel, PassCounts
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import candidate_pass, fit_extension, section_cost, with_section
-    from torchsoil.estimate.windows import WindowStore
 
     pair, (shared, base) = _load(tuple(files))
     cache = PassCache.open(cache_dir, every)
@@ -56,10 +69,10 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
         section_cost(pair, est, sim, sec, every, model, shared, cache)
         return
     if kind == "visits":
-        from torchsoil.diagnosis.phases import visit_pass
+        from torchsoil.diagnosis.phases import hardening_on_visits
 
-        est, sim = args
-        visit_pass(pair, est, sim, base, cache)
+        est, sim, cfg = args
+        hardening_on_visits(pair, cfg, est, sim, dataclasses.replace(base, **shared), pair.robot.n_tracks, cache)
         return
     if kind == "trial_section":
         est, sim, section, ext_id, k, sec = args
@@ -70,7 +83,7 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
         return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)
-    base = dataclasses.replace(base, **shared, store=WindowStore())
+    base = dataclasses.replace(base, **shared, store=_windows(tuple(files), shared))
     drive = DriveSignals.from_poses(pair.poses, pair.robot)
     ext = catalogue.get(ext_id)
     if kind == "pass":

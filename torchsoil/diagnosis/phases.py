@@ -273,17 +273,26 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
     without visit layers)."""
     if getattr(pair, "visit_front", None) is None:
         return cfg.alpha_accept, None
-    alpha = cfg.alpha_accept / 2
-    kw = dict(nuisance=base.nuisance, index=base.index)
-    vp = visit_pass(pair, est, sim, base, cache)
+    rev = hardening_on_visits(pair, cfg, est, sim, base, n_tracks, cache)
     if progress is not None:
         progress.update(1)
-    rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks, est.stride,
-                                  max(1, int(round(est.window / est.stride))))
+    return cfg.alpha_accept / 2, rev
+
+
+def hardening_on_visits(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base, n_tracks: int,
+                        cache: PassCache | None = None) -> dict:
+    """`_revisit`'s test (at half cfg.alpha_accept) and its pass-by-pass fit where it names a
+    law, on the base pass's map nuisance and path index (`base`: a Pass, or anything with
+    them), each kept in and read back from `cache`; a parallel.PassPool runs it beside the
+    candidates' passes. Returns the test's dict."""
+    vp = visit_pass(pair, est, sim, base, cache)
+    rev = hardening_across_visits(vp, cfg.alpha_accept / 2, cfg.effect_materiality, cfg.block_m, n_tracks,
+                                  est.stride, max(1, int(round(est.window / est.stride))))
     if rev["accepted"]:
         rev["per_pass"] = kept(cache, "per_pass", (section_of(pair), rev["g"]),
-                               lambda: per_pass_fit(pair, est, sim, rev["g"], **kw))
-    return alpha, rev
+                               lambda: per_pass_fit(pair, est, sim, rev["g"], nuisance=base.nuisance,
+                                                    index=base.index))
+    return rev
 
 
 def visit_pass(pair, est: EstimatorConfig, sim: SimConfig, base: Pass, cache: PassCache | None = None):
@@ -463,7 +472,8 @@ def fit_candidates(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimCon
 def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, ranked: list[str],
                      tried: tuple) -> None:
     """The candidates' passes as tasks on `pool` (parallel.PassPool), in one batch: the per-visit
-    pass (on a pair with visit layers), then per candidate its first trial passes (`trial_sides`;
+    pass and the pass-by-pass fit it may ask for (on a pair with visit layers,
+    `hardening_on_visits`), then per candidate its first trial passes (`trial_sides`;
     a footprint or wall term's section scores at them, `fit.fit_section` over `tried`, tasks of
     their own that its pass waits for) and the rest of its fit, which waits for them. Wall and
     footprint terms first (the longest fits), then in the order of `ranked`. A wall term's
@@ -476,7 +486,7 @@ def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim
     tasks: list[tuple[str, tuple]] = []
     after: list[tuple[int, ...]] = []
     if getattr(pair, "visit_front", None) is not None:
-        tasks.append(("visits", (est, sim)))
+        tasks.append(("visits", (est, sim, cfg)))
         after.append(())
     shape = sorted(ranked, key=lambda i: catalogue.get(i).kind not in ("radius", "wall"))
     for i in shape:
