@@ -166,9 +166,12 @@ class LocalEngine:
             pool.shutdown(wait=True)
         return False
 
-    def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None) -> Iterator[tuple[int, Outcome]]:
+    def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None,
+             after: list | None = None) -> Iterator[tuple[int, Outcome]]:
         """fn(*calls[i]) for every i, yielding (i, Outcome) as each finishes; requests: one
-        FleetConfig per call (its cpus_per_task = the call's threads), default the engine's."""
+        FleetConfig per call (its cpus_per_task = the call's threads), default the engine's.
+        after: per call, the indices of the calls it waits for (started once they have all
+        finished, failed or not; `_next`), default none: calls start in their order."""
         import multiprocessing as mp
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
         from concurrent.futures.process import BrokenProcessPool
@@ -177,12 +180,11 @@ class LocalEngine:
         n = min(self.workers or default_workers(self.fleet, len(calls)), max(1, len(calls)))
         ctx = mp.get_context("spawn")
         idle = self._kept if self._kept is not None else []
-        todo, running, tries = deque(range(len(calls))), {}, [0] * len(calls)
+        todo, running, tries, finished = deque(range(len(calls))), {}, [0] * len(calls), set()
         try:
             while todo or running:
-                while todo and len(running) < n:
+                while todo and len(running) < n and (i := _next(todo, after, finished, not running)) is not None:
                     pool = idle.pop() if idle else ProcessPoolExecutor(1, ctx)
-                    i = todo.popleft()
                     tries[i] += 1
                     running[pool.submit(call, fn, calls[i], requests[i].cpus_per_task)] = (i, pool)
                 done, _ = wait(running, return_when=FIRST_COMPLETED)
@@ -201,6 +203,7 @@ class LocalEngine:
                     except Exception as e:          # the call or its result could not be pickled
                         idle.append(pool)
                         out = Outcome(error=one_line(e))
+                    finished.add(i)
                     yield i, out
         finally:
             for _, pool in running.values():
@@ -208,6 +211,17 @@ class LocalEngine:
                     p.terminate()
             for pool in [*(idle if self._kept is None else []), *(p for _, p in running.values())]:
                 pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _next(todo: deque, after: list | None, finished: set, idle: bool = False) -> int | None:
+    """The first call in `todo` whose calls to wait for (`after[i]`) have all finished, taken
+    out of it; None when every one still waits, but for the first when nothing runs (`idle`:
+    what it waits for is not among the calls)."""
+    for i in todo:
+        if after is None or all(j in finished for j in after[i]):
+            todo.remove(i)
+            return i
+    return todo.popleft() if idle else None
 
 
 def import_ray():
@@ -267,18 +281,18 @@ class RayEngine:
                               f"{most.get('CPU', 0):g} CPUs, {most.get('memory', 0) / 2 ** 20:.0f} MiB); lower "
                               "fleet.cpus_per_task or fleet.memory_mb_per_task")
 
-    def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None) -> Iterator[tuple[int, Outcome]]:
+    def imap(self, fn: Callable, calls: list[tuple], requests: list | None = None,
+             after: list | None = None) -> Iterator[tuple[int, Outcome]]:
         """As LocalEngine.imap, each call a Ray task with its request's CPUs and memory."""
         ray = import_ray()
         requests = requests or [self.fleet] * len(calls)
         if calls:
             self.check(requests)
         remote = ray.remote(call)
-        todo, refs = deque(range(len(calls))), {}
+        todo, refs, finished = deque(range(len(calls))), {}, set()
         limit = self.workers or len(calls)
         while todo or refs:
-            while todo and len(refs) < limit:
-                i = todo.popleft()
+            while todo and len(refs) < limit and (i := _next(todo, after, finished, not refs)) is not None:
                 r = requests[i]
                 opts = {"num_cpus": r.cpus_per_task, "max_retries": r.retries, "retry_exceptions": False}
                 if r.memory_mb_per_task:
@@ -292,6 +306,7 @@ class RayEngine:
                 except ray.exceptions.RayError as e:
                     first = (str(e).strip().splitlines() or [""])[0]
                     out = Outcome(error=f"{type(e).__name__}: {first}"[:400])
+                finished.add(i)
                 yield i, out
 
 

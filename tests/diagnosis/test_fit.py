@@ -443,3 +443,39 @@ def test_walls_the_windows_took_up_show_in_their_own_fit(two_angle_drives):
            for name, (pair, est, sim, drive, base) in two_angle_drives.items()}
     assert got["two-angle"]["p"] < 0.01 < 0.2 < got["one-angle"]["p"]
     assert "k_wall 0.5" in got["two-angle"]["statistic"]
+
+
+def _same(a, b) -> bool:
+    """Two prepared windows (or parts of them) hold the same values: tensors, arrays, numbers."""
+    import torch
+
+    if isinstance(a, torch.Tensor):
+        return a.dtype == b.dtype and a.shape == b.shape and bool(torch.equal(a, b))
+    if isinstance(a, tuple):
+        return type(a) is type(b) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, np.ndarray):
+        return np.array_equal(a, b)
+    return a == b
+
+
+def test_a_window_prepared_under_one_section_is_the_one_prepared_under_another_once_retapered():
+    """fit.AnySection's premise: a prepared window depends on the tyre section only through its
+    wheel geometry's taper and the nominal footprint made from it, and not on the dig order."""
+    from torchsoil.diagnosis.fit import AnySection, with_section, with_taper
+    from torchsoil.estimate.estimator import Estimator
+    from torchsoil.settings import EstimatorConfig, SimConfig
+
+    pair = _straight_pair("flat")
+    est, sim = EstimatorConfig(), SimConfig()
+    first = Estimator(with_section(pair, (0.0, 1.0)), est, sim)
+    shared = {"index": first.index, "nuisance": first.nuisance, "view": first.view, "surfaces": first.surfaces}
+    other = Estimator(with_section(pair, (0.5, 0.25)), est, sim.replace(dig_order="wheel"), **shared)
+    for k in (2, 6):
+        a, b = first.data(k), other.data(k)
+        assert not _same(a.geom.nominal, b.geom.nominal)
+        assert _same(with_taper(a, 0.5, 0.25), b) and _same(with_taper(b, 0.0, 1.0), a)
+    store = AnySection(first.index, first.surfaces)
+    via = Estimator(with_section(pair, (0.5, 0.25)), est, sim, **shared, store=store)
+    first.store = store
+    assert _same(first._prepare(first.windows[3]), first.data(3))        # prepared here, kept
+    assert _same(via._prepare(via.windows[3]), other.data(3)) and len(store.store) == 1   # read back, retapered

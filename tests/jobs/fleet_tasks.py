@@ -26,3 +26,12 @@ def where() -> str:
     import torchsoil
 
     return torchsoil.__file__
+
+
+def stamp(path: str, seconds: float) -> tuple[float, float]:
+    """Sleeps `seconds`; returns (start, end) wall clock times [s] (time.time)."""
+    import time
+
+    t0 = time.time()
+    time.sleep(seconds)
+    return t0, time.time()

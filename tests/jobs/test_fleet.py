@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.jobs.fleet_tasks import kill_first_time, value_or_kill, where
+from tests.jobs.fleet_tasks import kill_first_time, stamp, value_or_kill, where
 from tests.synthetic_pair import sim_pair
 from torchsoil import engines
 from torchsoil.cli import main
@@ -171,6 +171,15 @@ def test_a_killed_worker_takes_only_its_task_down():
     assert [got[k].value for k in (0, 2, 3)] == [0, 20, 30] and all(got[k].ok for k in (0, 2, 3))
     assert not got[1].ok and got[1].error.startswith("WorkerDied")
     assert all(got[k].peak_mb > 10 and got[k].seconds >= 0 for k in (0, 2, 3))
+
+
+def test_a_call_waits_for_the_calls_it_is_after():
+    # two workers: call 2 waits for call 0 (the slow one) though a worker is free after call 1
+    calls = [("a", 1.0), ("b", 0.1), ("c", 0.1), ("d", 0.1)]
+    got = dict(LocalEngine(2).imap(stamp, calls, after=[(), (), (0,), ()]))
+    assert all(o.ok for o in got.values())
+    (_, end0), (start2, _), (start3, _) = got[0].value, got[2].value, got[3].value
+    assert start2 >= end0 and start3 < end0                 # call 3 went ahead of the waiting call 2
 
 
 def test_a_killed_worker_is_replaced_and_its_task_retried(tmp_path):

@@ -11,6 +11,8 @@ so the extra parameter pays for itself only if it predicts ground it was not cho
 from __future__ import annotations
 
 import dataclasses
+import functools
+import json
 import math
 import time
 from dataclasses import dataclass
@@ -25,9 +27,10 @@ from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.locate import Profiles
 from torchsoil.diagnosis.stats import by_fold, finite_mean, fold_choice, folds, paired_z, term_test
 from torchsoil.estimate.estimator import Estimator, Stitcher
-from torchsoil.estimate.windows import WindowStore
+from torchsoil.estimate.windows import WindowData, WindowStore
 from torchsoil.memory import release
 from torchsoil.settings import EstimatorConfig, SimConfig
+from torchsoil.sim.geometry import footprint
 
 
 @dataclass
@@ -261,6 +264,58 @@ def section_candidates(pair, sections) -> list[TyreSection]:
     return list(dict.fromkeys([section_of(pair), *((float(f), float(e)) for f, e in sections)]))
 
 
+class AnySection:
+    """Prepared windows (windows.WindowStore's `get`) for estimators over one pair, map nuisance
+    and settings that differ only in the tyre section and the dig order (`section_cost`'s): a
+    prepared window does not depend on the dig order, and on the section only through its wheel
+    geometries' taper (flat fraction, exponent) and the nominal footprint made from them, so
+    each window is prepared once and given the asked section's taper and footprint
+    (`with_taper`), the same as one prepared under that section. Kept in `store` (default: in
+    memory up to 64 MB, beyond that prepared anew, as without a store)."""
+
+    def __init__(self, index, surfaces, store: WindowStore | None = None):
+        self.index, self.surfaces = index, surfaces
+        self.store = WindowStore(64 << 20, spill=False) if store is None else store
+
+    def get(self, key: tuple, prepare) -> WindowData | None:
+        (f, e, est_json, sim_json, *rest), s0, s1 = key
+        wd = self.store.get(((est_json, _without_order(sim_json), *rest), s0, s1), prepare)
+        return None if wd is None else with_taper(wd, f, e)
+
+
+@functools.lru_cache(maxsize=16)
+def _without_order(sim_json: str) -> str:
+    """SimConfig JSON without its dig_order (a prepared window does not depend on it)."""
+    return json.dumps({k: v for k, v in json.loads(sim_json).items() if k != "dig_order"}, sort_keys=True)
+
+
+def with_taper(wd: WindowData, f: float, e: float) -> WindowData:
+    """Window wd with its wheel geometries' (its own and its earlier visits') tyre taper (flat
+    fraction f, exponent e; sim.sinkage.taper) and the nominal footprint made from it, as
+    windows.prepare_window makes them for a robot of that section."""
+    def taper(g):
+        if g.flat_fraction == f and g.section_exponent == e:
+            return g
+        g = g._replace(flat_fraction=f, section_exponent=e, nominal=None)
+        return g._replace(nominal=footprint(g))
+
+    return wd._replace(geom=taper(wd.geom), earlier=tuple(taper(g) for g in wd.earlier))
+
+
+_ANY_SECTION: list[AnySection] = []   # this process's section scores' windows (of the last pair)
+
+
+def section_windows(shared: dict) -> AnySection | None:
+    """The section-free window store (`AnySection`) of the pair whose path index and surfaces
+    are shared's (run_pass's keywords), made on first use; None without them."""
+    index, surfaces = shared.get("index"), shared.get("surfaces")
+    if index is None or surfaces is None:
+        return None
+    if not _ANY_SECTION or _ANY_SECTION[0].index is not index or _ANY_SECTION[0].surfaces is not surfaces:
+        _ANY_SECTION[:] = [AnySection(index, surfaces)]
+    return _ANY_SECTION[0]
+
+
 def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: TyreSection, every: int = 3,
                  model: ExtensionModel | None = None, shared: dict | None = None, cache: PassCache | None = None
                  ) -> tuple[float, dict, np.ndarray]:
@@ -268,17 +323,21 @@ def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: TyreSection, e
     `every`-th window with the section (f, e) (math.inf when none was fitted); run_pass's
     keywords (index, nuisance, view, surfaces) of its estimator; and those windows' residuals
     (W,) [m], read back from or kept in `cache` (a score kept by an older version reads back as
-    its mean alone). Its windows are prepared for this pass only, not stored."""
+    its mean alone). Its windows are kept for the other sections' scores (`section_windows`),
+    not in the passes' store; the windows' prediction costs are not scored."""
+    shared = shared or {}
     estimator = Estimator(with_section(pair, sec), est, sim, modifiers=model.modifiers if model is not None else None,
-                          **{**(shared or {}), "store": None})
+                          **{**shared, "store": section_windows(shared)})
     what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
 
     def score() -> list[float]:
         estimator.windows = estimator.windows[::max(1, every)]
+        estimator._ahead_data = lambda k: None      # each window's residual only
         return [float(o.row["residual"]) for o in estimator.run()]
 
     res = np.atleast_1d(np.asarray(kept(cache, "section", what, score), np.float64))
-    return (float(np.nanmean(res)) if np.isfinite(res).any() else math.inf), shared_of(estimator), res
+    mean = float(np.nanmean(res)) if np.isfinite(res).any() else math.inf
+    return mean, {**shared_of(estimator), "store": None}, res
 
 
 def own_fit_screen(pair, est: EstimatorConfig, sim: SimConfig, exts: list[Extension], drive: DriveSignals,

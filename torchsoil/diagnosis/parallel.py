@@ -17,17 +17,20 @@ from __future__ import annotations
 import dataclasses
 import pickle
 import sys
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
 from torchsoil.diagnosis.checkpoint import PassCache, portable
 
 _LOADED: dict[tuple, tuple] = {}     # in a worker: the files last shared -> their unpickled contents
+_WINDOWS: dict[tuple, object] = {}   # in a worker: the files last shared -> the passes' prepared windows
 
 
 def _load(files: tuple[str, ...]) -> tuple:
     if files not in _LOADED:
         _LOADED.clear()                   # an older state (or another diagnosis's): let it go
+        _WINDOWS.clear()
         contents = []
         for path in files:
             with open(path, "rb") as fh:
@@ -36,15 +39,28 @@ def _load(files: tuple[str, ...]) -> tuple:
     return _LOADED[files]
 
 
+def _windows(files: tuple[str, ...], shared: dict):
+    """In a worker: the prepared windows its passes over the shared state share (a
+    windows.WindowStore, as the passes of a diagnosis in one process share the base pass's;
+    under every tyre section, `fit.AnySection`), kept for its next tasks on that state."""
+    from torchsoil.diagnosis.fit import AnySection
+    from torchsoil.estimate.windows import WindowStore
+
+    if files not in _WINDOWS:
+        _WINDOWS[files] = AnySection(shared.get("index"), shared.get("surfaces"), WindowStore())
+    return _WINDOWS[files]
+
+
 def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
-    """In a worker: one section score (`fit.section_cost`), one candidate pass
+    """In a worker: one section score (`fit.section_cost`; kind trial_section: under a candidate
+    at a trial coefficient, as `fit.candidate_pass` scores it), one candidate pass
     (`fit.candidate_pass`), the rest of one candidate's fit (`fit.fit_extension`) or the
-    per-visit pass of the hardening test on ground driven again (`run.visit_pass`), kept in the
-    cache at cache_dir."""
+    per-visit pass of the hardening test on ground driven again and its pass-by-pass fit
+    (`phases.hardening_on_visits`), kept in the cache at cache_dir."""
     from torchsoil.diagnosis import catalogue
+    from torchsoil.diagnosis.catalogue import ExtensionModel, PassCounts
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.diagnosis.fit import candidate_pass, fit_extension, section_cost, with_section
-    from torchsoil.estimate.windows import WindowStore
 
     pair, (shared, base) = _load(tuple(files))
     cache = PassCache.open(cache_dir, every)
@@ -53,14 +69,21 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
         section_cost(pair, est, sim, sec, every, model, shared, cache)
         return
     if kind == "visits":
-        from torchsoil.diagnosis.phases import visit_pass
+        from torchsoil.diagnosis.phases import hardening_on_visits
 
-        est, sim = args
-        visit_pass(pair, est, sim, base, cache)
+        est, sim, cfg = args
+        hardening_on_visits(pair, cfg, est, sim, dataclasses.replace(base, **shared), pair.robot.n_tracks, cache)
+        return
+    if kind == "trial_section":
+        est, sim, section, ext_id, k, sec = args
+        pair = with_section(pair, section)
+        model = ExtensionModel(catalogue.get(ext_id), k, DriveSignals.from_poses(pair.poses, pair.robot), pair.robot,
+                               base.view or "last_visit", sim.dig_order, PassCounts())
+        section_cost(pair, est, sim, sec, 3, model, {**shared, "store": None}, cache)
         return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)
-    base = dataclasses.replace(base, **shared, store=WindowStore())
+    base = dataclasses.replace(base, **shared, store=_windows(tuple(files), shared))
     drive = DriveSignals.from_poses(pair.poses, pair.robot)
     ext = catalogue.get(ext_id)
     if kind == "pass":
@@ -69,22 +92,56 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
         fit_extension(pair, est, sim, ext, drive, base, block_m, refine_steps, None, None, offsets, sections, cache)
 
 
+def _warm() -> None:
+    """In a worker: import what its tasks need (torch, the simulator's kernels), ahead of them."""
+    import torchsoil.diagnosis.phases  # noqa: F401
+    import torchsoil.sim.simulate  # noqa: F401
+
+
 class PassPool:
     """Runs passes of one diagnosis on `engine` (torchsoil.engines.LocalEngine or RayEngine,
     entered), keeping them in `cache` (a PassCache: for a Ray cluster, a folder every node
-    reads and writes). progress: optional tqdm-like bar (its postfix tells the tasks done)."""
+    reads and writes). progress: optional tqdm-like bar (its postfix tells the tasks done).
+
+    One batch of tasks runs at a time: `run` waits for it, `start` leaves it running in a
+    thread of this process (the diagnosis goes on meanwhile; the next `run`, `start` or `wait`
+    waits for it first). `warm` starts the workers ahead of the first batch."""
 
     def __init__(self, engine, cache: PassCache, progress=None):
         self.engine, self.cache, self.progress = engine, cache, progress
         self.files: tuple[str, str] | None = None
         self.shared = 0                   # states shared so far (each in files of its own)
         self.failed: list[str] = []
+        self._running: threading.Thread | None = None
+
+    def warm(self, workers: int) -> None:
+        """Start `workers` workers now (their imports), in a thread: the diagnosis's first
+        passes in this process need not wait for them (local engine only: its workers are kept)."""
+        if getattr(self.engine, "name", "") != "local" or workers < 2:
+            return
+        self.wait()
+        self._running = threading.Thread(target=lambda: [None for _ in self.engine.imap(_warm, [()] * workers)],
+                                         daemon=True)
+        self._running.start()
+
+    def wait(self) -> None:
+        """Wait for the batch `start` (or `warm`) left running."""
+        if self._running is not None:
+            self._running.join()
+            self._running = None
+
+    def start(self, kind: str, jobs: list[tuple], others: list[tuple[str, tuple]] = (), after=None) -> None:
+        """As `run`, in a thread: returns at once."""
+        self.wait()
+        self._running = threading.Thread(target=self.run, args=(kind, jobs, others, after), daemon=True)
+        self._running.start()
 
     def share(self, pair, shared: dict, base=None) -> None:
         """The pair and the estimator's whole-drive state the tasks start from (run_pass's
         keywords: index, nuisance, view, surfaces; the store is each worker's own), and the
         base model's pass once it is done (checkpoint.portable, without its stitched map).
         Written to new files each time, so that workers do not keep an older state."""
+        self.wait()                       # a batch running reads the files of the last state
         n, self.shared = self.shared, self.shared + 1
         state = ({k: v for k, v in shared.items() if k != "store"},
                  None if base is None else dataclasses.replace(portable(base), h_sim=None))
@@ -99,17 +156,24 @@ class PassPool:
                 Path(old).unlink(missing_ok=True)
         self.files = files
 
-    def run(self, kind: str, jobs: list[tuple], others: list[tuple[str, tuple]] = ()) -> None:
+    def run(self, kind: str, jobs: list[tuple], others: list[tuple[str, tuple]] = (), after=None) -> None:
         """Each job's arguments (`_pass_task`) as a task, and each of `others` ((kind, arguments):
         tasks of other kinds to run beside them, first); failed ones are noted in `failed` (the
-        diagnosis runs those passes itself)."""
+        diagnosis runs those passes itself). after: per task (others, then jobs), the indices
+        of the tasks it starts after (engines' imap), default none."""
+        if threading.current_thread() is not self._running:
+            self.wait()
         if not jobs and not others:
             return
         if self.files is None:
             raise RuntimeError("PassPool.share first")
         tasks = [*others, *((kind, a) for a in jobs)]
         calls = [(self.files, str(self.cache.dir), self.cache.every, k, a) for k, a in tasks]
-        for n, (_, out) in enumerate(self.engine.imap(_pass_task, calls), start=1):
+        try:
+            runs = self.engine.imap(_pass_task, calls, **({} if after is None else {"after": after}))
+        except TypeError:                 # an engine whose calls cannot wait for others: in their order
+            runs = self.engine.imap(_pass_task, calls)
+        for n, (_, out) in enumerate(runs, start=1):
             if out.error:
                 self.failed.append(out.error)
                 print(f"a parallel pass failed (run here instead): {out.error}", file=sys.stderr)
@@ -117,6 +181,7 @@ class PassPool:
                 self.progress.set_postfix_str(f"{kind} tasks {n}/{len(calls)}")
 
     def close(self) -> None:
+        self.wait()
         for path in self.files or ():
             Path(path).unlink(missing_ok=True)
 
@@ -135,6 +200,7 @@ def pass_pool(workers: int = 1, engine: str = "local", cache: PassCache | None =
 
     with make_engine(engine, workers if workers > 1 else None) as eng:
         pool = PassPool(eng, cache, progress)
+        pool.warm(workers)
         try:
             yield pool
         finally:

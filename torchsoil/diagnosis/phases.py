@@ -273,17 +273,26 @@ def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, b
     without visit layers)."""
     if getattr(pair, "visit_front", None) is None:
         return cfg.alpha_accept, None
-    alpha = cfg.alpha_accept / 2
-    kw = dict(nuisance=base.nuisance, index=base.index)
-    vp = visit_pass(pair, est, sim, base, cache)
+    rev = hardening_on_visits(pair, cfg, est, sim, base, n_tracks, cache)
     if progress is not None:
         progress.update(1)
-    rev = hardening_across_visits(vp, alpha, cfg.effect_materiality, cfg.block_m, n_tracks, est.stride,
-                                  max(1, int(round(est.window / est.stride))))
+    return cfg.alpha_accept / 2, rev
+
+
+def hardening_on_visits(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base, n_tracks: int,
+                        cache: PassCache | None = None) -> dict:
+    """`_revisit`'s test (at half cfg.alpha_accept) and its pass-by-pass fit where it names a
+    law, on the base pass's map nuisance and path index (`base`: a Pass, or anything with
+    them), each kept in and read back from `cache`; a parallel.PassPool runs it beside the
+    candidates' passes. Returns the test's dict."""
+    vp = visit_pass(pair, est, sim, base, cache)
+    rev = hardening_across_visits(vp, cfg.alpha_accept / 2, cfg.effect_materiality, cfg.block_m, n_tracks,
+                                  est.stride, max(1, int(round(est.window / est.stride))))
     if rev["accepted"]:
         rev["per_pass"] = kept(cache, "per_pass", (section_of(pair), rev["g"]),
-                               lambda: per_pass_fit(pair, est, sim, rev["g"], **kw))
-    return alpha, rev
+                               lambda: per_pass_fit(pair, est, sim, rev["g"], nuisance=base.nuisance,
+                                                    index=base.index))
+    return rev
 
 
 def visit_pass(pair, est: EstimatorConfig, sim: SimConfig, base: Pass, cache: PassCache | None = None):
@@ -450,19 +459,57 @@ def fit_candidates(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimCon
     _screen_shapes(ev, pair, cfg, est, sim, drive, base, progress, cache, pool)
     ranked = sorted((i for i in ev if ev[i]["testable"]), key=lambda i: ev[i]["p"])[:cfg.n_fit]
     theta0 = None
-    if pool is not None:    # every candidate's first trial passes (and the per-visit pass), then the rest, as tasks
-        head = (est, sim, section_of(pair))
-        tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
-        visits = [("visits", (est, sim))] if getattr(pair, "visit_front", None) is not None else []
-        pool.run("pass", [(*head, i, side[0], *tail) for i in ranked for side in trial_sides(catalogue.get(i))],
-                 others=visits)
-        pool.run("refine", [(*head, i, None, *tail) for i in ranked])
+    if pool is not None:
+        _candidate_tasks(pool, pair, cfg, est, sim, ranked, tried)
     fits: list[CandidateFit] = []
     for ext_id in ranked:
         f = fit_extension(pair, est, sim, catalogue.get(ext_id), drive, base, cfg.block_m, cfg.refine_steps,
                           theta0, progress, cfg.offsets, tried, cache)
         fits.append(f)
     return ev, ranked, fits
+
+
+def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, ranked: list[str],
+                     tried: tuple) -> None:
+    """The candidates' passes as tasks on `pool` (parallel.PassPool), in one batch: the per-visit
+    pass and the pass-by-pass fit it may ask for (on a pair with visit layers,
+    `hardening_on_visits`), then per candidate its first trial passes (`trial_sides`;
+    a footprint or wall term's section scores at them, `fit.fit_section` over `tried`, tasks of
+    their own that its pass waits for) and the rest of its fit, which waits for them. Wall and
+    footprint terms first (the longest fits), then in the order of `ranked`. A wall term's
+    passes are the slowest (the two-angle relaxation) and its fit the longest chain of passes:
+    the section scores of each side's second trial are tasks too (beside its first pass), which
+    the rest of its fit waits for (run ahead: the fit needs them where its first trial lowers
+    the cost)."""
+    head = (est, sim, section_of(pair))
+    tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
+    tasks: list[tuple[str, tuple]] = []
+    after: list[tuple[int, ...]] = []
+    if getattr(pair, "visit_front", None) is not None:
+        tasks.append(("visits", (est, sim, cfg)))
+        after.append(())
+    shape = sorted(ranked, key=lambda i: catalogue.get(i).kind not in ("radius", "wall"))
+    for i in shape:
+        ext, firsts = catalogue.get(i), []
+        for side in trial_sides(ext):
+            scores = []
+            if ext.kind in ("radius", "wall") and tried:
+                for sec in section_candidates(pair, tried):
+                    scores.append(len(tasks))
+                    tasks.append(("trial_section", (*head, i, side[0], sec)))
+                    after.append(())
+            firsts.append(len(tasks))
+            tasks.append(("pass", (*head, i, side[0], *tail)))
+            after.append(tuple(scores))
+            if ext.kind == "wall" and tried and len(side) > 1:
+                for sec in section_candidates(pair, tried):
+                    firsts.append(len(tasks))
+                    tasks.append(("trial_section", (*head, i, side[1], sec)))
+                    after.append(())
+        tasks.append(("refine", (*head, i, None, *tail)))
+        after.append(tuple(firsts))
+    if tasks:
+        pool.run(tasks[0][0], [], others=tasks, after=after)
 
 
 def choose_terms(fits: list[CandidateFit], ranked: list[str], ev: dict, cfg: DiagnosisConfig, base: Pass,
