@@ -158,6 +158,38 @@ def _add_export(sub) -> None:
     p.add_argument("--formats", nargs="+", default=["geotiff", "gpkg", "mcap"], choices=["geotiff", "gpkg", "mcap"])
 
 
+def _add_field(sub) -> None:
+    p = sub.add_parser("field", help="a field across sessions: add recordings, see the season, estimate it all",
+                       description="A field store (a folder) holds a field's frame, each session's trajectory and "
+                                   "registration, and per-cell layers across sessions as tiles (docs/field.md).")
+    fs = p.add_subparsers(dest="field_command", required=True, metavar="ACTION")
+    a = fs.add_parser("add", help="register a recording onto the field and merge its visits and passes (the field "
+                                  "is made by its first session); refused, leaving the field as it was, when the "
+                                  "session shares no ground with it, its placement is ambiguous or disagrees "
+                                  "with GNSS, or it is already there")
+    a.add_argument("field", type=Path, help="field store folder")
+    a.add_argument("recording", type=Path, help="a process-bag output folder, a terrain pair .npz, or a "
+                                                "recording (ROS 2 bag directory / ROS 1 .bag, run through the "
+                                                "lidar pipeline)")
+    a.add_argument("--name", help="session name (default: the recording's)")
+    a.add_argument("--gnss-topic", default="", help="NavSatFix topic (default: the bag's only one)")
+    _robot_option(a, extra=" (needed for a recording)")
+    _bag_options(a)
+    i = fs.add_parser("info", help="the field's sessions: times, registration, cells and passes")
+    i.add_argument("field", type=Path)
+    m = fs.add_parser("maps", help="the season's layers: OUT/season.npz and season.png (passes, cumulative rut "
+                                   "depth, sessions per cell)")
+    m.add_argument("field", type=Path)
+    m.add_argument("--out", type=Path, required=True)
+    e = fs.add_parser("estimate", help="estimate every session with passes counted over the season: OUT/ID/ "
+                                       "and OUT/season.csv")
+    e.add_argument("field", type=Path)
+    e.add_argument("--out", type=Path, required=True)
+    _settings_options(e)
+    _robot_option(e, extra=" (default: each session's own wheels)")
+    e.add_argument("--threads", type=int, default=1)
+
+
 def _add_process_bag(sub) -> None:
     p = sub.add_parser("process-bag", help="lidar pipeline: a recording in, terrain pair and trajectory out")
     p.add_argument("bag", type=Path, help="ROS 2 bag directory or ROS 1 .bag file")
@@ -282,7 +314,8 @@ def parser() -> argparse.ArgumentParser:
                                         "`python3 -m sphinx -b html docs out/docs`).",
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_estimate, _add_node, _add_process_bag, _add_diagnose, _add_export, _add_record, _add_rollout,
+    for add in (_add_estimate, _add_node, _add_process_bag, _add_diagnose, _add_export, _add_field, _add_record,
+                _add_rollout,
                 _add_bench,
                 _add_ablation, _add_study, _add_settings):
         add(sub)
@@ -407,6 +440,29 @@ def cmd_estimate(args) -> int:
     return 0
 
 
+def cmd_field(args) -> int:
+    from torchsoil.field.store import Refused
+    from torchsoil.jobs import field
+
+    if args.field_command == "add":
+        settings, given = _bag_settings(args)
+        try:
+            lines = field.field_add(args.field, args.recording, _robot(args.robot), settings, given,
+                                    args.gnss_topic, args.name)
+        except Refused as e:
+            print(f"refused: {e}", file=sys.stderr)
+            return 3
+        print("\n".join(lines))
+    elif args.field_command == "info":
+        print(field.field_info(args.field))
+    elif args.field_command == "maps":
+        print("wrote " + ", ".join(str(p) for p in field.field_maps(args.field, args.out)))
+    else:
+        print("\n".join(field.field_estimate(args.field, args.out, _settings(args), _robot(args.robot),
+                                            args.threads)))
+    return 0
+
+
 def _anchor(text: str | None) -> tuple[float, float, float] | None:
     if text is None:
         return None
@@ -517,7 +573,7 @@ def cmd_settings(args) -> int:
 
 
 COMMANDS = {"estimate": cmd_estimate, "process-bag": cmd_process_bag, "diagnose": cmd_diagnose, "export": cmd_export,
-            "node": cmd_node, "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench,
+            "node": cmd_node, "field": cmd_field, "record": cmd_record, "rollout": cmd_rollout, "bench": cmd_bench,
             "ablation": cmd_ablation,
             "study": cmd_study, "settings": cmd_settings}
 

@@ -184,6 +184,9 @@ class Estimator:
         self.visits_per_cell = visit_counts(pair.visit_time)
         self.passes = wheel_passes(pair.poses, pair.wheels, pair.wheel_width, pair.grid, pair.visit_time)
         self.passes_before = passes_before(self.passes)
+        prior = pair.extras.get("passes_prior")        # a field's earlier sessions (torchsoil.field)
+        if prior is not None:
+            self.passes_before = self.passes_before + np.asarray(prior, np.int64)[None]
         self.visit_start = []
         r = int(math.ceil(pair.wheel_width / pair.dx))
         near = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r

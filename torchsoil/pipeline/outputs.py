@@ -1,4 +1,4 @@
-"""process-bag's outputs: terrain.npz, trajectory.csv and PNGs of H_f, H_b and H_delta."""
+"""process-bag's outputs: terrain.npz, trajectory.csv, map.npz and PNGs of H_f, H_b and H_delta."""
 
 from __future__ import annotations
 
@@ -7,13 +7,18 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
+from torchsoil.pipeline.icp import voxel_downsample
 from torchsoil.pipeline.run import PipelineResult
 from torchsoil.plotting import coarse, coarse_extent
+
+MAP_VOXEL = 0.05  # m
 
 
 def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path]:
     """Write `terrain.npz` (docs/formats.md section 3 + extras), `trajectory.csv` (t, x, y, z,
-    roll, pitch, yaw of T_ref) and PNGs of H_f, H_b and H_delta (diverging colour map:
+    roll, pitch, yaw of T_ref), `map.npz` (`points` (M, 3) float32: the reference map P_ref,
+    one point per MAP_VOXEL voxel, m; what a field store registers a session by) and PNGs
+    of H_f, H_b and H_delta (diverging colour map:
     blue excavation, red deposition). Each file is written to a temporary name first."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -24,6 +29,11 @@ def write_outputs(result: PipelineResult, out_dir: str | Path) -> dict[str, Path
                header="t,x,y,z,roll,pitch,yaw", comments="")
     traj.with_suffix(".tmp").replace(traj)
     paths["trajectory"] = traj
+    points = result.mapping.map_points
+    pts = voxel_downsample(points, MAP_VOXEL) if len(points) else np.zeros((0, 3))
+    np.savez_compressed(out / "map.tmp.npz", points=pts.astype(np.float32))
+    (out / "map.tmp.npz").replace(out / "map.npz")
+    paths["map"] = out / "map.npz"
     hd = tp.h_delta
     lim = float(np.nanpercentile(np.abs(hd), 99)) if np.isfinite(hd).any() else 0.01
     for name, h, kw in (("h_front", tp.h_front, {"cmap": "viridis"}),
