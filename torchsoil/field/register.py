@@ -121,6 +121,9 @@ def _images(cloud: Cloud, lo: np.ndarray, shape: tuple[int, int]) -> tuple[list[
     s = RELIEF_SIGMA / px
     mean = ndimage.gaussian_filter(h * m, s) / np.maximum(ndimage.gaussian_filter(m.astype(float), s), 1e-9)
     relief = np.where(m, h - mean, 0.0)
+    # a pixel's blur: the ruts' pattern still lines up under a heading off by a search step
+    relief = np.where(m, ndimage.gaussian_filter(relief, 1.0) / np.maximum(ndimage.gaussian_filter(m * 1.0, 1.0),
+                                                                            1e-9), 0.0)
     imgs, masks = [relief], [m]
     if len(cloud.landmarks) >= 20:
         # landmark height above the ground's median, within 2 m of what the map covers
@@ -135,7 +138,8 @@ def _images(cloud: Cloud, lo: np.ndarray, shape: tuple[int, int]) -> tuple[list[
 def _masked_ncc(f: np.ndarray, mf: np.ndarray, g: np.ndarray, mg: np.ndarray, min_overlap: float) -> np.ndarray:
     """Masked normalised cross-correlation of the moving image g (mask mg) against the fixed f
     (mask mf) for every integer shift (FFT, full size): out[u] compares f(x + u) with g(x).
-    Shifts whose overlap is below min_overlap pixels score -1."""
+    Shifts whose overlap is below min_overlap pixels score -1. Returns (scores, overlap in
+    pixels), both of the full size."""
     shape = [a + b - 1 for a, b in zip(f.shape, g.shape, strict=True)]
     size = [1 << int(math.ceil(math.log2(n))) for n in shape]
     F = lambda a: np.fft.rfft2(a, size)  # noqa: E731
@@ -152,42 +156,51 @@ def _masked_ncc(f: np.ndarray, mf: np.ndarray, g: np.ndarray, mg: np.ndarray, mi
     vg = inv(Fmf * Fg2) - sg**2 / np.maximum(n, 1)
     den = np.sqrt(np.maximum(vf, 0) * np.maximum(vg, 0))
     out = np.where((n >= min_overlap) & (den > 1e-12 * np.maximum(n, 1)), num / np.maximum(den, 1e-300), -1.0)
-    return out
+    return out, n
 
 
 def search(session: Cloud, fixed: Cloud, yaw_step_deg: float = YAW_STEP_DEG, min_overlap: float = 0.3
            ) -> list[tuple[float, float, float, float]]:
     """Global search: candidates (score, yaw rad, tx m, ty m), best first, each the best of
     its heading; T = translation (tx, ty) after rotation by yaw about the session frame's
-    origin. min_overlap: share of the session's ground pixels that must overlap the field's."""
-    lo_f = fixed.points()[:, :2].min(0) - 1.0
-    shape_f = tuple(int(v) for v in np.ceil((fixed.points()[:, :2].max(0) + 1.0 - lo_f) / IMAGE_RES))
+    origin. Headings every 2 yaw steps first, then every step around the eight best.
+    The score: the channels' mean normalised correlation times the square root of the share
+    of the session's ground the field covers there (a small overlap correlates by chance).
+    min_overlap: that share's least."""
+    pts_f = fixed.points()[:, :2]
+    lo_f = pts_f.min(0) - 1.0
+    shape_f = tuple(int(v) for v in np.ceil((pts_f.max(0) + 1.0 - lo_f) / IMAGE_RES))
     imgs_f, masks_f = _images(fixed, lo_f, shape_f)
     pts = session.points()
     c = pts[:, :2].mean(0)
     r = float(np.linalg.norm(pts[:, :2] - c, axis=1).max()) + 1.0
-    n_ground = None
-    out = []
-    for yaw in np.radians(np.arange(0.0, 360.0, yaw_step_deg)):
+    lo_s = np.array([-r, -r])
+    shape_s = (int(2 * r / IMAGE_RES) + 1,) * 2
+
+    def at(yaw: float) -> tuple[float, float, float, float]:
         R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
         rot = Cloud(np.c_[(session.ground[:, :2] - c) @ R.T, session.ground[:, 2]],
                     np.c_[(session.landmarks[:, :2] - c) @ R.T, session.landmarks[:, 2]])
-        lo_s = np.array([-r, -r])
-        shape_s = (int(2 * r / IMAGE_RES) + 1,) * 2
         imgs_s, masks_s = _images(rot, lo_s, shape_s)
-        if n_ground is None:
-            n_ground = masks_s[0].sum()
-        scores = None
-        for k in range(min(len(imgs_f), len(imgs_s))):
-            s = _masked_ncc(imgs_f[k], masks_f[k], imgs_s[k], masks_s[k], min_overlap * n_ground if k == 0 else 50)
-            scores = s if scores is None else 0.5 * (scores + s)
+        n_ground = max(int(masks_s[0].sum()), 1)
+        ncc, n = _masked_ncc(imgs_f[0], masks_f[0], imgs_s[0], masks_s[0], min_overlap * n_ground)
+        if len(imgs_f) > 1 and len(imgs_s) > 1:
+            ncc = 0.5 * (ncc + _masked_ncc(imgs_f[1], masks_f[1], imgs_s[1], masks_s[1], 50)[0])
+        scores = np.where(ncc > 0, ncc * np.sqrt(np.minimum(n / n_ground, 1.0)), ncc)
         u = np.unravel_index(int(np.argmax(scores)), scores.shape)
-        # out[u]: f(x + u - (shape_s - 1)) matches g(x): session pixel x (from lo_s) -> field pixel x + u - shape_s + 1
+        # scores[u]: f(x + u - (shape_s - 1)) matches g(x): session pixel x -> field pixel x + u - shape_s + 1
         shift = (np.array(u) - (np.array(shape_s) - 1)) * IMAGE_RES + lo_f - lo_s
         t = shift - R @ c   # session xy p -> R (p - c) + shift = R p + (shift - R c)
-        out.append((float(scores[u]), float(yaw), float(t[0]), float(t[1])))
-    out.sort(key=lambda x: -x[0])
-    return out
+        return float(scores[u]), float(yaw), float(t[0]), float(t[1])
+
+    step = math.radians(yaw_step_deg)
+    out = {round(y / step) % round(2 * math.pi / step): at(y) for y in np.arange(0.0, 2 * math.pi - 1e-9, 2 * step)}
+    for k in sorted(out, key=lambda k: -out[k][0])[:8]:
+        for j in (k - 1, k + 1):
+            j %= round(2 * math.pi / step)
+            if j not in out:
+                out[j] = at(j * step)
+    return sorted(out.values(), key=lambda x: -x[0])
 
 
 def ambiguity(cands: list[tuple[float, float, float, float]]) -> float:
