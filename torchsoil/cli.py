@@ -188,6 +188,19 @@ def _add_field(sub) -> None:
     _settings_options(e)
     _robot_option(e, extra=" (default: each session's own wheels)")
     e.add_argument("--threads", type=int, default=1)
+    d = fs.add_parser("diagnose", help="diagnose sessions with passes counted over the season: OUT/ID/")
+    d.add_argument("field", type=Path)
+    d.add_argument("--out", type=Path, required=True)
+    d.add_argument("--session", action="append", default=[], metavar="ID",
+                   help="a session id or name (repeatable; default: every session after the first)")
+    _settings_options(d)
+    _robot_option(d, extra=" (default: each session's own wheels)")
+    d.add_argument("--pass-workers", type=int, default=None, metavar="N", help="as for `diagnose`")
+    q = fs.add_parser("pair", help="a session's terrain pair with the wheel passes of the earlier sessions "
+                                   "(passes_prior), for estimate, diagnose or export")
+    q.add_argument("field", type=Path)
+    q.add_argument("session", help="session id or name")
+    q.add_argument("--out", type=Path, required=True, help=".npz to write")
 
 
 def _add_process_bag(sub) -> None:
@@ -457,6 +470,11 @@ def cmd_field(args) -> int:
         print(field.field_info(args.field))
     elif args.field_command == "maps":
         print("wrote " + ", ".join(str(p) for p in field.field_maps(args.field, args.out)))
+    elif args.field_command == "pair":
+        print(f"wrote {field.field_pair(args.field, args.session, args.out)}")
+    elif args.field_command == "diagnose":
+        print("\n".join(field.field_diagnose(args.field, args.out, args.session, _settings(args), _robot(args.robot),
+                                            args.pass_workers)))
     else:
         print("\n".join(field.field_estimate(args.field, args.out, _settings(args), _robot(args.robot),
                                             args.threads)))

@@ -95,3 +95,21 @@ def test_an_old_track_beside_the_wheel_counts_in_part(beside, share):
                          radius=0.07 + 0.28, gap=3.0, inner=0.07)
     got = drive.passes(np.array([[3.0, beside]]), np.array([23.0]))
     assert got[0] == pytest.approx(share, abs=0.02)
+
+
+def test_a_fields_earlier_passes_add_to_every_count():
+    """A layer of 3 passes before the recording (a field's earlier sessions) over the first lap's
+    start and nothing elsewhere: counts there are the drive's own plus 3, elsewhere unchanged."""
+    robot = paper_platform()
+    poses = racetrack()
+    plain = DriveSignals.from_poses(poses, robot)
+    origin, dx = np.array([-10.0, -10.0]), 0.02
+    layer = np.zeros((1000, 1000))
+    layer[:, :] = 3.0 * ((origin[0] + np.arange(1000) * dx) < 1.0)[:, None]     # the ground at x < 1 m
+    seasoned = DriveSignals.from_poses(poses, robot, prior=(layer, origin, dx))
+    pts = np.array([[0.5, 0.0], [3.0, 0.0], [-9.0, 5.0], [50.0, 0.0]])            # the last: off the layer
+    arc = np.full(4, plain.signals["arc_length"][-1])
+    got = seasoned.passes(pts, arc) - plain.passes(pts, arc)
+    np.testing.assert_array_equal(got, [3.0, 0.0, 3.0, 0.0])
+    p4 = plain.poses4[:5]
+    assert (seasoned.pose_passes(p4, robot, before=True) - plain.pose_passes(p4, robot, before=True) >= 3).all()

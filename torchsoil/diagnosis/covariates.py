@@ -107,7 +107,9 @@ class DriveSignals:
     travel [m] after which coming back counts as a new pass. wheel_of: (M,) index of the wheel
     each wheel point belongs to (needed to count wheel passes, `passes(wheel=...)`); lag:
     base_link travel [m] by which another wheel's pass must precede a wheel's own to count
-    before it (half the shortest spacing of the robot's axles).
+    before it (half the shortest spacing of the robot's axles). prior: (layer (X, Y), origin
+    (2,) m, dx m), the wheel passes each cell had before the recording (a field's earlier
+    sessions, `passes_prior` of torchsoil.field), added to every count of `passes`.
     """
 
     signals: dict[str, np.ndarray]
@@ -119,10 +121,18 @@ class DriveSignals:
     inner: float = 0.0
     wheel_of: np.ndarray | None = None
     lag: float = 0.0
+    prior: tuple | None = None
     _tree: cKDTree | None = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def from_poses(cls, poses, robot: Robot, spacing: float = 0.02) -> DriveSignals:
+    def from_pair(cls, pair, spacing: float = 0.02) -> DriveSignals:
+        """The signals of a terrain pair's drive, with its `passes_prior` layer when it has one."""
+        prior = pair.extras.get("passes_prior")
+        return cls.from_poses(pair.poses, pair.robot, spacing,
+                              None if prior is None else (np.asarray(prior, np.float64), pair.origin, pair.dx))
+
+    @classmethod
+    def from_poses(cls, poses, robot: Robot, spacing: float = 0.02, prior: tuple | None = None) -> DriveSignals:
         p = check_poses(poses)
         sig = pose_signals(p)
         dense = resample_poses(p[:, [0, 1, 2, 6]], robot.wheels[:, :2], spacing)
@@ -133,7 +143,7 @@ class DriveSignals:
         axles = np.diff(np.unique(np.round(robot.wheels[:, 0], 6)))
         lag = float(axles.min()) / 2 if len(axles) else gap / 2
         return cls(sig, dense_src(p), w.reshape(-1, 2), np.tile(arc, len(w)), r + 2 * robot.wheel_width, gap, r,
-                   np.repeat(np.arange(len(w)), w.shape[1]), lag)
+                   np.repeat(np.arange(len(w)), w.shape[1]), lag, prior)
 
     def at(self, name: str, t) -> np.ndarray:
         """Signal `name` interpolated at times t [s] (any shape)."""
@@ -152,7 +162,7 @@ class DriveSignals:
         base_link arc length [m] of the pose at each point; before: count only the visits that
         ended more than `gap` / 2 of travel before it (the passes before the pose's own, for a
         simulation that drives every visit). Returns a float array of arc's shape (whole
-        numbers where old tracks are driven exactly).
+        numbers where old tracks are driven exactly), plus the `prior` passes of each point's cell.
 
         wheel: (...) int, the wheel whose centre each point is. Given, every wheel's pass (a
         run of its hits, broken where it travelled more than `radius` away) counts on its own
@@ -171,7 +181,7 @@ class DriveSignals:
         n_hits = np.fromiter((len(h) for h in hits), np.int64, len(hits))
         out = np.zeros(len(pts))
         if n_hits.sum() == 0:
-            return out.reshape(np.shape(points)[:-1])
+            return (out + self._prior(pts)).reshape(np.shape(points)[:-1])
         i = np.repeat(np.arange(len(pts)), n_hits)                       # one row per (point, hit)
         j = np.concatenate([np.asarray(h, np.int64) for h in hits if len(h)])
         a = self.wheel_arc[j]
@@ -204,7 +214,19 @@ class DriveSignals:
         else:
             earlier = np.r_[owner[1:] == owner[:-1], False]              # every visit but a point's last
         out += np.bincount(owner, weights=best * earlier, minlength=len(pts))
-        return out.reshape(np.shape(points)[:-1])
+        return (out + self._prior(pts)).reshape(np.shape(points)[:-1])
+
+    def _prior(self, pts: np.ndarray) -> np.ndarray | float:
+        """(P,) `prior` passes at the cells of points (P, 2) [m]; 0 outside or without one."""
+        if self.prior is None:
+            return 0.0
+        layer, origin, dx = self.prior
+        i = np.rint((pts[:, 0] - origin[0]) / dx).astype(np.int64)
+        j = np.rint((pts[:, 1] - origin[1]) / dx).astype(np.int64)
+        ok = (i >= 0) & (j >= 0) & (i < layer.shape[0]) & (j < layer.shape[1])
+        out = np.zeros(len(pts))
+        out[ok] = layer[i[ok], j[ok]]
+        return out
 
     def pose_passes(self, poses4: np.ndarray, robot: Robot, before: bool = False,
                     by_wheel: bool = False) -> np.ndarray:

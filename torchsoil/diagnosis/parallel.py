@@ -77,14 +77,14 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
     if kind == "trial_section":
         est, sim, section, ext_id, k, sec = args
         pair = with_section(pair, section)
-        model = ExtensionModel(catalogue.get(ext_id), k, DriveSignals.from_poses(pair.poses, pair.robot), pair.robot,
+        model = ExtensionModel(catalogue.get(ext_id), k, DriveSignals.from_pair(pair), pair.robot,
                                base.view or "last_visit", sim.dig_order, PassCounts())
         section_cost(pair, est, sim, sec, 3, model, {**shared, "store": None}, cache)
         return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)
     base = dataclasses.replace(base, **shared, store=_windows(tuple(files), shared))
-    drive = DriveSignals.from_poses(pair.poses, pair.robot)
+    drive = DriveSignals.from_pair(pair)
     ext = catalogue.get(ext_id)
     if kind == "pass":
         candidate_pass(pair, est, sim, ext, k, drive, base, None, offsets, sections, cache)

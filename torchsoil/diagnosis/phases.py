@@ -671,7 +671,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     as parallel tasks first; the results are the same."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
     pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool)
-    drive = DriveSignals.from_poses(pair.poses, pair.robot)
+    drive = DriveSignals.from_pair(pair)
     base = base_pass(pair, cfg, est, sim, shared, progress, cache)
     where = locate_mismatch(pair, cfg, est, base, drive)
     ev, ranked, fits = fit_candidates(pair, cfg, est, sim, base, drive, where, tried, progress, cache, pool)

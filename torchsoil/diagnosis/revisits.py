@@ -398,7 +398,7 @@ def per_pass_fit(pair, est, sim, g: float, nuisance=None, index=None, steps: int
     from torchsoil.diagnosis.covariates import DriveSignals
     from torchsoil.estimate.estimator import Estimator
 
-    drive, counts = DriveSignals.from_poses(pair.poses, pair.robot), PassCounts()
+    drive, counts = DriveSignals.from_pair(pair), PassCounts()
     sim = sim.replace(dig_order="wheel")
     n_tracks = pair.robot.n_tracks
     per_track = int(np.bincount(pair.robot.track).max())

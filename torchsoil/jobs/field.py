@@ -146,6 +146,33 @@ def field_maps(field: str | Path, out: str | Path) -> list[Path]:
     return [out / "season.npz", out / "season.png"]
 
 
+def field_pair(field: str | Path, session: str, out: str | Path) -> Path:
+    """Write a session's terrain pair (its own frame) with `passes_prior`, the wheel passes its
+    cells had in the field's earlier sessions: any command (estimate, diagnose, export) then
+    counts passes over the season."""
+    return Field.open(field).session_pair(session).save(out)
+
+
+def field_diagnose(field: str | Path, out: str | Path, sessions: list[str] | None = None, settings=None,
+                   robot=None, workers: int | None = 1) -> list[str]:
+    """`diagnose` on sessions of the field (default: every one after the first), each on its
+    pair with the passes of the earlier sessions (`field_pair`), into OUT/ID/; lines with each
+    verdict."""
+    from torchsoil.jobs.diagnose import diagnose_input
+
+    f = Field.open(field)
+    ids = [f.session(s)["id"] for s in sessions] if sessions else [s["id"] for s in f.sessions[1:] or f.sessions]
+    out = Path(out)
+    lines = []
+    for sid in ids:
+        pair_path = field_pair(field, sid, out / "pairs" / f"{sid}.npz")
+        d = diagnose_input(pair_path, out / sid, settings, robot, tensorboard=False,
+                           resume=(out / sid / "run.json").exists(), workers=workers)
+        lines.append(f"{sid}: {d['verdict']}" + (f" ({d['missing_physics']})" if d.get("missing_physics") else "")
+                     + f" -> {out / sid}")
+    return lines
+
+
 def field_estimate(field: str | Path, out: str | Path, settings=None, robot=None, threads: int = 1,
                    tensorboard: bool = False) -> list[str]:
     """`estimate` on every session of the field, each on its own pair with the wheel passes its
