@@ -31,6 +31,14 @@ def test_field_commands(tmp_path, capsys):
     assert main(["field", "maps", str(field), "--out", str(tmp_path / "maps")]) == 0
     season = np.load(tmp_path / "maps" / "season.npz")
     assert season["passes"].max() == 4 and (tmp_path / "maps" / "season.png").stat().st_size > 10000
+    lanes = list(csv.DictReader(open(tmp_path / "maps" / "lanes.csv")))
+    # two ruts, each driven by both sessions: 2 wheel passes a day, 2 cm deeper each day
+    assert sorted((r["lane"], r["session"]) for r in lanes) == [("1", "s001_monday"), ("1", "s002_tuesday"),
+                                                                 ("2", "s001_monday"), ("2", "s002_tuesday")]
+    for r in lanes:
+        day = 1 if r["session"] == "s001_monday" else 2
+        assert float(r["passes_before"]) == 2 * (day - 1) and float(r["passes"]) == 2
+        assert abs(float(r["rut_depth_mm"]) - 20 * day) < 1.0
     assert main(["field", "estimate", str(field), "--out", str(tmp_path / "fit"),
                  "--set", "estimator.max_iter=5"]) == 0
     rows = list(csv.DictReader(open(tmp_path / "fit" / "season.csv")))

@@ -248,6 +248,27 @@ class Field:
         with np.load(self.path / name) as d:
             return {k: d[k] for k in SEASON}
 
+    def read(self, layer: str, box: tuple[int, int, int, int], session: str | None = None) -> np.ndarray:
+        """One layer over the field cells i0 <= i < i1, j0 <= j < j1 (box), from the season's
+        tiles or, given a session id, that session's own (NaN / 0 where none)."""
+        i0, i1, j0, j1 = box
+        heights = layer in ("first", "latest", "before", "after", "time")
+        out = np.full((i1 - i0, j1 - j0), np.nan if heights else 0, np.float64 if heights else np.int64)
+        for I in range(i0 // TILE, (i1 - 1) // TILE + 1):
+            for J in range(j0 // TILE, (j1 - 1) // TILE + 1):
+                if session is None:
+                    name = self.manifest["tiles"].get(f"{I},{J}")
+                    path = None if name is None else self.path / name
+                else:
+                    path = self.path / "sessions" / session / "tiles" / f"{I}_{J}.npz"
+                if path is None or not path.is_file():
+                    continue
+                a, b = max(i0, I * TILE), min(i1, (I + 1) * TILE)
+                c, d = max(j0, J * TILE), min(j1, (J + 1) * TILE)
+                with np.load(path) as t:
+                    out[a - i0:b - i0, c - j0:d - j0] = t[layer][a - I * TILE:b - I * TILE, c - J * TILE:d - J * TILE]
+        return out
+
     def tiles(self) -> list[tuple[int, int]]:
         return [tuple(int(v) for v in k.split(",")) for k in self.manifest["tiles"]]
 

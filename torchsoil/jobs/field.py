@@ -109,7 +109,9 @@ def field_info(field: str | Path) -> str:
 
 def field_maps(field: str | Path, out: str | Path) -> list[Path]:
     """season.npz (the season's layers on the field grid) and season.png: wheel passes per cell
-    over the season, cumulative rut depth (first surface minus latest, m), sessions per cell."""
+    over the season, cumulative rut depth (first surface minus latest, m), sessions per cell;
+    lanes.csv / lanes.md (`lane_table`) and multipass.png (rut depth against passes per lane,
+    a point per session)."""
     from matplotlib.figure import Figure
 
     from torchsoil.plotting import coarse
@@ -143,7 +145,74 @@ def field_maps(field: str | Path, out: str | Path) -> list[Path]:
         fig.colorbar(im, ax=ax, shrink=0.7)
     axes[0].legend(fontsize=6)
     fig.savefig(out / "season.png", dpi=120, bbox_inches="tight")
-    return [out / "season.npz", out / "season.png"]
+    rows = lane_table(field)
+    with open(out / "lanes.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, ["lane", "session", "cells", "passes_before", "passes", "rut_depth_mm"])
+        w.writeheader()
+        w.writerows(rows)
+    (out / "lanes.md").write_text(lane_markdown(rows) + "\n")
+    fig = Figure(figsize=(6, 4))
+    ax = fig.subplots()
+    for lane in sorted({r["lane"] for r in rows}):
+        rs = [r for r in rows if r["lane"] == lane]
+        ax.plot([0] + [r["passes_before"] + r["passes"] for r in rs], [0] + [r["rut_depth_mm"] for r in rs], "o-",
+                label=f"lane {lane}")
+        for r in rs:
+            ax.annotate(r["session"].split("_")[0], (r["passes_before"] + r["passes"], r["rut_depth_mm"]), fontsize=6)
+    ax.set_xlabel("wheel passes over the season (after the session)")
+    ax.set_ylabel("cumulative rut depth [mm]")
+    ax.set_title("multi-pass curve per lane, a point per session")
+    if rows:
+        ax.legend(fontsize=6)
+    fig.savefig(out / "multipass.png", dpi=120, bbox_inches="tight")
+    return [out / "season.npz", out / "season.png", out / "lanes.csv", out / "lanes.md", out / "multipass.png"]
+
+
+def lane_table(field: str | Path, min_cells: int = 50) -> list[dict]:
+    """The season's multi-pass table: per lane (a wheel track of straight legs, shared by the rows
+    and sessions whose wheels ran on it: field.lanes) and per session that drove it, the wheel
+    passes its track cells had before and after the session (median) and the cumulative rut
+    depth after it (the season's first surface less the session's after surface, median, m)."""
+    from torchsoil.field import lanes as ln
+
+    f = Field.open(field)
+    tracks = []
+    for k, s in enumerate(f.sessions):
+        poses = np.loadtxt(f.path / "sessions" / s["id"] / "trajectory.csv", delimiter=",", skiprows=1, ndmin=2)
+        with np.load(f.path / "sessions" / s["id"] / "terrain.npz") as d:
+            offsets, width = np.unique(np.round(d["wheels"][:, 1], 4)), float(d["wheel_width"])
+        for leg in ln.legs(poses, k):
+            tracks += ln.wheel_tracks(leg, offsets)
+    rows = []
+    dx = f.dx
+    for n, lane in enumerate(ln.group_lanes(tracks), start=1):
+        pts = np.array([p for g in lane.legs for p in (g.start, g.end)])
+        lo = np.floor((pts.min(0) - width) / dx).astype(int)
+        hi = np.ceil((pts.max(0) + width) / dx).astype(int) + 1
+        box = (lo[0], hi[0], lo[1], hi[1])
+        xs, ys = np.arange(lo[0], hi[0]) * dx, np.arange(lo[1], hi[1]) * dx
+        mask = ln.track_mask(lane, xs, ys, width / 2)
+        first = f.read("first", box)
+        total = np.zeros(mask.shape, np.int64)            # wheel passes of the sessions so far
+        on_lane = {g.session for g in lane.legs}
+        for k, s in enumerate(f.sessions):
+            passes = f.read("passes", box, s["id"])
+            before, total = total, total + passes
+            drove = mask & (passes > 0)
+            if k not in on_lane or drove.sum() < min_cells:
+                continue
+            depth = first - f.read("after", box, s["id"])
+            rows.append({"lane": n, "session": s["id"], "cells": int(drove.sum()),
+                         "passes_before": float(np.median(before[drove])), "passes": float(np.median(passes[drove])),
+                         "rut_depth_mm": float(1000 * np.nanmedian(depth[drove]))})
+    return rows
+
+
+def lane_markdown(rows: list[dict]) -> str:
+    out = ["| lane | session | cells | passes before | passes | rut depth after [mm] |", "|---|---|---|---|---|---|"]
+    out += [f"| {r['lane']} | {r['session']} | {r['cells']} | {r['passes_before']:.0f} | {r['passes']:.0f} | "
+            f"{r['rut_depth_mm']:.1f} |" for r in rows]
+    return "\n".join(out)
 
 
 def field_pair(field: str | Path, session: str, out: str | Path) -> Path:
