@@ -31,6 +31,12 @@ def test_field_commands(tmp_path, capsys):
     assert main(["field", "maps", str(field), "--out", str(tmp_path / "maps")]) == 0
     season = np.load(tmp_path / "maps" / "season.npz")
     assert season["passes"].max() == 4 and (tmp_path / "maps" / "season.png").stat().st_size > 10000
+    import rasterio
+
+    with rasterio.open(tmp_path / "maps" / "season.tif") as src:            # the same layers, for GIS
+        assert src.descriptions[:2] == ("passes", "rut_depth")
+        band = src.read(1)[::-1].T                                          # rows run along -y
+        np.testing.assert_array_equal(np.nan_to_num(band), np.nan_to_num(season["passes"] * (season["visits"] > 0)))
     lanes = list(csv.DictReader(open(tmp_path / "maps" / "lanes.csv")))
     # two ruts, each driven by both sessions: 2 wheel passes a day, 2 cm deeper each day
     assert sorted((r["lane"], r["session"]) for r in lanes) == [("1", "s001_monday"), ("1", "s002_tuesday"),

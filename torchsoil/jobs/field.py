@@ -111,7 +111,7 @@ def field_maps(field: str | Path, out: str | Path) -> list[Path]:
     """season.npz (the season's layers on the field grid) and season.png: wheel passes per cell
     over the season, cumulative rut depth (first surface minus latest, m), sessions per cell;
     lanes.csv / lanes.md (`lane_table`) and multipass.png (rut depth against passes per lane,
-    a point per session)."""
+    a point per session); season.tif, the same layers for GIS (`season_geotiff`)."""
     from matplotlib.figure import Figure
 
     from torchsoil.plotting import coarse
@@ -165,7 +165,38 @@ def field_maps(field: str | Path, out: str | Path) -> list[Path]:
     if rows:
         ax.legend(fontsize=6)
     fig.savefig(out / "multipass.png", dpi=120, bbox_inches="tight")
-    return [out / "season.npz", out / "season.png", out / "lanes.csv", out / "lanes.md", out / "multipass.png"]
+    tif = season_geotiff(f, grid, out / "season.tif")
+    return [out / "season.npz", tif, out / "season.png", out / "lanes.csv", out / "lanes.md", out / "multipass.png"]
+
+
+SEASON_BANDS = {"passes": ("1", "wheel passes over the season"),
+                "rut_depth": ("m", "cumulative rut depth: the season's first surface less its latest"),
+                "sessions": ("1", "sessions that drove the cell"),
+                "first": ("m", "surface before the season's first visit (field frame z)"),
+                "latest": ("m", "surface after the season's last visit (field frame z)")}
+
+
+def season_geotiff(f: Field, grid, path: Path) -> Path:
+    """season.tif: the season's layers (SEASON_BANDS) as a Cloud-Optimized GeoTIFF in the field's
+    frame, tied to UTM when the field's first session was (else its local frame, said in the
+    tags), read tile by tile from the store."""
+    from torchsoil.geo.georef import Georef
+    from torchsoil.geo.geotiff import write_geotiff
+
+    g = f.manifest.get("georef")
+    georef = Georef(**g) if g else Georef.local("the field's frame: its first session's map frame")
+    o = np.rint(np.asarray(grid.origin) / f.dx).astype(int)
+
+    def block(i0, i1, j0, j1):
+        box = (o[0] + i0, o[0] + i1, o[1] + j0, o[1] + j1)
+        first, latest = f.read("first", box), f.read("latest", box)
+        seen = f.read("visits", box) > 0
+        nan = lambda a: np.where(seen, a, np.nan).astype(np.float32)  # noqa: E731
+        return {"passes": nan(f.read("passes", box)), "rut_depth": nan(first - latest),
+                "sessions": nan(f.read("sessions", box)), "first": first.astype(np.float32),
+                "latest": latest.astype(np.float32)}
+
+    return write_geotiff(path, grid, georef, SEASON_BANDS, block, tags={"source": str(f.path)})
 
 
 def lane_table(field: str | Path, min_cells: int = 50) -> list[dict]:
