@@ -162,3 +162,13 @@ def test_a_kill_during_add_leaves_the_field_as_it_was(tmp_path):
     assert sorted(p.name for p in (tmp_path / "f" / "sessions").iterdir()) == [s["id"] for s in names["sessions"]]
     referenced = set(names["tiles"].values())
     assert {f"tiles/{p.name}" for p in (tmp_path / "f" / "tiles").iterdir()} == referenced
+
+
+def test_a_session_older_than_the_last_is_refused_when_times_are_clock_times(tmp_path):
+    world = World(seed=1)
+    a, _ = world.drive(T_A, 7.0, t0=1.7e9 + 86400)          # Tuesday, added first
+    b, _ = world.drive(T_B, 7.0, t0=1.7e9)                  # Monday
+    f = Field.open(tmp_path / "f", create=True)
+    f.add(_session(a, "tuesday"), log=lambda s: None)
+    with pytest.raises(Refused, match="in the order they were driven"):
+        f.add(_session(b, "monday"), log=lambda s: None)

@@ -57,6 +57,7 @@ MIN_RELIEF = 0.8           # correlation of the two grounds' relief there (10 cm
 MAX_AMBIGUITY = 0.85       # second distinct candidate / best, without GNSS
 MAX_RMSE = 0.02            # m, the final ICP's point-to-plane RMS
 SEASON = ("first", "latest", "passes", "visits", "sessions")
+EPOCH = 1.0e8              # s: times above this are clock times (1973 on), below a recording's own
 
 
 class FieldError(ValueError):
@@ -65,7 +66,7 @@ class FieldError(ValueError):
 
 class Refused(FieldError):
     """A session not merged into the field (another field, an ambiguous or disagreeing
-    registration, a session already there); the field is unchanged."""
+    registration, a session already there or older than the last); the field is unchanged."""
 
 
 @dataclass
@@ -367,6 +368,22 @@ class Field:
                 return s["id"]
         return None
 
+    def _check_order(self, session: Session, log) -> None:
+        """Sessions go in the order they were driven (passes before a session count the ones
+        before it): one that starts before the field's last one ended is refused when both
+        carry clock times (epoch seconds), else taken in the order added, with a note."""
+        if not self.sessions:
+            return
+        t0, last = float(session.pair.poses[0, 0]), self.sessions[-1]
+        if t0 >= last["t1"]:
+            return
+        if t0 > EPOCH and last["t0"] > EPOCH:
+            raise Refused(f"{session.source}: starts at {time.strftime('%Y-%m-%d %H:%M:%S', time.gmtime(t0))} UTC, "
+                          f"before the field's last session {last['id']} ended: add sessions in the order they "
+                          "were driven")
+        log(f"note: {session.name}'s times ({t0:.1f} s) do not follow {last['id']}'s ({last['t1']:.1f} s): not clock "
+            "times, so the sessions are taken in the order they are added")
+
     def add(self, session: Session, log=print) -> dict:
         """Register `session` onto the field and merge it (module docstring); returns its
         manifest entry. Raises Refused (the field unchanged) for a session already there, one
@@ -380,6 +397,7 @@ class Field:
             if dup is not None:
                 raise Refused(f"{session.source}: already in the field as session {dup} (same recording)")
             pair = session.pair
+            self._check_order(session, log)
             if self.manifest["dx"] is None:
                 self.manifest["dx"] = float(pair.dx)
             cloud = reg.cloud_from_heightmap(pair.h_front, pair.origin, pair.dx, session.map_points)
