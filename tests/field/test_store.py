@@ -142,7 +142,7 @@ store.Field.open(sys.argv[1]).add(store.Session(pair, None, None, "late", "late"
 def test_a_kill_during_add_leaves_the_field_as_it_was(tmp_path):
     world = World(seed=1)
     a, _ = world.drive(T_A, 7.0, t0=0.0)
-    b, _ = world.drive(T_B, 7.0, t0=1e5)
+    b, _ = world.drive(T_B, 7.0, t0=0.0)          # the same times and length as a: not the same session
     f = Field.open(tmp_path / "f", create=True)
     f.add(_session(a, "a"), log=lambda s: None)
     before = (tmp_path / "f" / "field.json").read_bytes()

@@ -188,6 +188,12 @@ def transform_poses(poses: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
+def _poses_sha(poses: np.ndarray) -> str:
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(poses, np.float64).tobytes()).hexdigest()
+
+
 def _name(s: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", s).strip("_")[:40] or "session"
 
@@ -359,12 +365,10 @@ class Field:
             return cloud
 
     def _duplicate(self, session: Session) -> str | None:
-        p = session.pair.poses
+        """The id of a session of the same recording: the same content key, or the same poses."""
+        sha = _poses_sha(session.pair.poses)
         for s in self.sessions:
-            if s["key"] == session.key:
-                return s["id"]
-            if abs(s["t0"] - float(p[0, 0])) < 1e-3 and abs(s["t1"] - float(p[-1, 0])) < 1e-3 \
-                    and s["poses"] == len(p):
+            if s["key"] == session.key or s.get("poses_sha") == sha:
                 return s["id"]
         return None
 
@@ -471,7 +475,7 @@ class Field:
         ref = self._new_reference(cloud, T, tiles, gen)
         entry = {"id": sid, "name": session.name, "source": session.source, "key": session.key,
                  "added": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "t0": float(pair.poses[0, 0]),
-                 "t1": float(pair.poses[-1, 0]), "poses": int(len(pair.poses)), "transform": T.tolist(),
+                 "t1": float(pair.poses[-1, 0]), "poses_sha": _poses_sha(pair.poses), "transform": T.tolist(),
                  "registration": {k: v for k, v in r.to_dict().items() if k != "transform"},
                  "georef": _georef_dict(session.georef) if session.georef is not None else None,
                  "cells": cells, "passes": passes}
