@@ -188,10 +188,14 @@ def transform_poses(poses: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
-def _poses_sha(poses: np.ndarray) -> str:
+def _pair_sha(pair: TerrainPair) -> str:
+    """SHA-256 of a pair's poses and measured surfaces: the same recording, whatever its file."""
     import hashlib
 
-    return hashlib.sha256(np.ascontiguousarray(poses, np.float64).tobytes()).hexdigest()
+    h = hashlib.sha256(np.ascontiguousarray(pair.poses, np.float64).tobytes())
+    h.update(np.ascontiguousarray(pair.h_front, np.float32).tobytes())
+    h.update(np.ascontiguousarray(pair.h_back, np.float32).tobytes())
+    return h.hexdigest()
 
 
 def _name(s: str) -> str:
@@ -365,10 +369,11 @@ class Field:
             return cloud
 
     def _duplicate(self, session: Session) -> str | None:
-        """The id of a session of the same recording: the same content key, or the same poses."""
-        sha = _poses_sha(session.pair.poses)
+        """The id of a session of the same recording: the same content key, or the very same
+        poses and surfaces."""
+        sha = _pair_sha(session.pair)
         for s in self.sessions:
-            if s["key"] == session.key or s.get("poses_sha") == sha:
+            if s["key"] == session.key or s.get("pair_sha") == sha:
                 return s["id"]
         return None
 
@@ -475,7 +480,7 @@ class Field:
         ref = self._new_reference(cloud, T, tiles, gen)
         entry = {"id": sid, "name": session.name, "source": session.source, "key": session.key,
                  "added": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "t0": float(pair.poses[0, 0]),
-                 "t1": float(pair.poses[-1, 0]), "poses_sha": _poses_sha(pair.poses), "transform": T.tolist(),
+                 "t1": float(pair.poses[-1, 0]), "pair_sha": _pair_sha(pair), "transform": T.tolist(),
                  "registration": {k: v for k, v in r.to_dict().items() if k != "transform"},
                  "georef": _georef_dict(session.georef) if session.georef is not None else None,
                  "cells": cells, "passes": passes}
