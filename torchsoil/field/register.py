@@ -82,9 +82,9 @@ class Registration:
 def cloud_from_heightmap(h: np.ndarray, origin, dx: float, map_points: np.ndarray | None = None,
                          step: float = 0.04) -> Cloud:
     """A Cloud from a heightmap (X, Y) [m, NaN unknown] on the grid (origin of cell [0, 0], dx)
-    and optionally a lidar map (M, 3): ground = the heightmap's cells every `step` m, landmarks
-    = map points more than LANDMARK_Z above the ground beneath them (the heightmap's, else the
-    map's lowest points per 0.5 m column)."""
+    and optionally a lidar map (M, 3): ground = the heightmap's cells every `step` m (and the
+    heightmap so decimated), landmarks = map points more than LANDMARK_Z above the lowest map
+    point of their 0.5 m column (the ground beside a pole, a trunk, a wall)."""
     k = max(1, int(round(step / dx)))
     hs = h[::k, ::k]
     ii, jj = np.nonzero(np.isfinite(hs))
