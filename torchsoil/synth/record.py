@@ -141,7 +141,8 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
                    duration: float | None = None, columns: int | None = None,
                    organized: bool | None = None, progress: bool = False, convention: str = "ouster",
                    imu: bool = True, gnss: bool = True) -> dict:
-    """Write the bag directory `out` and its sidecar files (module docstring).
+    """Write the bag directory `out` and its sidecar files (module docstring); of a season
+    (later_sessions), its first session (`make_season` writes them all).
 
     scenario: a shipped name, a YAML path, a dict or a SynthConfig (see
     `scenario.load_scenario`); seed: terrain, landmark and lidar noise seed; dx: terrain
