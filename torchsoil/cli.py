@@ -6,7 +6,7 @@
     torchsoil diagnose INPUT... | --manifest CSV --out DIR [--engine local|ray]
     (each command that takes a bag also: --front-topic, --back-topic, --imu-topic, --extrinsic)
     torchsoil export RUN --out DIR [--anchor LAT,LON,HEADING_DEG] [--formats geotiff gpkg mcap]
-    torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]] [--convention C] [--no-imu]
+    torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]] [--convention C] [--no-imu] [--session K]
     torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR] [--engine local|ray]
     torchsoil rollout --out DIR
     torchsoil bench [--only sim estimator] [--quick]
@@ -242,7 +242,8 @@ def _add_record(sub) -> None:
     p = sub.add_parser("record", help="write a synthetic recording (bag + truth) or only its terrain pair")
     shipped = ", ".join(sorted(f.stem for f in (Path(__file__).parent / "configs" / "scenarios").glob("*.yaml")))
     p.add_argument("--scenario", required=True, help=f"shipped scenario ({shipped}) or YAML path (a synth section)")
-    p.add_argument("--out", required=True, type=Path, help="bag directory to create (or .npz with --pair-only)")
+    p.add_argument("--out", required=True, type=Path, help="bag directory to create (or .npz with --pair-only; a "
+                                                          "season: the directory of its sessions)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dx", type=float, default=0.02, help="terrain cell edge, m")
     p.add_argument("--storage", choices=["mcap", "sqlite3"], default="mcap")
@@ -258,6 +259,9 @@ def _add_record(sub) -> None:
                         "robosense_start, robosense_end, livox, livox_custom, mixed (front ouster, back velodyne)")
     p.add_argument("--no-imu", action="store_true", help="no IMU topic (/imu/data) in the bag")
     p.add_argument("--no-gnss", action="store_true", help="no RTK GNSS topic (/gnss/fix) in the bag")
+    p.add_argument("--session", type=int, action="append", default=None, metavar="K",
+                   help="a season (scenario with later_sessions; --out is a directory, one recording per "
+                        "session): only session K, 1-based (repeatable; the sessions before are simulated too)")
 
 
 def _add_rollout(sub) -> None:
@@ -550,7 +554,7 @@ def cmd_record(args) -> int:
     print(record(args.scenario, args.out, args.seed, args.dx, pair_only=args.pair_only, realistic=args.realistic,
                  storage=args.storage, compress=not args.no_compress, duration=args.duration, columns=args.columns,
                  organized=args.organized or None, convention=args.convention, imu=not args.no_imu,
-                 gnss=not args.no_gnss))
+                 gnss=not args.no_gnss, sessions=args.session))
     return 0
 
 

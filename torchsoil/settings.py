@@ -481,6 +481,19 @@ class TrajectoryConfig(Section):
     accel_limit: float = Field(0.5, gt=0, description="m/s^2")
 
 
+class SessionConfig(TrajectoryConfig):
+    """A later session on the same field: another day's drive over the ground the sessions
+    before it left (their ruts, their passes), from its own start, after a clock gap."""
+
+    start: tuple[float, float, float] = Field(description="x [m], y [m], yaw [deg] in the world (the first "
+                                                          "session's trajectory frame)")
+    segments: tuple[TrajectorySegment, ...] = Field(min_length=1)
+    gap: float = Field(86400.0, ge=0, description="clock from the end of the session before to this one's "
+                                                  "start, s")
+    gnss: bool = Field(True, description="the session's bag holds the RTK fixes (the recorder's --no-gnss "
+                                         "leaves them out of every session)")
+
+
 class ReliefConfig(Section):
     amplitude: float = Field(0.05, ge=0, description="m")
     wavelength: float = Field(25.0, gt=0, description="m")
@@ -627,6 +640,9 @@ class SynthConfig(Section):
     name: str = "custom"
     description: str = ""
     trajectory: TrajectoryConfig = TrajectoryConfig()
+    later_sessions: tuple[SessionConfig, ...] = Field(
+        (), description="later sessions of the same field, in order (a season; the first session is "
+                        "`trajectory`, at clock 0): {gap: s, start: [x, y, yaw_deg], segments, accel_limit, gnss}")
     terrain: TerrainConfig = TerrainConfig()
     soil: WorldSoil = WorldSoil()
     effects: dict[str, dict | bool] = Field(default_factory=dict, description="{id: {form, k, ...}} or {id: "

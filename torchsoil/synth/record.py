@@ -14,6 +14,21 @@ Files written for `make_recording(..., out=PATH)`::
     PATH.truth.json       scenario, effects and parameters, seed, extrinsics, clock, and the
                           datum tying the world to UTM (`datum`: epsg, east, north, yaw,
                           scale, up, as torchsoil.geo.georef.Georef)
+
+A season (a scenario with `later_sessions`, `make_season`) writes one such recording per
+session into a directory DIR, and the season's overview::
+
+    DIR/season.json       scenario, seed, datum, and per session its name, clock, bag time of
+                          its t = 0, duration, gnss and T_world_map
+    DIR/session_K/        session K's bag (K = 1, 2, ...), its clock the season's: bag time
+                          T0_NS + the session's clock; its own map frame starts where it starts
+    DIR/session_K.*       its sidecars as above; the pair in the session's own map frame
+                          (synth.scenario.in_map_frame), the truth in the world frame with, in
+                          addition, T_world_map (4, 4), the map frame in the world, and on the
+                          pair's grid (pair_origin) the earlier sessions' counts:
+                          passes_before_session and visits_before_session (X, Y)
+
+--pair-only writes the same without the bags (and without the robot YAML).
 """
 
 from __future__ import annotations
@@ -34,7 +49,16 @@ from torchsoil.synth.conventions import driver_message, driver_of
 from torchsoil.synth.gnss import Datum, GnssSpec, gnss_fixes
 from torchsoil.synth.imu import ImuSpec, imu_samples
 from torchsoil.synth.lidar import LidarSpec, Scene, matrix_quaternion, paper_lidars, scan
-from torchsoil.synth.scenario import Truth, build_truth, load_scenario, terrain_pair_from_truth, visit_layers
+from torchsoil.synth.scenario import (
+    Truth,
+    build_season,
+    build_truth,
+    in_map_frame,
+    load_scenario,
+    season_pair,
+    session_seed,
+    visit_layers,
+)
 
 T0_NS = 1_750_000_000 * 1_000_000_000   # bag clock of trajectory time 0, ns
 IMU_TOPIC = "/imu/data"
@@ -46,6 +70,11 @@ def sidecar(out: str | Path, suffix: str) -> Path:
     """PATH.<suffix> beside the bag directory PATH."""
     out = Path(out)
     return out.with_name(out.name + "." + suffix)
+
+
+def bag_t0_ns(truth: Truth) -> int:
+    """Bag time [ns] of the truth's trajectory time 0: T0_NS plus its session's clock."""
+    return T0_NS + int(round(truth.clock * 1e9))
 
 
 def lidars_for(truth: Truth) -> list[LidarSpec]:
@@ -112,7 +141,8 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
                    duration: float | None = None, columns: int | None = None,
                    organized: bool | None = None, progress: bool = False, convention: str = "ouster",
                    imu: bool = True, gnss: bool = True) -> dict:
-    """Write the bag directory `out` and its sidecar files (module docstring).
+    """Write the bag directory `out` and its sidecar files (module docstring); of a season
+    (later_sessions), its first session (`make_season` writes them all).
 
     scenario: a shipped name, a YAML path, a dict or a SynthConfig (see
     `scenario.load_scenario`); seed: terrain, landmark and lidar noise seed; dx: terrain
@@ -133,6 +163,16 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     scn = with_lidar(load_scenario(scenario), columns, organized)
     truth = build_truth(scn, seed, dx)
     t1 = time.perf_counter()
+    stats = write_recording(truth, out, seed, storage, compress, duration, progress, convention, imu, gnss)
+    return {"truth_s": t1 - t0, **stats, "total_s": time.perf_counter() - t0}
+
+
+def write_recording(truth: Truth, out: Path, seed: int, storage: str = "mcap", compress: bool = True,
+                    duration: float | None = None, progress: bool = False, convention: str = "ouster",
+                    imu: bool = True, gnss: bool = True) -> dict:
+    """The bag directory `out` of a truth (the sweeps' noise from `seed`, bag times from
+    `bag_t0_ns`) and its sidecars; options as `make_recording`. Returns its figures."""
+    t1 = time.perf_counter()
     specs = lidars_for(truth)
     starts = sweep_starts(truth, duration)
     period = 1.0 / specs[0].rate_hz
@@ -149,6 +189,7 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     aux = heapq.merge(imu_messages(truth, seed, end, imu_spec), fix_messages(truth, seed, end, gnss_spec),
                       key=lambda m: m[0])
     pending = next(aux, None)
+    t0_ns = bag_t0_ns(truth)
     with BagWriter(out, storage=storage, compress=compress) as bag:
         tfs = [("base_link", s.name, np.asarray(s.xyz), matrix_quaternion(s.transform()[:3, :3]))
                for s in specs]
@@ -157,9 +198,9 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
                         matrix_quaternion(imu_spec.transform()[:3, :3])))
         if gnss_spec is not None:
             tfs.append(("base_link", gnss_spec.name, np.asarray(gnss_spec.xyz), np.array([0.0, 0.0, 0.0, 1.0])))
-        bag.write_tf_static(tfs, T0_NS)
+        bag.write_tf_static(tfs, t0_ns)
         for ts, s, pts in iter_sweeps(truth, seed, duration):
-            stamp_ns = T0_NS + int(round(ts * 1e9))
+            stamp_ns = t0_ns + int(round(ts * 1e9))
             while pending is not None and pending[0] <= stamp_ns + int(round(period * 1e9)):
                 bag.write_message(*pending[1], pending[0])
                 pending = next(aux, None)
@@ -176,9 +217,80 @@ def make_recording(scenario: str | Path | dict | SynthConfig, out: str | Path, s
     write_sidecars(truth, out, seed, specs, imu_spec, gnss_spec)
     t3 = time.perf_counter()
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
-    return {"truth_s": t1 - t0, "lidar_s": t2 - t1, "sidecars_s": t3 - t2, "total_s": t3 - t0,
+    return {"lidar_s": t2 - t1, "sidecars_s": t3 - t2,
             "drive_s": float(len(starts) * period), "sweeps": float(2 * len(starts)), "points": float(n_points),
             "bag_mb": size / 1e6}
+
+
+def make_season(scenario: str | Path | dict | SynthConfig, out: str | Path, seed: int = 0, dx: float = 0.02,
+                sessions: list[int] | None = None, pair_only: bool = False, realistic: bool = False,
+                columns: int | None = None, organized: bool | None = None, gnss: bool = True,
+                **bag_options) -> dict:
+    """A season's recordings into the directory `out` (module docstring): every session, or
+    those in `sessions` (1-based; the sessions before the last of them are simulated too,
+    their ground carried). pair_only: the terrain pairs and truths without bags (`realistic`:
+    with the measurement nuisances and tyre draws of real data); gnss: False leaves the fixes
+    out of every session (else a session's own `gnss` says). Each session's noise is its own
+    (synth.scenario.session_seed). bag_options go to `write_recording` (storage, compress,
+    duration, progress, convention, imu). Returns {session_K: its figures}."""
+    out = Path(out)
+    scn = with_lidar(load_scenario(scenario), columns, organized)
+    if realistic:
+        if not pair_only:
+            raise ValueError("realistic applies to pair_only (the recorder's lidars have their own noise model)")
+        scn = scn.realistic()
+    n = 1 + len(scn.later_sessions)
+    todo = sorted(set(range(1, n + 1) if sessions is None else sessions))
+    if not todo or todo[0] < 1 or todo[-1] > n:
+        raise ValueError(f"scenario {scn.name!r} has sessions 1..{n}, not {todo}")
+    for k in todo:
+        if (out / f"session_{k}").exists() or sidecar(out / f"session_{k}", "truth.npz").exists():
+            raise FileExistsError(f"session output {out / f'session_{k}'} already exists; remove it or choose "
+                                  "another directory")
+    if not pair_only:
+        driver_of(bag_options.get("convention", "ouster"), "lidar_front")
+    t0 = time.perf_counter()
+    truths = build_season(scn, seed, dx, sessions=todo[-1])
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "season.json").write_text(json.dumps(season_meta(truths[0].scenario, seed, truths, gnss), indent=1,
+                                                default=_jsonable))
+    stats = {}
+    for truth in truths:
+        if truth.session not in todo:
+            continue
+        path, ks = out / f"session_{truth.session}", session_seed(seed, truth.session)
+        t1 = time.perf_counter()
+        on = gnss and _session_gnss(truth)
+        if pair_only:
+            write_sidecars(truth, path, ks, robot_yaml=False)
+            figures = {"sidecars_s": time.perf_counter() - t1}
+        else:
+            figures = write_recording(truth, path, ks, gnss=on, **bag_options)
+        stats[path.name] = {"world_s": truth.timings["world_s"], **figures}
+    stats["total_s"] = time.perf_counter() - t0
+    return stats
+
+
+def _session_gnss(truth: Truth) -> bool:
+    """Whether the scenario gives the truth's session GNSS (the first session always)."""
+    return truth.session == 1 or truth.scenario.later_sessions[truth.session - 2].gnss
+
+
+def season_meta(scn: SynthConfig, seed: int, truths: list[Truth], gnss: bool = True,
+                datum: Datum = DATUM) -> dict:
+    """DIR/season.json: the scenario, seed, datum and, per session of `truths`, its name,
+    clock [s], bag time of its t = 0 [ns], duration [s], gnss and T_world_map (4, 4 rows)."""
+    return {"scenario": scn.name, "seed": int(seed), "sessions": [
+        {"name": f"session_{t.session}", "session": t.session, "clock_s": t.clock, "bag_time_of_t0_ns": bag_t0_ns(t),
+         "duration_s": t.traj.duration, "gnss": bool(gnss and _session_gnss(t)), "T_world_map": t.T_world_map}
+        for t in truths],
+        "map_frame_note": MAP_FRAME_NOTE, "datum": asdict(datum.georef())}
+
+
+MAP_FRAME_NOTE = ("T_world_map: the recording's map frame (the lidar pipeline's world frame: base_link at the "
+                  "first sweep, trajectory time 0, levelled by the smallest rotation) in the season's world "
+                  "frame; a map point p is T_world_map p in the world, and T_world_map_a^-1 T_world_map_b takes "
+                  "session b's map into session a's")
 
 
 def imu_messages(truth: Truth, seed: int, end: float, spec: ImuSpec | None):
@@ -189,8 +301,9 @@ def imu_messages(truth: Truth, seed: int, end: float, spec: ImuSpec | None):
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 29]))
     t, acc, gyro = imu_samples(truth.traj.poses, spec, rng, end)
     acc_var, gyro_var = (spec.acc_noise**2 * spec.rate_hz, spec.gyro_noise**2 * spec.rate_hz)
+    t0_ns = bag_t0_ns(truth)
     for k in range(len(t)):
-        t_ns = T0_NS + int(round(t[k] * 1e9))
+        t_ns = t0_ns + int(round(t[k] * 1e9))
         yield t_ns, (IMU_TOPIC, "sensor_msgs/msg/Imu", imu_message(spec.name, t_ns, acc[k], gyro[k], acc_var, gyro_var))
 
 
@@ -201,18 +314,30 @@ def fix_messages(truth: Truth, seed: int, end: float, spec: GnssSpec | None, dat
         return
     rng = np.random.default_rng(np.random.SeedSequence([int(seed), 31]))
     t, lat, lon, alt = gnss_fixes(truth.traj.poses, spec, datum, rng, end)
+    t0_ns = bag_t0_ns(truth)
     for k in range(len(t)):
-        t_ns = T0_NS + int(round(t[k] * 1e9))
+        t_ns = t0_ns + int(round(t[k] * 1e9))
         yield t_ns, (GNSS_TOPIC, "sensor_msgs/msg/NavSatFix",
                      navsatfix_message(spec.name, t_ns, lat[k], lon[k], alt[k], spec.sigma_h**2, spec.sigma_v**2))
 
 
 def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | None = None,
-                   imu: ImuSpec | None = None, gnss: GnssSpec | None = None, datum: Datum = DATUM) -> None:
-    """Robot YAML, terrain pair and truth files beside the bag path `out`."""
+                   imu: ImuSpec | None = None, gnss: GnssSpec | None = None, datum: Datum = DATUM,
+                   robot_yaml: bool = True) -> None:
+    """Robot YAML (unless robot_yaml=False), terrain pair and truth files beside the bag path
+    `out`; a season's session's with its map frame and the earlier sessions' counts (module
+    docstring)."""
     specs = specs or lidars_for(truth)
-    sidecar(out, "robot.yaml").write_text(yaml.safe_dump(truth.robot.to_dict(), sort_keys=False))
-    np.savez_compressed(sidecar(out, "pair.npz"), **terrain_pair_from_truth(truth, seed, visits=True))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if robot_yaml:
+        sidecar(out, "robot.yaml").write_text(yaml.safe_dump(truth.robot.to_dict(), sort_keys=False))
+    np.savez_compressed(sidecar(out, "pair.npz"), **season_pair(truth, seed, visits=True))
+    season = {}
+    if truth.sessions > 1:
+        mapped = in_map_frame(truth)
+        season = {"T_world_map": truth.T_world_map, "pair_origin": np.asarray(mapped.world.grid.origin),
+                  "passes_before_session": mapped.start.passes.astype(np.int16),
+                  "visits_before_session": mapped.start.visits.astype(np.int16)}
     w = truth.world
     np.savez_compressed(
         sidecar(out, "truth.npz"),
@@ -227,6 +352,7 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         cylinders=truth.landmarks.cylinders, boxes=truth.landmarks.boxes,
         pass_time=w.pass_time.astype(np.float32),
         **{k: v for k, v in visit_layers(w).items() if k != "visit_time"},   # visit_time: the states' (above)
+        **season,
     )
     eff = fx.resolve(truth.scenario.effects)
     meta = {
@@ -239,7 +365,7 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "expected_verdict": ("adequate" if not eff else "unexplained" if all(e in fx.OUT_OF_CATALOGUE for e in eff)
                              else "missing_physics"),
         "scenario_spec": truth.scenario.model_dump(mode="json"),
-        "bag_time_of_t0_ns": T0_NS,
+        "bag_time_of_t0_ns": bag_t0_ns(truth),
         "time_note": "truth and pair pose times t are seconds after bag_time_of_t0_ns",
         "extrinsics": {s.name: {"parent": "base_link", "xyz": list(s.xyz), "rpy": list(s.rpy),
                                 "beams": s.beams, "vfov_deg": s.vfov_deg, "columns": s.columns,
@@ -248,6 +374,9 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "gnss": None if gnss is None else {"topic": GNSS_TOPIC, "parent": "base_link", **asdict(gnss)},
         "datum": asdict(datum.georef()),
     }
+    if truth.sessions > 1:
+        meta["season"] = {"session": truth.session, "sessions": truth.sessions, "clock_s": truth.clock,
+                          "T_world_map": truth.T_world_map, "map_frame_note": MAP_FRAME_NOTE}
     sidecar(out, "truth.json").write_text(json.dumps(meta, indent=1, default=_jsonable))
 
 

@@ -20,28 +20,40 @@ its keys, defaults and units); a scenario YAML is a document of that section:
     measurement: {noise: m, noise_dof: [low, high] | null, offset: m, tilt_deg: deg,
                  dropout: [low, high], blobs: 1/m^2, blob_radius: [m, m], streaks: 1/m,
                  streak_length: [m, m]}   (terrain-pair nuisances, drawn per seed: synth.measurement)
+    later_sessions: [{gap: s, start: [x, y, yaw_deg], segments: [...], accel_limit, gnss}, ...]
+                 (a season: below)
 
 `SynthConfig.realistic()` (or `torchsoil record --pair-only --realistic`) turns on the
 nuisances and tyre draws of real data (settings.REALISTIC); by default they are off.
+
+A season (`later_sessions`) is several sessions, drives of other days, on the same field:
+one terrain, one set of landmarks, one soil, the world simulated session after session, each
+starting on the ground the sessions before it left (`build_season`). Session k's clock
+starts `gap` s after the end of session k - 1 (the first at 0). Each session is recorded as
+its own recording, and its terrain pair lies in that recording's own map frame, as the lidar
+pipeline's would (`map_frame`, `in_map_frame`).
 """
 
 from __future__ import annotations
 
 import json
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.ndimage import map_coordinates
 
 from torchsoil.grid import Grid
+from torchsoil.io.trajectory import rows_to_poses
+from torchsoil.pipeline.gravity import levelling_rotation
 from torchsoil.robot import Robot, load_robot
 from torchsoil.settings import Settings, SettingsError, SynthConfig, TyreConfig, merge, read_yaml, validate
 from torchsoil.synth import effects as fx
 from torchsoil.synth.measurement import apply_measurement
 from torchsoil.synth.terrain import Landmarks, Relief, check_patch, farm_landmarks, micro_topography
 from torchsoil.synth.trajectory import Trajectory, build_trajectory
-from torchsoil.synth.world import WorldResult, simulate_world
+from torchsoil.synth.world import SoilState, WorldResult, simulate_world
 
 SCENARIO_DIR = Path(__file__).resolve().parents[1] / "configs" / "scenarios"
 CORRIDOR = 1.2  # m of corridor beyond the outermost wheel path (truth and terrain pair extent)
@@ -129,6 +141,11 @@ class Truth:
     field: lidar-visible grid; h_field: (X, Y) initial surface on it, m.
     corridor: (i0, j0) offset of the world grid inside the field grid.
     tyre: the world's tyre drawn from the seed: {section, width_scale, dig_order} (synth.world).
+    session: which session of a season this is (1: the first, or a scenario without
+    later_sessions); sessions: how many the season has; clock: the season's clock at this
+    session's trajectory time 0, s; start: the ground at its start (SoilState: the earlier
+    sessions' passes; fresh for the first). traj, world and their times are the session's own
+    (from 0 at its start), in the world frame.
     """
 
     scenario: SynthConfig
@@ -143,14 +160,87 @@ class Truth:
     world: WorldResult
     timings: dict
     tyre: dict
+    session: int = 1
+    sessions: int = 1
+    clock: float = 0.0
+    start: SoilState | None = None
+
+    @property
+    def T_world_map(self) -> np.ndarray:
+        """(4, 4) this recording's map frame in the world (`map_frame`)."""
+        return map_frame(self.traj)
+
+
+def map_frame(traj: Trajectory) -> np.ndarray:
+    """T_world_map (4, 4): where the lidar pipeline's map frame of a recording of this drive
+    lies in the world. The pipeline's world frame is base_link at the first sweep (the first
+    front sweep starts at trajectory time 0: the pose poses[0]), turned upright about its
+    origin by the smallest rotation (pipeline.gravity.levelling_rotation), so T_world_map's
+    rotation is a turn about the vertical by about the start's yaw, and its translation is
+    base_link's position at t = 0. A point p_map of the recording's maps is T_world_map p_map
+    in the world."""
+    T = rows_to_poses(traj.poses[:1])[0]
+    R = levelling_rotation(T[:3, :3].T @ np.array([0.0, 0.0, -1.0]))
+    T[:3, :3] = T[:3, :3] @ R.T
+    return T
+
+
+def _wheel_box(poses: np.ndarray, robot: Robot) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) of the wheel contacts along the (N, 7) poses, CORRIDOR m wider."""
+    c, s = np.cos(poses[:, 6]), np.sin(poses[:, 6])
+    wx = poses[:, 1, None] + c[:, None] * robot.wheels[:, 0] - s[:, None] * robot.wheels[:, 1]
+    wy = poses[:, 2, None] + s[:, None] * robot.wheels[:, 0] + c[:, None] * robot.wheels[:, 1]
+    return wx.min() - CORRIDOR, wy.min() - CORRIDOR, wx.max() + CORRIDOR, wy.max() + CORRIDOR
+
+
+def to_map(poses: np.ndarray, T_world_map: np.ndarray) -> np.ndarray:
+    """(N, 7) world poses rows -> the same in the map frame of T_world_map (a turn about the
+    vertical, `map_frame`): positions moved and turned, yaw less the map's, roll and pitch
+    kept."""
+    psi = float(np.arctan2(T_world_map[1, 0], T_world_map[0, 0]))
+    c, s = np.cos(psi), np.sin(psi)
+    d = poses[:, 1:4] - T_world_map[:3, 3]
+    out = poses.copy()
+    out[:, 1], out[:, 2], out[:, 3] = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]
+    out[:, 6] = poses[:, 6] - psi
+    return out
+
+
+def session_seed(seed: int, session: int) -> int:
+    """The noise seed of a season's session (1-based): the season's own for the first, one drawn
+    from it for each later one (its lidar, IMU, GNSS and terrain-pair noise its own)."""
+    if session == 1:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), 41, int(session)]).generate_state(1)[0] % 2**31)
+
+
+def season_clock(scn: SynthConfig, trajs: list[Trajectory]) -> list[float]:
+    """The season's clock [s] at each session's trajectory time 0: 0 for the first, then the
+    end of the session before plus the session's gap."""
+    clock = [0.0]
+    for traj, spec in zip(trajs[:-1], scn.later_sessions, strict=True):
+        clock.append(clock[-1] + traj.duration + spec.gap)
+    return clock
 
 
 def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
                 field_margin: float | None = None) -> Truth:
-    """Field, trajectory and the world's deformation for a scenario and seed.
+    """Field, trajectory and the world's deformation for a scenario and seed (of a season: its
+    first session, on the season's field; `build_season`).
 
     field_margin: metres of terrain around the path (default: the scenario's terrain.margin);
     the corridor (wheel paths + CORRIDOR m) is where the soil model runs."""
+    return build_season(scenario, seed, dx, field_margin, sessions=1)[0]
+
+
+def build_season(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: float = 0.02,
+                 field_margin: float | None = None, sessions: int | None = None) -> list[Truth]:
+    """The truths of a season's sessions 1..`sessions` (default all; a scenario without
+    later_sessions has one): one field, landmarks, soil and tyre, each session's world
+    simulated on the ground the one before left (its `WorldResult.end`).
+
+    The corridor grid covers every session's wheel paths + CORRIDOR m, and in a season also
+    each session's map-frame corridor (`in_map_frame`); field_margin as `build_truth`."""
     scn = load_scenario(scenario)
     t0 = time.perf_counter()
     ss = np.random.SeedSequence([int(seed), 7])
@@ -159,13 +249,20 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
     ter = scn.terrain
     rel = ter.relief
     relief = Relief.random(r_relief, rel.amplitude, rel.wavelength, rel.slope_x, rel.slope_y)
-    traj = build_trajectory(scn.trajectory, relief, robot)
-    # wheel paths -> corridor box; field box around it
-    c, s = np.cos(traj.poses[:, 6]), np.sin(traj.poses[:, 6])
-    wx = traj.poses[:, 1, None] + c[:, None] * robot.wheels[:, 0] - s[:, None] * robot.wheels[:, 1]
-    wy = traj.poses[:, 2, None] + s[:, None] * robot.wheels[:, 0] + c[:, None] * robot.wheels[:, 1]
-    cx0, cy0 = wx.min() - CORRIDOR, wy.min() - CORRIDOR
-    cx1, cy1 = wx.max() + CORRIDOR, wy.max() + CORRIDOR
+    trajs = [build_trajectory(spec, relief, robot) for spec in (scn.trajectory, *scn.later_sessions)]
+    n = len(trajs) if sessions is None else int(sessions)
+    if not 1 <= n <= len(trajs):
+        raise ValueError(f"scenario {scn.name!r} has {len(trajs)} session(s), not {n}")
+    # wheel paths -> corridor box (in a season also each map frame's corridor); field box around it
+    boxes = np.array([_wheel_box(tr.poses, robot) for tr in trajs])
+    if len(trajs) > 1:
+        for tr in trajs:
+            T = map_frame(tr)
+            xs, ys = _map_grid(tr, T, robot, dx).centers()
+            corners = np.array([[x, y, 0.0, 1.0] for x in xs[[0, -1]] for y in ys[[0, -1]]]) @ T.T
+            boxes = np.vstack([boxes, [*corners[:, :2].min(0) - dx, *corners[:, :2].max(0) + dx]])
+    cx0, cy0 = boxes[:, :2].min(0)
+    cx1, cy1 = boxes[:, 2:].max(0)
     m = float(ter.margin if field_margin is None else field_margin)
     nx0, ny0 = int(np.ceil(m / dx)), int(np.ceil(m / dx))
     corridor_grid = Grid.covering(cx0, cy0, cx1, cy1, dx)
@@ -175,7 +272,7 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
     mic = ter.micro
     h_field = relief.height(xs[:, None], ys[None, :]) + micro_topography(
         field, r_micro, mic.rms, mic.corr_length)
-    pts = np.column_stack([traj.poses[:, 1], traj.poses[:, 2]])
+    pts = np.vstack([tr.poses[:, 1:3] for tr in trajs])
     landmarks = farm_landmarks(scn.landmarks, relief,
                                (xs[0], ys[0], xs[-1], ys[-1]), r_land, pts[::10])
     t1 = time.perf_counter()
@@ -183,11 +280,70 @@ def build_truth(scenario: str | Path | dict | SynthConfig, seed: int = 0, dx: fl
     h0 = h_field[nx0:nx0 + X, ny0:ny0 + Y]
     tyre = draw_tyre(scn.tyre, seed)
     world_cfg = scn.world if tyre["dig_order"] is None else scn.world.replace(dig_order=tyre["dig_order"])
-    world = simulate_world(corridor_grid, h0, traj, robot, scn.soil, scn.effects, world_cfg,
-                           section=tyre["section"], width_scale=tyre["width_scale"])
-    t2 = time.perf_counter()
-    return Truth(scn, int(seed), robot, relief, landmarks, traj, field, h_field, (nx0, ny0), world,
-                 {"terrain_s": t1 - t0, "world_s": t2 - t1}, tyre)
+    clock = season_clock(scn, trajs)
+    out, ground = [], SoilState.fresh(h0)
+    for k, traj in enumerate(trajs[:n]):
+        ta = time.perf_counter()
+        world = simulate_world(corridor_grid, h0 if k == 0 else ground, traj, robot, scn.soil, scn.effects,
+                               world_cfg, section=tyre["section"], width_scale=tyre["width_scale"])
+        timings = {"terrain_s": t1 - t0, "world_s": time.perf_counter() - ta}
+        out.append(Truth(scn, int(seed), robot, relief, landmarks, traj, field, h_field, (nx0, ny0), world,
+                         timings, tyre, k + 1, len(trajs), clock[k], ground))
+        ground = world.end
+    return out
+
+
+def _map_grid(traj: Trajectory, T_world_map: np.ndarray, robot: Robot, dx: float) -> Grid:
+    """The map-frame grid of a session's terrain pair: its wheel paths in the map frame of
+    T_world_map, CORRIDOR m wider."""
+    return Grid.covering(*_wheel_box(to_map(traj.poses, T_world_map), robot), dx)
+
+
+def in_map_frame(truth: Truth) -> Truth:
+    """A session's truth in its own map frame (`map_frame`), as the lidar pipeline would see
+    it: its trajectory turned and moved into the map frame (times kept), and its world on a
+    grid aligned with the map covering the session's own corridor, its surfaces sampled
+    bilinearly at the cells' world positions (heights less the map origin's), counts, times
+    and soil at the nearest world cell; `start` (the earlier sessions' passes) likewise.
+    terrain_pair_from_truth of it is the session's terrain pair."""
+    T = truth.T_world_map
+    w = truth.world
+    grid = _map_grid(truth.traj, T, truth.robot, w.grid.dx)
+    xs, ys = grid.centers()
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    p = np.stack([X, Y, np.zeros_like(X), np.ones_like(X)], -1) @ T.T
+    at = np.stack([(p[..., 0] - w.grid.origin[0]) / w.grid.dx, (p[..., 1] - w.grid.origin[1]) / w.grid.dx])
+    z0 = float(T[2, 3])
+
+    def surface(a):
+        return map_coordinates(np.asarray(a, np.float64), at, order=1, cval=np.nan) - z0
+
+    ij = np.round(at).astype(np.int64)
+    inside = (ij[0] >= 0) & (ij[0] < w.grid.shape[0]) & (ij[1] >= 0) & (ij[1] < w.grid.shape[1])
+    ii, jj = np.clip(ij[0], 0, w.grid.shape[0] - 1), np.clip(ij[1], 0, w.grid.shape[1] - 1)
+
+    def nearest(a, outside):
+        return np.where(inside, np.asarray(a)[..., ii, jj], outside)
+
+    start = None if truth.start is None else SoilState(
+        surface(truth.start.h), nearest(truth.start.passes, 0), nearest(truth.start.wheel_passes, 0),
+        nearest(truth.start.visits, 0), nearest(truth.start.loose, 0.0))
+    world = WorldResult(grid, surface(w.h_before), surface(w.h_after), np.stack([surface(s) for s in w.states]),
+                        nearest(w.visit_time, np.inf), nearest(w.n_visits, 0), nearest(w.t_last_wheel, np.nan),
+                        {k: nearest(v, np.nan) for k, v in w.soil.items()}, nearest(w.pass_time, np.nan))
+    traj = truth.traj
+    return replace(truth, traj=Trajectory(to_map(traj.poses, T), traj.speed, traj.accel, traj.yaw_rate, traj.arc),
+                   world=world, start=start)
+
+
+def season_pair(truth: Truth, seed: int, noise: float | None = None, visits: bool = True) -> dict:
+    """The terrain pair of a recording of `truth`: a scenario without later sessions gives
+    `terrain_pair_from_truth` (in the world frame); a season's session its own map frame's
+    (`in_map_frame`), with its own noise draw (`session_seed`) and an extra key `session`."""
+    if truth.sessions == 1:
+        return terrain_pair_from_truth(truth, seed, noise, visits)
+    pair = terrain_pair_from_truth(in_map_frame(truth), session_seed(seed, truth.session), noise, visits)
+    return {**pair, "session": np.int16(truth.session)}
 
 
 def draw_tyre(cfg: TyreConfig, seed: int) -> dict:

@@ -10,6 +10,11 @@ travelled more than `revisit_gap` since it last did. Multi-pass hardening counts
 in which a footprint covered the cell (soil hardens where a wheel pressed it, not where the
 robot only came near); when the axles dig in turn (world.dig_order "wheel") it counts wheel
 passes instead, so a rear wheel in its front wheel's rut runs the second pass.
+
+A drive may start on the ground an earlier one left (a later session of a season on the same
+field): `simulate_world` then takes that drive's `WorldResult.end` (a `SoilState`: surface,
+pass counts, loose soil) instead of a bare surface, so hardening counts the earlier sessions'
+passes and a wheel on their ruts rests on them as on an earlier visit's.
 """
 
 from __future__ import annotations
@@ -35,6 +40,29 @@ MAX_VISITS = 6
 
 
 @dataclass
+class SoilState:
+    """The ground a drive leaves to the next (a later session on the same field), on the
+    world's grid, all (X, Y): h, the surface, m; passes (int), the visits in which a wheel
+    footprint covered the cell (multi-pass hardening's count under dig_order robot);
+    wheel_passes (int), the wheels that dug it (the count under dig_order wheel); visits (int),
+    all visits of the cell (module docstring); loose, moved soil lying on the intact ground
+    (cohesive soil's state), m. Counts are over every drive so far."""
+
+    h: np.ndarray
+    passes: np.ndarray
+    wheel_passes: np.ndarray
+    visits: np.ndarray
+    loose: np.ndarray
+
+    @classmethod
+    def fresh(cls, h: np.ndarray) -> SoilState:
+        """Ground no wheel has touched, of surface h (X, Y) [m]."""
+        h = np.asarray(h, dtype=np.float64)
+        zero = np.zeros(h.shape, dtype=np.int64)
+        return cls(h.copy(), zero, zero.copy(), zero.copy(), np.zeros(h.shape))
+
+
+@dataclass
 class WorldResult:
     """Truth of one drive on the corridor grid (all (X, Y) arrays, float64 unless noted).
 
@@ -45,6 +73,8 @@ class WorldResult:
     soil: {d, chi, beta, moisture} per cell.
     pass_time: (V, X, Y) time base_link passed closest to the cell during visit v, s (nan: no
     such visit; a terrain pair's `visit_time`).
+    end: the ground the drive left (SoilState: its surface h_after and the counts so far), the
+    start of a later drive on the same field.
     """
 
     grid: Grid
@@ -56,6 +86,7 @@ class WorldResult:
     t_last_wheel: np.ndarray
     soil: dict
     pass_time: np.ndarray
+    end: SoilState | None = None
 
     def surface_at(self, t: float) -> np.ndarray:
         """(X, Y) true surface at time t [s]: each cell in its state after the visits done by t."""
@@ -94,11 +125,15 @@ def section_profile(q: np.ndarray, section: str = "taper", flat_fraction: float 
     raise ValueError(f"tyre section must be one of {SECTIONS}, got {section!r}")
 
 
-def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, soil: WorldSoil | dict,
-                   effects: dict | None = None, config: WorldConfig | None = None,
+def simulate_world(grid: Grid, h0: np.ndarray | SoilState, traj: Trajectory, robot: Robot,
+                   soil: WorldSoil | dict, effects: dict | None = None, config: WorldConfig | None = None,
                    revisit_gap: float | None = None, section: str = "taper",
                    width_scale: float = 1.0) -> WorldResult:
-    """Drive the robot along `traj` over the surface h0 (X, Y) [m] on `grid`.
+    """Drive the robot along `traj` over the surface h0 (X, Y) [m] on `grid`, or over the
+    ground an earlier drive left (a SoilState, its `WorldResult.end`): then hardening counts
+    the earlier drives' passes too, and a cell's first visit in this drive, where an earlier
+    drive visited it, is a revisit (its reference height the footprint's, as below). Visits,
+    states and times of the result are this drive's; `end` carries the counts over all.
 
     soil: scenario soil section (WorldSoil or a dict of it, see `terrain.soil_at`), with
     optional `track_scale` (T,) factors on d per track; effects: scenario effects section
@@ -114,7 +149,8 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     config = config or WorldConfig()
     soil = as_world_soil(soil)
     eff = fx.resolve(effects)
-    h0 = np.asarray(h0, dtype=np.float64)
+    start = h0 if isinstance(h0, SoilState) else SoilState.fresh(h0)
+    h0 = start.h
     if h0.shape != grid.shape:
         raise ValueError(f"h0 must have the grid's shape {grid.shape}, got {h0.shape}")
     dx = grid.dx
@@ -128,7 +164,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     tan_beta = np.tan(sf["beta"])
     tan_intact = fx.intact_tan_beta(eff, tan_beta, sf["moisture"])
     cohesive = "cohesive_walls" in eff
-    loose = np.zeros(grid.shape)        # thickness of moved soil on the intact ground, m (cohesive soil)
+    loose = start.loose.copy()          # thickness of moved soil on the intact ground, m (cohesive soil)
     track_width = float(np.ptp(robot.wheels[:, 1])) or 1.0
     gap = revisit_gap if revisit_gap is not None else 2.0 * float(np.ptp(robot.wheels[:, 0]) + robot.wheel_width)
     radius0 = robot.wheel_width * width_scale / 2
@@ -160,8 +196,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     # per turn r, the deposits of the wheels of turns <= r, laid on lead[r] once those wheels
     # have passed: a trailing wheel finds the spoil of the wheels ahead beside their ruts
     lead_held = [HeldDeposits() for _ in lead]
-    wheel_passes = np.zeros(grid.shape, dtype=np.int64)
-    dug_visits = np.zeros(grid.shape, dtype=np.int64)
+    wheel_passes = start.wheel_passes.copy()
+    dug_visits = start.passes.copy()
+    before = start.visits                   # visits of the drives before this one
 
     def settle(which: np.ndarray | None = None):
         """Relax the pending cells (those of `which`, default all) once, as one pass's digs."""
@@ -225,7 +262,7 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
             for k in range(1, MAX_VISITS + 1):         # state after visit k, until overwritten
                 sel = (new & (v == k))[None]
                 states[k:, i0:i1, j0:j1] = np.where(sel, hw[None], states[k:, i0:i1, j0:j1])
-            again = new & (v >= 1)
+            again = new & ((v >= 1) | (before[win] >= 1))
             if again.any():
                 ref = reference_height(torch.from_numpy(hw)[None], again_radius, dx)[0].numpy()
                 h_ref[win] = np.where(again, ref, h_ref[win])
@@ -270,8 +307,9 @@ def simulate_world(grid: Grid, h0: np.ndarray, traj: Trajectory, robot: Robot, s
     V = int(n_visits.max())
     for k in range(1, V + 1):                               # the final state after the last visit
         states[k:] = np.where((n_visits == k)[None], h[None], states[k:])
+    end = SoilState(h.copy(), dug_visits, wheel_passes, before + n_visits, loose)
     return WorldResult(grid, h0, h, states[: V + 1].copy(), visit_time[:V].copy(), n_visits, t_wheel, sf,
-                       pass_time[:V].copy())
+                       pass_time[:V].copy(), end)
 
 
 def _relax_box(h: np.ndarray, loose: np.ndarray, sel: np.ndarray, tan_beta: np.ndarray,
