@@ -21,6 +21,7 @@ Pure functions on arrays: points (N, 3) in metres, transforms (4, 4) session -> 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -135,20 +136,31 @@ def _images(cloud: Cloud, lo: np.ndarray, shape: tuple[int, int]) -> tuple[list[
     return imgs, masks
 
 
-def _masked_ncc(f: np.ndarray, mf: np.ndarray, g: np.ndarray, mg: np.ndarray, min_overlap: float) -> np.ndarray:
+def _masked_ncc(f: np.ndarray, mf: np.ndarray, g: np.ndarray, mg: np.ndarray, min_overlap: float,
+                cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Masked normalised cross-correlation of the moving image g (mask mg) against the fixed f
     (mask mf) for every integer shift (FFT, full size): out[u] compares f(x + u) with g(x).
     Shifts whose overlap is below min_overlap pixels score -1. Returns (scores, overlap in
-    pixels), both of the full size."""
+    pixels), both of the full size. cache: a dict kept across calls with the same f, mf and
+    g's shape (the fixed image's spectra)."""
+    from scipy import fft
+
     shape = [a + b - 1 for a, b in zip(f.shape, g.shape, strict=True)]
-    size = [1 << int(math.ceil(math.log2(n))) for n in shape]
-    F = lambda a: np.fft.rfft2(a, size)  # noqa: E731
-    f, g = f * mf, g * mg
-    gr = g[::-1, ::-1]
-    mgr = mg[::-1, ::-1].astype(float)
-    Ff, Ff2, Fmf = F(f), F(f * f), F(mf.astype(float))
-    Fg, Fg2, Fmg = F(gr), F(gr * gr), F(mgr)
-    inv = lambda a: np.fft.irfft2(a, size)[: shape[0], : shape[1]]  # noqa: E731
+    size = [fft.next_fast_len(n, real=True) for n in shape]
+    workers = os.cpu_count() or 1
+    F = lambda a: fft.rfft2(a, size, workers=workers)  # noqa: E731
+    inv = lambda a: fft.irfft2(a, size, workers=workers)[: shape[0], : shape[1]]  # noqa: E731
+    key = tuple(size)
+    if cache is None or key not in cache:
+        fm = f * mf
+        spectra = F(fm), F(fm * fm), F(mf.astype(float))
+        if cache is not None:
+            cache[key] = spectra
+    else:
+        spectra = cache[key]
+    Ff, Ff2, Fmf = spectra
+    gr = (g * mg)[::-1, ::-1]
+    Fg, Fg2, Fmg = F(gr), F(gr * gr), F(mg[::-1, ::-1].astype(float))
     n = np.round(inv(Fmf * Fmg))
     sf, sg = inv(Ff * Fmg), inv(Fmf * Fg)
     num = inv(Ff * Fg) - sf * sg / np.maximum(n, 1)
@@ -176,6 +188,7 @@ def search(session: Cloud, fixed: Cloud, yaw_step_deg: float = YAW_STEP_DEG, min
     r = float(np.linalg.norm(pts[:, :2] - c, axis=1).max()) + 1.0
     lo_s = np.array([-r, -r])
     shape_s = (int(2 * r / IMAGE_RES) + 1,) * 2
+    caches: list[dict] = [{}, {}]
 
     def at(yaw: float) -> tuple[float, float, float, float]:
         R = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
@@ -183,9 +196,9 @@ def search(session: Cloud, fixed: Cloud, yaw_step_deg: float = YAW_STEP_DEG, min
                     np.c_[(session.landmarks[:, :2] - c) @ R.T, session.landmarks[:, 2]])
         imgs_s, masks_s = _images(rot, lo_s, shape_s)
         n_ground = max(int(masks_s[0].sum()), 1)
-        ncc, n = _masked_ncc(imgs_f[0], masks_f[0], imgs_s[0], masks_s[0], min_overlap * n_ground)
+        ncc, n = _masked_ncc(imgs_f[0], masks_f[0], imgs_s[0], masks_s[0], min_overlap * n_ground, caches[0])
         if len(imgs_f) > 1 and len(imgs_s) > 1:
-            ncc = 0.5 * (ncc + _masked_ncc(imgs_f[1], masks_f[1], imgs_s[1], masks_s[1], 50)[0])
+            ncc = 0.5 * (ncc + _masked_ncc(imgs_f[1], masks_f[1], imgs_s[1], masks_s[1], 50, caches[1])[0])
         scores = np.where(ncc > 0, ncc * np.sqrt(np.minimum(n / n_ground, 1.0)), ncc)
         u = np.unravel_index(int(np.argmax(scores)), scores.shape)
         # scores[u]: f(x + u - (shape_s - 1)) matches g(x): session pixel x -> field pixel x + u - shape_s + 1
