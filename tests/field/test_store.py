@@ -172,3 +172,11 @@ def test_a_session_older_than_the_last_is_refused_when_times_are_clock_times(tmp
     f.add(_session(a, "tuesday"), log=lambda s: None)
     with pytest.raises(Refused, match="in the order they were driven"):
         f.add(_session(b, "monday"), log=lambda s: None)
+
+
+def test_a_session_without_ground_is_refused(tmp_path):
+    a, _ = World(seed=1).drive(T_A, 7.0, t0=0.0)
+    a.h_front[:] = np.nan
+    with pytest.raises(Refused, match="unusable recording"):
+        Field.open(tmp_path / "f", create=True).add(_session(a, "blind"), log=lambda s: None)
+    assert not (tmp_path / "f" / "field.json").exists()

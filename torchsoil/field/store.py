@@ -55,7 +55,8 @@ TILE = 256
 MIN_OVERLAP = 0.2          # share of a session's ground on the field's after the fit
 MIN_RELIEF = 0.8           # correlation of the two grounds' relief there (10 cm pixels: noise averages out)
 MAX_AMBIGUITY = 0.85       # second distinct candidate / best, without GNSS
-MAX_RMSE = 0.02            # m, the final ICP's point-to-plane RMS
+MIN_GROUND = 500           # ground points (every 4 cm: 0.8 m^2) a session must bring
+MAX_RMSE = 0.02            # m, the refinement's height residual RMS
 SEASON = ("first", "latest", "passes", "visits", "sessions")
 EPOCH = 1.0e8              # s: times above this are clock times (1973 on), below a recording's own
 
@@ -410,6 +411,9 @@ class Field:
             if self.manifest["dx"] is None:
                 self.manifest["dx"] = float(pair.dx)
             cloud = reg.cloud_from_heightmap(pair.h_front, pair.origin, pair.dx, session.map_points)
+            if len(cloud.ground) < MIN_GROUND:
+                raise Refused(f"{session.source}: not merged: it measured the ground at {len(cloud.ground)} places "
+                              f"(every 4 cm; {MIN_GROUND} needed): an empty or unusable recording")
             t0 = time.perf_counter()
             if not self.sessions:
                 r = reg.Registration(np.eye(4), "first session: its map frame is the field's", 0.0, 1.0, 1.0)
