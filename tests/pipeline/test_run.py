@@ -166,8 +166,11 @@ def test_command_writes_outputs_and_nothing_on_error(moving_bag, tmp_path):
     robot = "paper_platform"  # a shipped robot, by name
     out = tmp_path / "out"
     assert main(["process-bag", str(moving_bag[0]), "--robot", robot, "--out", str(out)]) == 0
-    assert {p.name for p in out.iterdir()} == {"terrain.npz", "trajectory.csv", "h_front.png",
+    assert {p.name for p in out.iterdir()} == {"terrain.npz", "trajectory.csv", "map.npz", "h_front.png",
                                                "h_back.png", "h_delta.png"}
+    points = np.load(out / "map.npz")["points"]          # the reference map, one point per 5 cm voxel
+    assert points.shape[1] == 3 and len(points) > 1000
+    assert len(np.unique(np.floor(points / 0.05), axis=0)) > 0.99 * len(points)   # (float32 centroids at edges)
     rows = np.loadtxt(out / "trajectory.csv", delimiter=",", skiprows=1)
     assert rows.shape[1] == 7 and np.all(np.diff(rows[:, 0]) > 0)
     bad = tmp_path / "bad"
