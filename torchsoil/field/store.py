@@ -157,7 +157,8 @@ def layers_on_tile(layers: dict[str, np.ndarray], pair: TerrainPair, T: np.ndarr
     visits = _sample(layers["visits"], pair, s, False)
     if not (visits > 0).any() and not np.isfinite(_sample(layers["before"], pair, s, True)).any():
         return None
-    out = {"visits": visits.reshape(TILE, TILE), "passes": _sample(layers["passes"], pair, s, False).reshape(TILE, TILE),
+    out = {"visits": visits.reshape(TILE, TILE),
+           "passes": _sample(layers["passes"], pair, s, False).reshape(TILE, TILE),
            "time": _sample(layers["time"], pair, s, False).reshape(TILE, TILE)}
     for k in ("before", "after"):
         h = _sample(layers[k], pair, s, True)
@@ -422,7 +423,8 @@ class Field:
             else:
                 r = self._register(session, cloud)
             log(f"registered {session.name} ({r.method}) in {time.perf_counter() - t0:.1f} s: overlap "
-                f"{100 * r.overlap:.0f} %, relief correlation {r.relief:.2f}, height residual RMS {1000 * r.rmse_m:.1f} mm"
+                f"{100 * r.overlap:.0f} %, relief correlation {r.relief:.2f}, height residual RMS "
+                f"{1000 * r.rmse_m:.1f} mm"
                 + (f", ambiguity {r.ambiguity:.2f}" if r.method.startswith("search") else "")
                 + (f", {100 * r.gnss_m:.1f} cm / {r.gnss_deg:.2f} deg from GNSS" if r.gnss_m is not None else ""))
             return self._merge(session, cloud, r)
@@ -444,8 +446,8 @@ class Field:
                           f"best (above {MAX_AMBIGUITY}): too few landmarks or a repetitive field; a recording with "
                           "RTK GNSS fixes gives the placement")
         if not (r.rmse_m <= MAX_RMSE):
-            raise Refused(f"{where}: the registration did not converge (height residual RMS {1000 * r.rmse_m:.1f} mm, above "
-                          f"{1000 * MAX_RMSE:.0f} mm)")
+            raise Refused(f"{where}: the registration did not converge (height residual RMS "
+                          f"{1000 * r.rmse_m:.1f} mm, above {1000 * MAX_RMSE:.0f} mm)")
         if guess is not None:
             tol_m, tol_deg = _gnss_tolerance(self.manifest["georef"], session.georef)
             if r.gnss_m > tol_m or r.gnss_deg > tol_deg:
