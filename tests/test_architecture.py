@@ -16,8 +16,8 @@ PACKAGES = ("torchsoil", "envs")
 # The rooms in data-flow order: a room may import itself and the rooms before it. `torchsoil`
 # is the library's top level (settings, robot, grid, plotting, memory, engines): what every
 # room shares.
-ORDER = ("torchsoil", "io", "sim", "envs", "pipeline", "estimate", "geo", "field", "synth", "diagnosis", "jobs", "node", "bench",
-         "cli")
+ORDER = ("torchsoil", "io", "sim", "envs", "pipeline", "estimate", "geo", "field", "synth", "diagnosis", "jobs", "node",
+         "bench", "cli")
 # gymnasium.make("torchsoil:torchsoil/SoilTraverse-v0") imports torchsoil, which registers the
 # environments by their string entry points: envs.registration imports nothing of the library.
 UPSTREAM_EXCEPTIONS = {("torchsoil", "envs.registration")}
