@@ -346,6 +346,10 @@ class DiagnosisConfig(Section):
                                                    "(a term that predicts neighbouring ground better but fits its "
                                                    "own worse stands in for soil that changes along the drive)")
     block_m: float = Field(2.4, gt=0, description="cross-validation block length, m")
+    learned: bool = Field(True, description="also fit a learned modifier (diagnosis.learned: a parameter "
+                                            "following a driving covariate, a curve fitted through the simulator) "
+                                            "and name it where it predicts held-out ground better than the "
+                                            "catalogue's term, or where the catalogue names none")
     checkpoint_s: float = Field(15.0, ge=0, description="seconds between two saves of a pass in progress "
                                                         "(OUT/passes; a killed run resumes after the last save; 0: "
                                                         "after every window)")

@@ -16,7 +16,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage, stats
 
-from torchsoil.diagnosis import catalogue
+from torchsoil.diagnosis import catalogue, learned
 from torchsoil.diagnosis.checkpoint import PassCache, kept
 from torchsoil.diagnosis.covariates import SIGNALS, DriveSignals, side_arc, window_signals
 from torchsoil.diagnosis.fit import (
@@ -67,6 +67,7 @@ class Diagnosis:
     residual_map: np.ndarray
     s_index: np.ndarray
     revisits: dict | None = None
+    learned: dict | None = None
 
 
 LOCATED_ZONES = ("rut_floor", "rut_wall", "outside")   # berm heights follow chi: not a location test
@@ -614,9 +615,58 @@ def name_cause(base: Pass, best: CandidateFit | None, revisit: dict | None, wind
     return Verdict(verdict, cross, spans, covariate, named, best, before, after, params)
 
 
+def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass,
+                  drive: DriveSignals, choice: Choice, progress=None,
+                  cache: PassCache | None = None) -> tuple[learned.LearnedFit | None, dict | None]:
+    """The learned modifier (`learned.learn`) and its test: accepted where both folds chose one
+    term with one direction and, as a catalogue term must, its combined z passes the level of
+    cfg.alpha_accept for a two-signed coefficient (`stats.level_z`), its gain is material
+    (choice.gain_min), its effect at least cfg.effect_materiality and the windows' own fit no
+    worse (cfg.own_fit_z). Returns (the fit, its description for learned.json) or (None, None)
+    with cfg.learned off."""
+    if not cfg.learned:
+        return None, None
+    fit = learned.learn(pair, est, sim, base, drive, cfg, cache, progress)
+    z_need = level_z(cfg.alpha_accept, 2)
+    fit.accepted = bool(fit.terms and fit.z > z_need and fit.improvement >= choice.gain_min
+                        and fit.effect >= cfg.effect_materiality and fit.own_z >= -cfg.own_fit_z)
+    if progress is not None:
+        progress.update(1)
+    return fit, learned.describe(fit, z_need)
+
+
+def with_learned(told: Verdict, fit: learned.LearnedFit | None, described: dict | None, base: Pass,
+                 where: Located, est: EstimatorConfig, cfg: DiagnosisConfig) -> Verdict:
+    """The verdict with the learned modifier: named where it was accepted and the catalogue named
+    nothing, or named a term of another law (another parameter or covariate) that the learned
+    one predicts the held-out ground better than (paired z above the two-sided level of
+    cfg.alpha_accept). The name is the catalogue term whose law the curve is
+    (`learned.catalogue_match`), else "learned"; its parameters the factor over the
+    covariate's span (`<parameter>_factor`, `<covariate>_from`, `<covariate>_to`)."""
+    if fit is None or not fit.accepted:
+        return told
+    term = described["terms"][0]
+    match = term["catalogue_match"]
+    if told.verdict == "missing_physics":
+        if told.best is None or match == told.named:
+            return told
+        if paired_improvement(told.best.held_out, fit.held_out)[2] < z_two_sided(cfg.alpha_accept):
+            return told
+    s = where.s
+    spans = _spans(outliers(base.held_out - fit.held_out), s - est.window / 2, s + est.window / 2)
+    located = told.verdict == "unexplained" and told.cross != "mixed"
+    cross = told.cross if located else learned.ZONE_OF[term["parameter"]]
+    after = {"residual": float(np.nanmean(fit.residual)), "prediction": float(np.nanmean(fit.prediction))}
+    params = {f"{term['parameter']}_factor": round(term["factor"], 4), f"{term['covariate']}_from": term["from"],
+              f"{term['covariate']}_to": term["to"]}
+    described["named"] = True
+    return Verdict("missing_physics", cross, spans, term["covariate"], match or "learned", None, told.before,
+                   after, params)
+
+
 def explain_diagnosis(cfg: DiagnosisConfig, base: Pass, where: Located, ev: dict, fits: list[CandidateFit],
                       choice: Choice, section: dict | None, dig: dict | None, revisit: dict | None,
-                      told: Verdict) -> Diagnosis:
+                      told: Verdict, learned_report: dict | None = None) -> Diagnosis:
     """The evidence behind the verdict (zones, asymmetry, spectral line, rut shape, the tests'
     levels, every candidate's location evidence `ev`, the nuisances' fits `section` and `dig`,
     the hardening test `revisit`, what the named gain rests on, the covariates' correlations
@@ -655,7 +705,9 @@ def explain_diagnosis(cfg: DiagnosisConfig, base: Pass, where: Located, ev: dict
 
     h_back = base.surfaces[1]                               # as the estimator fitted it (Estimator.h_back)
     residual = base.h_sim - h_back.astype(np.float32)       # drawn only (report.fig_residual_map)
-    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s, revisit)
+    evidence["learned"] = learned_report
+    diag = Diagnosis(summary, base, fits, best, evidence, {"s": s, **cov}, residual, base.index.s, revisit,
+                     learned_report)
     summary["explanation"] = explain(diag)
     return diag
 
@@ -679,7 +731,9 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     choice = choose_terms(fits, ranked, ev, cfg, base, alpha)
     told = name_cause(base, choice.best, revisit, est.window,
                       *location_verdict(pair, cfg, est, base, drive, where, choice.best))
-    return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told)
+    fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, progress, cache)
+    told = with_learned(told, fit, described, base, where, est, cfg)
+    return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told, described)
 
 
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:
@@ -687,7 +741,7 @@ def n_steps(cfg: DiagnosisConfig | None = None) -> int:
     pass on a pair with visit layers)."""
     cfg = cfg or DiagnosisConfig()
     trials = max(most_trials(e) for e in catalogue.CATALOGUE.values())
-    return 2 + bool(cfg.sections) + cfg.n_fit * (trials + cfg.refine_steps)   # + the per-visit pass
+    return 2 + bool(cfg.sections) + cfg.n_fit * (trials + cfg.refine_steps) + cfg.learned   # + the per-visit pass
 
 
 __all__ = ["ZONES", "Diagnosis", "DiagnosisConfig", "diagnose", "n_steps"]

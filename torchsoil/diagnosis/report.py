@@ -51,7 +51,32 @@ def explain(diag) -> str:
                  "hardening term counts every wheel's pass (a rear wheel in its front wheel's rut runs the "
                  "second).")
     named = diag.summary["verdict"] == "missing_physics"        # by a candidate, or on the ground driven again
-    return _explain(diag) + ("" if named else _nearest(diag)) + note
+    return _explain(diag) + ("" if named else _nearest(diag)) + learned_note(getattr(diag, "learned", None)) + note
+
+
+def learned_text(learned: dict, s: dict, span: str) -> str:
+    """The verdict's paragraph where the learned modifier is named (diagnosis.learned)."""
+    t = learned["terms"][0]
+    name = (f"the law of {t['catalogue_match']}" if t["catalogue_match"] else
+            "a law no catalogue term has (missing_physics: learned)")
+    return (f"The base model leaves out {name}. {t['sentence']} A learned modifier (the parameter times exp of a "
+            f"curve of the covariate, fitted through the simulator on each fold's windows and scored on the "
+            f"other fold's) lowers the cost of predicting held-out ground from {_mm(s['cost_before']['prediction'])} "
+            f"to {_mm(s['cost_after']['prediction'])} (paired over windows: {_mm(learned['improvement'])} +- "
+            f"{_mm(learned['se'])}, z = {learned['held_z']:.1f}; {learned['z']:.1f} with the windows' own fits, "
+            f"against {learned['z_needed']:.1f} allowed by noise). It matters most at {span}. "
+            f"Noise floor {_mm(s['noise_floor'])}.")
+
+
+def learned_note(learned: dict | None) -> str:
+    """A sentence on a learned modifier that was fitted but not named (short of its level, or a
+    catalogue term predicted as well), else ''."""
+    if not learned or learned.get("named") or not learned.get("terms"):
+        return ""
+    t = learned["terms"][0]
+    why = ("the catalogue's term predicts the held-out ground as well" if learned["accepted"] else
+           f"z = {learned['z']:.2f} against {learned['z_needed']:.2f} needed")
+    return (f" A learned modifier found: {t['sentence'][0].lower() + t['sentence'][1:-1]}; not named ({why}).")
 
 
 def _nearest(diag) -> str:
@@ -219,6 +244,9 @@ def _explain(diag) -> str:
     where = s["where"]
     span = ", ".join(f"{a:.1f}-{b:.1f} m" for a, b in where["along_track"]) or "no particular stretch"
     rev = getattr(diag, "revisits", None)
+    learned = getattr(diag, "learned", None) or {}
+    if s["verdict"] == "missing_physics" and learned.get("named"):
+        return learned_text(learned, s, span)
     if s["verdict"] == "missing_physics" and diag.best is None and rev is not None:
         return revisit_text(rev, s, span)
     if s["verdict"] == "missing_physics":
@@ -378,6 +406,25 @@ def fig_cross_sections(diag, path: Path) -> Path:
     return path
 
 
+def fig_learned(learned: dict, path: Path) -> Path:
+    """The learned modifier's partial dependence: per kept term the factor on its parameter
+    against the covariate (the mean of the folds' curves), the band between the two folds'."""
+    terms = learned["terms"]
+    fig = Figure(figsize=(4.5 * len(terms), 3.5))
+    for ax, t in zip(np.atleast_1d(fig.subplots(1, len(terms))), terms, strict=True):
+        x, lo, hi = np.asarray(t["knots"]), *(np.exp(np.asarray(b)) for b in t["band"])
+        ax.fill_between(x, lo, hi, alpha=0.3, label="the two folds' fits")
+        ax.plot(x, np.exp(np.asarray(t["log_factor"])), "o-", label="learned factor")
+        ax.axhline(1.0, color="0.5", lw=0.8)
+        ax.set_xlabel(f"{t['covariate']} [{t['unit']}]")
+        ax.set_ylabel(f"factor on {t['parameter']}")
+        ax.set_title(f"{t['parameter']} ~ {t['covariate']}: {t['shape']}, x{t['factor']:.2f}", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def fig_costs(diag, path: Path) -> Path:
     s = diag.windows["s"]
     fig = Figure(figsize=(8, 3.5))
@@ -508,6 +555,10 @@ def write_all(diag, pair, out: Path, input_name: str, tb: bool = True) -> Path:
             "covariate": fig_covariate(diag, out / "residual_vs_covariate.png"),
             "cross_sections": fig_cross_sections(diag, out / "cross_sections.png"),
             "prediction_costs": fig_costs(diag, out / "prediction_costs.png")}
+    if getattr(diag, "learned", None) is not None:
+        (out / "learned.json").write_text(json.dumps(diag.learned, indent=2))
+        if diag.learned["terms"]:
+            figs["learned"] = fig_learned(diag.learned, out / "learned.png")
     write_markdown(diag, out / "report.md", {k: v.name for k, v in figs.items()}, input_name)
     if tb:
         tensorboard(diag, out / "tensorboard", figs)

@@ -33,11 +33,16 @@ class Modifiers(NamedTuple):
             wheels) stands up to, >= tan(beta): cohesive soil. The deposits are then loose soil
             that settles at beta, and `cohesive.relax_two_angle` replaces the single-angle
             relaxation (soil flows beyond beta only as far as it carries loose soil).
+        chi_scale: (B,) factor on the deposit share chi (the result clipped to [0, 1]).
+        beta_scale: (B,) factor on the angle of repose beta (the result clipped to
+            [0.5, 89] deg).
     """
 
     depth_scale: torch.Tensor | None = None
     radius_scale: torch.Tensor | None = None
     tan_beta_intact: torch.Tensor | None = None
+    chi_scale: torch.Tensor | None = None
+    beta_scale: torch.Tensor | None = None
 
 
 class SimResult(NamedTuple):
@@ -52,6 +57,9 @@ class SimResult(NamedTuple):
     lost: torch.Tensor
     iterations: torch.Tensor
     capped: torch.Tensor
+
+
+BETA_MIN, BETA_MAX = math.radians(0.5), math.radians(89.0)   # a scaled angle of repose, rad
 
 
 def _check_heights(h: torch.Tensor, shape) -> torch.Tensor:
@@ -98,6 +106,10 @@ def simulate(h_front: torch.Tensor, geom: WheelGeometry, theta: torch.Tensor,
     d = theta[:, [spec.index(f"d{k + 1}") for k in range(T)]]
     chi, beta = theta[:, spec.index("chi")], theta[:, spec.index("beta")]
     dt = theta.dtype
+    if modifiers.chi_scale is not None:
+        chi = (chi * modifiers.chi_scale.to(dt).expand(B)).clamp(0.0, 1.0)
+    if modifiers.beta_scale is not None:
+        beta = (beta * modifiers.beta_scale.to(dt).expand(B)).clamp(BETA_MIN, BETA_MAX)
     fp = geom.nominal if modifiers.radius_scale is None else footprint(geom, modifiers.radius_scale, dt)
     depth = d[:, geom.track[geom.wheel]]                                   # (B, E)
     if modifiers.depth_scale is not None and modifiers.depth_scale.ndim == 2:

@@ -1,0 +1,167 @@
+"""The learned modifier: its curves, its hooks into the simulator, its words, by hand."""
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from torchsoil.diagnosis import learned as L
+from torchsoil.diagnosis.covariates import DriveSignals
+from torchsoil.grid import Grid
+from torchsoil.robot import paper_platform
+from torchsoil.sim import Modifiers
+from torchsoil.sim.geometry import wheel_geometry
+from torchsoil.sim.simulate import simulate
+
+ROBOT = paper_platform()
+
+
+def ramp_poses(v0=0.5, v1=1.5, n=301, length=6.0):
+    """(n, 7) poses straight along x, the speed rising linearly from v0 to v1 m/s over `length` m."""
+    x = np.linspace(0.0, length, n)
+    v = v0 + (v1 - v0) * x / length
+    t = np.concatenate([[0.0], np.cumsum(np.diff(x) / (0.5 * (v[1:] + v[:-1])))])
+    p = np.zeros((n, 7))
+    p[:, 0], p[:, 1] = t, x
+    return p
+
+
+def test_a_curve_interpolates_its_knot_values_is_zero_at_its_anchor_and_flat_beyond():
+    b = L.Basis(np.array([0.0, 1.0, 3.0]), anchor=1)
+    w = np.array([-0.4, 0.6])                           # values at knots 0 and 3; 0 at knot 1
+    assert b.values(w).tolist() == [-0.4, 0.0, 0.6]
+    f = b.curve(w, [-2.0, 0.0, 0.5, 1.0, 2.0, 3.0, 7.0])
+    assert f == pytest.approx([-0.4, -0.4, -0.2, 0.0, 0.3, 0.6, 0.6])
+    assert b.matrix([0.25, 2.5]).sum(1) == pytest.approx([0.75, 0.75])   # the anchor's share left out
+
+
+def test_knots_follow_the_ground_driven_and_a_steady_covariate_has_none():
+    drive = DriveSignals.from_poses(ramp_poses(), ROBOT)
+    speed = L.make_basis(L.Term("d", "speed"), drive, ROBOT)
+    assert speed.knots[0] == pytest.approx(0.52, abs=0.02) and speed.knots[-1] == pytest.approx(1.48, abs=0.02)
+    assert speed.knots[speed.anchor] == pytest.approx(1.0, abs=0.03)     # the median speed over the ground
+    passes = L.make_basis(L.Term("beta", "passes"), drive, ROBOT)
+    assert passes.knots.tolist() == [0.0, 1.0, 2.0, 4.0] and passes.anchor == 0
+    steady = DriveSignals.from_poses(ramp_poses(1.0, 1.0), ROBOT)
+    assert L.make_basis(L.Term("d", "speed"), steady, ROBOT, min_spread={"speed": 0.05}) is None
+    assert L.make_basis(L.Term("d", "turn_rate"), drive, ROBOT) is None   # a straight drive never turns
+
+
+def test_terms_read_as_the_same_signal_are_kept_once():
+    p = ramp_poses(1.0, 1.0, n=401, length=8.0)
+    p[:, 6] = 0.3 * np.sin(p[:, 1])                     # weaving at a steady speed
+    drive = DriveSignals.from_poses(p, ROBOT)
+    bases = {t: b for t in (L.Term("d", "turn_rate"), L.Term("d", "lateral_accel"), L.Term("chi", "lateral_accel"))
+             if (b := L.make_basis(t, drive, ROBOT)) is not None}
+    kept = L.distinct(drive, bases)
+    assert L.Term("d", "turn_rate") in kept and L.Term("d", "lateral_accel") not in kept
+    assert L.Term("chi", "lateral_accel") in kept        # another parameter: a term of its own
+
+
+def grid_and_geometry(poses):
+    grid = Grid(0.02, (-0.5, -1.0), (int(7.0 / 0.02), int(2.0 / 0.02)))
+    return grid, wheel_geometry(grid, poses, ROBOT, dtype=torch.float64)
+
+
+def test_the_sinkage_factor_at_each_entry_is_exp_of_the_curve_at_its_pose():
+    poses = ramp_poses()
+    drive = DriveSignals.from_poses(poses, ROBOT)
+    _, geom = grid_and_geometry(poses)
+    term = L.Term("d", "speed")
+    basis = L.Basis(np.array([0.5, 1.0, 1.5]), anchor=1)
+    model = L.LearnedModel({term: basis}, drive, ROBOT, w={term: np.array([math.log(0.5), math.log(2.0)])})
+    wd = SimpleNamespace(spec=SimpleNamespace(s0=0.0, s1=6.0), crop=(0, 1, 0, 1), geom=geom)
+    mods = model.modifiers(wd, torch.zeros(3, 4, dtype=torch.float64))
+    assert mods.chi_scale is None and mods.beta_scale is None
+    got = mods.depth_scale.numpy()
+    assert got.shape == (3, len(geom.cell))
+    t = geom.poses[:, 0].numpy()[geom.pose.numpy()]
+    v = np.interp(t, drive.signals["t"], drive.signals["speed"])
+    want = np.exp(np.interp(v, [0.5, 1.0, 1.5], [math.log(0.5), 0.0, math.log(2.0)]))
+    assert got[1] == pytest.approx(want, rel=1e-9)
+    assert want.min() < 0.6 and want.max() > 1.8       # the ramp spans the curve
+    # a window's fit scaled back to the reference: the anchor is f at its own ground
+    model.anchor = model.own_mean(wd)
+    back = model.modifiers(wd, torch.zeros(1, 4, dtype=torch.float64)).depth_scale[0].numpy()
+    assert np.log(back).mean() == pytest.approx(0.0, abs=1e-12)
+
+
+def test_deposit_share_and_repose_scales_act_as_the_scaled_parameters():
+    poses = ramp_poses(1.0, 1.0)
+    _, geom = grid_and_geometry(poses)
+    rng = np.random.default_rng(3)
+    h = torch.as_tensor(rng.normal(0, 0.002, geom.shape), dtype=torch.float64)
+    theta = torch.tensor([[0.03, 0.03, 0.6, math.radians(30.0)]], dtype=torch.float64)
+    scaled = simulate(h, geom, theta, modifiers=Modifiers(chi_scale=torch.tensor([0.5], dtype=torch.float64),
+                                                          beta_scale=torch.tensor([0.5], dtype=torch.float64)))
+    plain = simulate(h, geom, torch.tensor([[0.03, 0.03, 0.3, math.radians(15.0)]], dtype=torch.float64))
+    assert torch.equal(scaled.h, plain.h)
+    assert float(scaled.deposited[0]) == pytest.approx(0.5 * float(simulate(h, geom, theta).deposited[0]), rel=1e-9)
+    # chi x scale beyond 1 is clipped to 1: every removed cell's soil laid beside the rut
+    over = simulate(h, geom, theta, modifiers=Modifiers(chi_scale=torch.tensor([3.0], dtype=torch.float64)))
+    full = simulate(h, geom, torch.tensor([[0.03, 0.03, 1.0, math.radians(30.0)]], dtype=torch.float64))
+    assert torch.equal(over.h, full.h)
+
+
+def test_gradients_reach_the_chi_and_beta_scales_as_finite_differences_say():
+    poses = ramp_poses(1.0, 1.0, n=101, length=2.0)
+    _, geom = grid_and_geometry(poses)
+    h = torch.zeros(geom.shape, dtype=torch.float64)
+    target = simulate(h, geom, torch.tensor([[0.03, 0.03, 0.5, math.radians(25.0)]], dtype=torch.float64)).h
+    theta = torch.tensor([[0.03, 0.03, 0.6, math.radians(30.0)]], dtype=torch.float64)
+
+    def cost(c, b):
+        m = Modifiers(chi_scale=c.reshape(1), beta_scale=b.reshape(1))
+        return ((simulate(h, geom, theta, modifiers=m).h - target) ** 2).sum()
+
+    c, b = torch.tensor(0.9, dtype=torch.float64, requires_grad=True), torch.tensor(0.9, dtype=torch.float64,
+                                                                                      requires_grad=True)
+    cost(c, b).backward()
+    eps = 1e-6
+    with torch.no_grad():
+        fd_c = (cost(c + eps, b) - cost(c - eps, b)) / (2 * eps)
+        fd_b = (cost(c, b + eps) - cost(c, b - eps)) / (2 * eps)
+    assert float(c.grad) == pytest.approx(float(fd_c), rel=1e-4) and abs(float(fd_c)) > 0
+    assert float(b.grad) == pytest.approx(float(fd_b), rel=1e-3, abs=1e-12)
+
+
+def test_curve_shapes_and_the_catalogue_laws_they_are():
+    x = np.linspace(0.0, 1.0, 41)
+    assert L.shape(x, 1 + x) == "linear" and L.shape(x, 2 - x) == "linear"
+    assert L.shape(x, 1 + x ** 2) == "convex" and L.shape(x, 2 - x ** 2) == "concave"
+    assert L.shape(x, 1 + np.sqrt(x)) == "concave"
+    assert L.shape(x, 1 + (x - 0.5) ** 2) == "u_shaped" and L.shape(x, 2 - (x - 0.5) ** 2) == "peaked"
+    assert L.catalogue_match(L.Term("d", "speed"), "-") == "speed_dependent_sinkage"
+    assert L.catalogue_match(L.Term("d", "traction"), "+") == "slip_sinkage"
+    assert L.catalogue_match(L.Term("d", "traction"), "-") is None        # the catalogue's slip deepens ruts
+    assert L.catalogue_match(L.Term("d", "passes"), "-") == "multi_pass_hardening"
+    assert L.catalogue_match(L.Term("d", "passes"), "+") is None          # loosening is no hardening
+    assert L.catalogue_match(L.Term("chi", "speed"), "+") is None
+    assert L.catalogue_match(L.Term("d", "turn_rate"), "+") is None
+
+
+def fold(term, basis, values):
+    m = L.LearnedModel({term: basis}, None, ROBOT, w={term: np.asarray(values)})
+    return L.FoldChoice({term.name: 1.0}, {term.name: 0.9}, term, m)
+
+
+def test_the_description_says_what_the_curve_follows_by_how_much():
+    term = L.Term("d", "turn_rate")
+    basis = L.Basis(np.array([0.0, 0.2, 0.4]), anchor=0)
+    a = fold(term, basis, [math.log(1.3), math.log(2.0)])
+    b = fold(term, basis, [math.log(1.5), math.log(2.0)])
+    fit = L.LearnedFit((a, b), [term], z=3.0, improvement=2e-4, se=5e-5, held_z=2.5, own_z=1.0, effect=0.9,
+                       accepted=True)
+    out = L.describe(fit, 1.95)
+    t = out["terms"][0]
+    assert (t["parameter"], t["covariate"], t["direction"], t["catalogue_match"]) == ("d", "turn_rate", "+", None)
+    mean = np.log([1.0, math.sqrt(1.3 * 1.5), 2.0])
+    assert t["log_factor"] == pytest.approx(mean.tolist())
+    assert t["band"][0] == pytest.approx(np.log([1.0, 1.3, 2.0]).tolist())
+    x_lo, x_hi = 0.02, 0.38                              # 5 and 95 % of the knots' span
+    want = math.exp(np.interp(x_hi, basis.knots, mean) - np.interp(x_lo, basis.knots, mean))
+    # factors 1, 1.40, 2 at 0, 0.2, 0.4 rad/s: below the chord (1.5 half way), a convex rise
+    assert t["factor"] == pytest.approx(want) and t["shape"] == "convex"
+    assert t["sentence"].startswith("Sinkage rises convexly with turn rate (x") and "no catalogue term" in t["sentence"]

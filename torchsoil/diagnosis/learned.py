@@ -1,0 +1,525 @@
+"""A learned modifier: the law the catalogue leaves out, fitted through the simulator.
+
+Each model parameter p (the sinkage d, the deposit share chi, the angle of repose beta) is
+multiplied by exp(f_p(x)), f_p an additive model of the driving covariates x, each a
+piecewise-linear curve through a few knots (`Basis`), 0 at the covariate's reference
+value. The per-window parameters (d1..dT, chi, beta) are still fitted per window, so f only
+has to say how a parameter changes with the covariate, not its level.
+
+| term | acts on | covariates |
+| --- | --- | --- |
+| d | every wheel's sinkage, pose by pose (passes: cell by cell) | COMMON: speed, accel, traction, pitch, |
+| | | turn_rate, lateral_accel, passes |
+| d_side | a wheel's sinkage by side (x signed: -x left, +x right) | roll, lateral_load |
+| chi, beta | deposit share, angle of repose (at the covariate's mean over the visit simulated) | COMMON |
+
+turn_rate and lateral_accel are magnitudes (|yaw rate| [rad/s], |a_lat| [m/s^2]): a tyre
+scrubs in a turn either way; the signed load shift is d_side's. The arc length is left out:
+a parameter that changes along the path is the soil changing, which is what the per-window
+parameters are for.
+
+The modifier is fitted like a catalogue term, by two-fold block cross-validation
+(`learn`): on each fold's windows, the terms whose per-window fitted parameter follows a
+covariate (`screen`, an F test of the curve against a constant) are fitted through the
+simulator by autograd (`fit_weights`): each window's base fit, scaled back to the
+covariate's reference (its parameters over exp(f) at its own ground), predicts its own ground and
+the ground 2, 4 and 6 strides back under exp(f) there; the knots minimise the relative
+cost with a penalty on their second differences. The estimator then runs over the drive
+with each fold's modifier, and the other fold's windows are scored on ground they were not
+fitted on, as for a catalogue term. A term is kept only where both folds chose it, with one
+direction.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from torchsoil.diagnosis.catalogue import PassCounts, ground_times, visit_key
+from torchsoil.diagnosis.covariates import DriveSignals
+from torchsoil.robot import Robot
+from torchsoil.sim import Modifiers
+
+COMMON = ("speed", "accel", "traction", "pitch", "turn_rate", "lateral_accel", "passes")
+SIDED = ("roll", "lateral_load")
+PARAMETERS = ("d", "d_side", "chi", "beta")
+SIGNAL_OF = {"turn_rate": "yaw_rate"}           # a covariate read from another signal (its magnitude)
+MAGNITUDES = ("turn_rate", "lateral_accel")
+UNITS = {"speed": "m/s", "accel": "m/s^2", "traction": "-", "pitch": "rad", "turn_rate": "rad/s",
+         "lateral_accel": "m/s^2", "passes": "passes", "roll": "rad", "lateral_load": "-"}
+# a learned curve of one of these shapes is that catalogue term (its direction as the term's bounds allow)
+CATALOGUE_MATCH = {("d", "speed"): ("speed_dependent_sinkage", "+-"), ("d", "traction"): ("slip_sinkage", "+"),
+                   ("d", "accel"): ("slip_sinkage", "+"), ("d_side", "lateral_load"): ("lateral_load_transfer", "+"),
+                   ("d_side", "roll"): ("lateral_load_transfer", "+"), ("d", "passes"): ("multi_pass_hardening", "-")}
+MAX_LOG = math.log(10.0)                        # factors within [0.1, 10]
+
+
+@dataclass(frozen=True)
+class Term:
+    """One curve of the additive model: `parameter` (PARAMETERS) following `covariate`."""
+
+    parameter: str
+    covariate: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.parameter}~{self.covariate}"
+
+
+def all_terms() -> list[Term]:
+    """Every term the modifier may use (module table)."""
+    return ([Term(p, c) for p in ("d", "chi", "beta") for c in COMMON]
+            + [Term("d_side", c) for c in SIDED])
+
+
+def signal(drive: DriveSignals, covariate: str, t) -> np.ndarray:
+    """A pose covariate at times t [s] (turn_rate, lateral_accel: magnitudes)."""
+    x = drive.at(SIGNAL_OF.get(covariate, covariate), t)
+    return np.abs(x) if covariate in MAGNITUDES else x
+
+
+@dataclass(frozen=True)
+class Basis:
+    """Piecewise-linear curve through `knots` (J,) of a covariate, flat beyond the end knots,
+    0 at knots[anchor] (the reference): f(x) = matrix(x) @ w, w (J - 1,) the values at the
+    other knots."""
+
+    knots: np.ndarray
+    anchor: int
+
+    def matrix(self, x) -> np.ndarray:
+        """(n, J - 1) hat-function weights of x (n,)."""
+        k = self.knots
+        x = np.clip(np.asarray(x, np.float64).ravel(), k[0], k[-1])
+        i = np.clip(np.searchsorted(k, x, side="right") - 1, 0, len(k) - 2)
+        u = (x - k[i]) / (k[i + 1] - k[i])
+        h = np.zeros((len(x), len(k)))
+        h[np.arange(len(x)), i] = 1.0 - u
+        h[np.arange(len(x)), i + 1] += u
+        return np.delete(h, self.anchor, axis=1)
+
+    def curve(self, w: np.ndarray, x) -> np.ndarray:
+        """f(x) (n,) for values w (J - 1,) at the knots but the anchor."""
+        return self.matrix(x) @ np.asarray(w, np.float64)
+
+    def values(self, w) -> np.ndarray:
+        """(J,) f at every knot, 0 at the anchor."""
+        return np.insert(np.asarray(w, np.float64), self.anchor, 0.0)
+
+
+def make_basis(term: Term, drive: DriveSignals, robot: Robot, n_knots: int = 5,
+               min_spread: dict[str, float] | None = None) -> Basis | None:
+    """The knots of a term's curve over the ground driven (`catalogue.ground_times`): the
+    2, 27, 50, 73 and 98 % quantiles (n_knots of them), those closer than a tenth of the
+    range merged; anchored at the median, at 0 for a sided covariate (no load shift) and for
+    passes (first pass; knots at 0, 1, 2 and 4 passes). None where the covariate barely varies
+    (its 2-98 % range under `min_spread` [its unit], or fewer than two knots)."""
+    min_spread = min_spread or {}
+    if term.covariate == "passes":
+        return Basis(np.array([0.0, 1.0, 2.0, 4.0]), 0)
+    x = signal(drive, term.covariate, ground_times(drive))
+    if term.parameter == "d_side":
+        x = np.concatenate([x, -x])
+    q = np.quantile(x, np.linspace(0.02, 0.98, n_knots))
+    spread = float(q[-1] - q[0])
+    if not spread > min_spread.get(term.covariate, 1e-9):
+        return None
+    anchor_at = 0.0 if term.parameter == "d_side" else float(np.median(x))
+    knots = [q[0]]
+    for v in q[1:]:
+        if v - knots[-1] >= 0.1 * spread:
+            knots.append(float(v))
+    knots = np.unique(np.concatenate([knots, [anchor_at]]))
+    if len(knots) < 2:
+        return None
+    return Basis(knots, int(np.argmin(np.abs(knots - anchor_at))))
+
+
+class LearnedModel:
+    """The modifier exp(f_p(x)) for the terms `bases` {Term: Basis} at knot values `w`
+    {Term: (J - 1,) tensor}, applied to the windows of one drive (the Estimator's
+    `modifiers` hook: (WindowData, theta (B, P), geometry) -> sim.Modifiers).
+
+    view, dig_order: as catalogue.ExtensionModel's (which passes count). anchor: {parameter:
+    () tensor} subtracted from f (`fit_weights`: a base fit scaled back to the reference);
+    empty in a pass. `ext` and `k` name it for fit.run_pass (label and cache key)."""
+
+    def __init__(self, bases: dict[Term, Basis], drive: DriveSignals, robot: Robot, w: dict | None = None,
+                 view: str = "last_visit", dig_order: str = "robot", label: str = "learned"):
+        self.bases, self.drive, self.robot = dict(bases), drive, robot
+        self.w = {t: torch.as_tensor(np.zeros(len(b.knots) - 1) if w is None or t not in w else w[t],
+                                     dtype=torch.float64) for t, b in self.bases.items()}
+        self.before, self.by_wheel = view == "first_view", dig_order == "wheel"
+        self.anchor: dict[str, torch.Tensor] = {}
+        self.counts = PassCounts()
+        self._rows: dict[tuple, dict] = {}
+        self.ext = type("LearnedTerm", (), {"id": label})()
+
+    @property
+    def k(self) -> tuple:
+        return tuple((t.name, tuple(np.round(self.w[t].detach().numpy(), 9).tolist())) for t in self.bases)
+
+    def _entry_x(self, wd, geom, term: Term) -> np.ndarray:
+        """(E,) the covariate at each entry of geom (a cell near a wheel, at its nearest pose)."""
+        if term.covariate == "passes":
+            return np.asarray(self.counts.of(self.drive, wd, geom, self.before, self.by_wheel), np.float64)
+        t = geom.poses[:, 0].detach().cpu().numpy()[geom.pose.cpu().numpy()]
+        x = signal(self.drive, term.covariate, t)
+        if term.parameter == "d_side":
+            x = x * -np.sign(self.robot.wheels[geom.wheel.cpu().numpy(), 1])   # left -1, right +1
+        return x
+
+    def rows(self, wd, geom) -> dict[Term, torch.Tensor]:
+        """{term: basis rows}: (E, J - 1) per entry for d terms, (J - 1,) at the visit's mean for
+        chi and beta; kept per visit (the last 64)."""
+        key = visit_key(wd, geom)
+        if key not in self._rows:
+            out = {}
+            for term, basis in self.bases.items():
+                x = self._entry_x(wd, geom, term)
+                m = basis.matrix(x) if term.parameter in ("d", "d_side") else basis.matrix([np.mean(x)])[0]
+                out[term] = torch.as_tensor(m, dtype=torch.float64)
+            self._rows[key] = out
+            if len(self._rows) > 64:
+                self._rows.pop(next(iter(self._rows)))
+        return self._rows[key]
+
+    def log_factors(self, wd, geom) -> dict[str, torch.Tensor]:
+        """{parameter: f}: (E,) for d (d and d_side terms summed), () for chi and beta, net of
+        the anchor."""
+        rows, out = self.rows(wd, geom), {}
+        for term, m in rows.items():
+            p = "d" if term.parameter == "d_side" else term.parameter
+            f = m @ self.w[term]
+            out[p] = out[p] + f if p in out else f
+        return {p: f - self.anchor[p] if p in self.anchor else f for p, f in out.items()}
+
+    def modifiers(self, wd, theta: torch.Tensor, geom=None) -> Modifiers:
+        B = theta.shape[0]
+        geom = wd.geom if geom is None else geom
+        f = {p: v.to(theta.device).clamp(-MAX_LOG, MAX_LOG) for p, v in self.log_factors(wd, geom).items()}
+        return Modifiers(
+            depth_scale=torch.exp(f["d"])[None].expand(B, -1) if "d" in f else None,
+            chi_scale=torch.exp(f["chi"]).expand(B) if "chi" in f else None,
+            beta_scale=torch.exp(f["beta"]).expand(B) if "beta" in f else None)
+
+    def own_mean(self, wd) -> dict[str, torch.Tensor]:
+        """{parameter: () f at the window's own ground}: the mean over its own visit's entries for
+        d, the value at the visit's mean covariate for chi and beta."""
+        return {p: v.mean() for p, v in self.log_factors(wd, wd.geom).items()}
+
+
+def smoothness(model: LearnedModel) -> torch.Tensor:
+    """Sum over terms of the squared second differences of the curve's knot values (the
+    anchor's 0 among them), plus a small ridge on the values."""
+    total = torch.zeros((), dtype=torch.float64)
+    for term, basis in model.bases.items():
+        w = model.w[term]
+        v = torch.cat([w[:basis.anchor], torch.zeros(1, dtype=w.dtype), w[basis.anchor:]])
+        if len(v) > 2:
+            total = total + ((v[2:] - 2 * v[1:-1] + v[:-2]) ** 2).sum()
+        total = total + 1e-2 * (w ** 2).sum()
+    return total
+
+
+def fold_pairs(estimator, fits: dict[int, torch.Tensor], offsets: tuple[int, ...] = (2, 4, 6),
+               max_windows: int = 16) -> list[tuple]:
+    """(own window data, its fit's free parameters (P_free,), target window data) of the
+    windows `fits` {window index: fit} (at most `max_windows`, evenly spread): each fit on its
+    own ground and on the ground `offsets` strides back, where there is ground."""
+    keys = sorted(fits)
+    if len(keys) > max_windows:
+        keys = [keys[i] for i in np.linspace(0, len(keys) - 1, max_windows).round().astype(int)]
+    pairs = []
+    for k in keys:
+        wd = estimator.data(k)
+        if wd is None or "few_valid" in wd.flags:
+            continue
+        for o in (0, *offsets):
+            tg = estimator.data(k - o) if k - o >= 0 else None
+            if tg is not None and "few_valid" not in tg.flags:
+                pairs.append((wd, fits[k], tg))
+    return pairs
+
+
+def objective(estimator, model: LearnedModel, pairs: list[tuple], base_cost: list[float] | None = None,
+              backward: bool = False) -> tuple[float, list[float]]:
+    """The mean over `pairs` (`fold_pairs`) of each fit's cost on its target under the model,
+    the fit scaled back to the reference (`model.anchor`: f at its own ground), over the base
+    model's cost there (`base_cost`; None: these costs are the base's, so 1 at w = 0).
+    backward: accumulate the gradient into the model's knot values (pair by pair, so that one
+    simulation's graph is held at a time). Returns (objective, the costs [m])."""
+    from torchsoil.estimate.cost import weighted_l1
+
+    estimator.modifiers = model.modifiers
+    costs, total = [], 0.0
+    for i, (wd, free, tg) in enumerate(pairs):
+        with torch.set_grad_enabled(backward):
+            model.anchor = {}
+            model.anchor = model.own_mean(wd)
+            c = weighted_l1(estimator.simulate(free[None], tg).h, tg.h_back, tg.weight)[0]
+            costs.append(max(float(c.detach()), 1e-9))
+            loss = c / (base_cost[i] if base_cost is not None else costs[-1]) / len(pairs)
+            if backward:
+                loss.backward()
+        total += float(loss.detach())
+    model.anchor = {}
+    return total, costs
+
+
+def fit_weights(estimator, model: LearnedModel, pairs: list[tuple], base_cost: list[float], steps: int = 12,
+                lr: float = 0.2, penalty: float = 0.05) -> list[float]:
+    """Fit the model's knot values through the simulator (in place): minimise `objective` over
+    `pairs` plus `penalty` times `smoothness`, by Adam for `steps` steps at `lr` (halved twice on
+    the way); the best values seen are kept. Returns the objective at every step."""
+    leaves = {t: model.w[t].clone().requires_grad_(True) for t in model.bases}
+    model.w = dict(leaves)
+    opt = torch.optim.Adam(list(leaves.values()), lr=lr)
+    sched = torch.optim.lr_scheduler.MultiStepLR(opt, [steps // 2, (3 * steps) // 4], 0.5)
+    history, best = [], (math.inf, None)
+    for step in range(steps + 1):
+        opt.zero_grad()
+        last = step == steps
+        total, _ = objective(estimator, model, pairs, base_cost, backward=not last)
+        reg = penalty * smoothness(model)
+        total += float(reg.detach())
+        history.append(total)
+        if total < best[0]:
+            best = (total, {t: v.detach().clone() for t, v in leaves.items()})
+        if not last:
+            reg.backward()
+            opt.step()
+            sched.step()
+    model.w = best[1]
+    return history
+
+
+def gradient_screen(estimator, bases: dict[Term, Basis], drive: DriveSignals, robot: Robot, pairs: list[tuple],
+                    base_cost: list[float], view: str, dig_order: str) -> dict[Term, float]:
+    """{term: the norm of the objective's gradient in its knot values at w = 0}: how fast each
+    term, alone, starts to lower the cost of the fold's fits on their neighbours' ground (one
+    simulation and backward pass per pair for all terms at once)."""
+    model = LearnedModel(bases, drive, robot, view=view, dig_order=dig_order)
+    leaves = {t: model.w[t].clone().requires_grad_(True) for t in bases}
+    model.w = dict(leaves)
+    objective(estimator, model, pairs, base_cost, backward=True)
+    return {t: float(v.grad.norm()) if v.grad is not None else 0.0 for t, v in leaves.items()}
+
+
+@dataclass
+class FoldChoice:
+    """One fold's term: the terms screened {name: gradient norm}, the trial fits {name:
+    relative objective (1: the base model)}, the chosen term (None: none gained) and its model."""
+
+    gradients: dict[str, float]
+    trials: dict[str, float]
+    term: Term | None = None
+    model: LearnedModel | None = None
+
+
+@dataclass
+class LearnedFit:
+    """The learned modifier's cross-validated result.
+
+    folds: each fold's `FoldChoice`; terms: the term both folds chose with one direction
+    (kept, else empty); held_out, residual, prediction: (W,) each window's cost under the other
+    fold's model [m] (None unless both folds chose the same term); improvement, se, held_z,
+    own_z, z: `stats.term_test` against the base model; effect: the smaller of the folds'
+    effect sizes (`effect_size`); passes: each fold's estimator pass; seconds."""
+
+    folds: tuple[FoldChoice, FoldChoice]
+    terms: list[Term] = field(default_factory=list)
+    held_out: np.ndarray | None = None
+    residual: np.ndarray | None = None
+    prediction: np.ndarray | None = None
+    improvement: float = 0.0
+    se: float = math.inf
+    held_z: float = 0.0
+    own_z: float = 0.0
+    z: float = -math.inf
+    effect: float = 0.0
+    passes: tuple = (None, None)
+    accepted: bool = False
+    seconds: float = 0.0
+
+
+def direction(basis: Basis, w) -> str:
+    """"+" where the curve ends higher than it starts over the knots, else "-"."""
+    v = basis.values(np.asarray(w.detach() if isinstance(w, torch.Tensor) else w))
+    return "+" if v[-1] - v[0] > 0 else "-"
+
+
+def effect_size(model: LearnedModel, quantile: float = 0.95) -> float:
+    """How much the model changes its parameters [-]: per term the `quantile` of |exp(f) - 1|
+    over the knots' span (the covariate's 2-98 % range, 201 points), the largest of the terms."""
+    out = 0.0
+    for term, basis in model.bases.items():
+        x = np.linspace(basis.knots[0], basis.knots[-1], 201)
+        f = basis.curve(model.w[term].detach().numpy(), x)
+        out = max(out, float(np.quantile(np.abs(np.exp(f) - 1.0), quantile)))
+    return out
+
+
+def distinct(drive: DriveSignals, bases: dict[Term, Basis], r: float = 0.98) -> dict[Term, Basis]:
+    """The terms whose covariate is not, over the ground driven, the same signal as an earlier
+    one's on the same parameter (|correlation| above r; the order of COMMON, SIDED): at a steady
+    speed the lateral acceleration is the turn rate times a constant, on a drive that never
+    speeds up the traction demand is the pitch. A term that cannot be told from another would
+    split the folds' choices between them."""
+    t = ground_times(drive)
+    x = {c: signal(drive, c, t) for c in COMMON + SIDED if c != "passes"}
+    kept: dict[Term, Basis] = {}
+    for term, basis in bases.items():
+        same = [k for k in kept if k.parameter == term.parameter and "passes" not in (k.covariate, term.covariate)
+                and abs(np.corrcoef(x[k.covariate], x[term.covariate])[0, 1]) > r]
+        if not same:
+            kept[term] = basis
+    return kept
+
+
+def choose_term(estimator, bases: dict[Term, Basis], drive: DriveSignals, robot: Robot, fits: dict, offsets,
+                view: str, dig_order: str, n_trials: int = 2, min_gain: float = 0.01,
+                steps: int = 12) -> FoldChoice:
+    """One fold's term: the `n_trials` terms of the steepest gradient (`gradient_screen`) each
+    fitted on a few of the fold's windows (8, 6 steps), the one that lowers the objective most,
+    by at least `min_gain` of the base model's, then fitted on up to 12 windows for `steps`
+    steps."""
+    small = fold_pairs(estimator, fits, offsets, max_windows=8)
+    if not small:
+        return FoldChoice({}, {})
+    small_cost = objective(estimator, LearnedModel({}, drive, robot), small)[1]
+    grads = gradient_screen(estimator, bases, drive, robot, small, small_cost, view, dig_order)
+    ranked = sorted(grads, key=lambda t: -grads[t])[:n_trials]
+    trials = {}
+    for t in ranked:
+        m = LearnedModel({t: bases[t]}, drive, robot, view=view, dig_order=dig_order)
+        trials[t] = min(fit_weights(estimator, m, small, small_cost, steps=6))
+    out = FoldChoice({t.name: g for t, g in grads.items()}, {t.name: v for t, v in trials.items()})
+    best = min(trials, key=trials.get, default=None)
+    if best is None or trials[best] > 1.0 - min_gain:
+        return out
+    pairs = fold_pairs(estimator, fits, offsets, max_windows=12)
+    model = LearnedModel({best: bases[best]}, drive, robot, view=view, dig_order=dig_order)
+    fit_weights(estimator, model, pairs, objective(estimator, LearnedModel({}, drive, robot), pairs)[1], steps)
+    out.term, out.model = best, model
+    return out
+
+
+def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=None) -> LearnedFit:
+    """The learned modifier of one drive, cross-validated (module docstring).
+
+    base: the base model's pass (fit.Pass; its rows, costs and shared windows); cfg:
+    DiagnosisConfig (block_m, offsets, min_spread). The estimator runs with a fold's model only
+    where both folds chose the same term with one direction."""
+    import time
+
+    from torchsoil.diagnosis.fit import run_pass, shared_of
+    from torchsoil.diagnosis.stats import folds, term_test
+    from torchsoil.estimate.estimator import Estimator
+
+    t0 = time.perf_counter()
+    robot, rows = pair.robot, base.rows
+    lab = folds(len(rows), int(round(cfg.block_m / est.stride)))
+    bases = distinct(drive, {t: b for t in all_terms()
+                             if (b := make_basis(t, drive, robot, min_spread=cfg.min_spread)) is not None})
+    view = base.view or "last_visit"
+    estimator = Estimator(pair, est, sim, **shared_of(base))
+    choices = []
+    for f in (0, 1):
+        if progress is not None:
+            progress.set_postfix_str(f"learned modifier, fold {f}")
+        fits = {k: th for k in np.flatnonzero(lab == f).tolist()
+                if (th := estimator.free_from_row(rows[k])) is not None}
+        choices.append(choose_term(estimator, bases, drive, robot, fits, cfg.offsets, view, sim.dig_order))
+    out = LearnedFit(tuple(choices))
+    a, b = choices
+    if a.term is None or a.term != b.term or direction(bases[a.term], a.model.w[a.term]) != direction(
+            bases[b.term], b.model.w[b.term]):
+        out.seconds = time.perf_counter() - t0
+        return out
+    passes = [run_pass(pair, est, sim, c.model, profiles=False, offsets=cfg.offsets, cache=cache, **shared_of(base))
+              for c in choices]
+    series = {}
+    for name in ("held_out", "residual", "prediction"):
+        v = np.full(len(rows), np.nan)
+        for f in (0, 1):                        # each fold's windows under the other fold's model
+            v[lab != f] = getattr(passes[f], name)[lab != f]
+        series[name] = v
+    imp, se, held_z, own_z, z = term_test(base.held_out, series["held_out"], base.residual, series["residual"])
+    return LearnedFit(out.folds, [a.term], series["held_out"], series["residual"], series["prediction"], imp, se,
+                      held_z, own_z, z, min(effect_size(c.model) for c in choices), tuple(passes),
+                      seconds=time.perf_counter() - t0)
+
+
+WORDS = {"d": "sinkage", "d_side": "the right wheels' share of the sinkage", "chi": "the deposit share",
+         "beta": "the angle of repose"}
+COVARIATE_WORDS = {"speed": "travel speed", "accel": "acceleration", "traction": "traction demand",
+                   "pitch": "pitch", "turn_rate": "turn rate", "lateral_accel": "lateral acceleration",
+                   "passes": "the passes the ground had before", "roll": "roll", "lateral_load": "lateral load"}
+ZONE_OF = {"d": "rut_floor", "d_side": "rut_floor", "chi": "berm", "beta": "rut_wall"}
+
+
+def shape(x: np.ndarray, factor: np.ndarray) -> str:
+    """The shape of a factor curve (n,) over x (n,) ascending: linear, convex or concave where
+    it is monotone (its largest distance from the chord under a tenth of its range: linear;
+    below the chord: convex, above: concave), u_shaped or peaked where it turns (by a fifth of its range)."""
+    rng = float(factor.max() - factor.min())
+    if rng <= 0:
+        return "flat"
+    lo, hi = int(np.argmin(factor)), int(np.argmax(factor))
+    ends = factor[[0, -1]]
+    if 0 < lo < len(x) - 1 and ends.min() - factor[lo] > 0.2 * rng:
+        return "u_shaped"
+    if 0 < hi < len(x) - 1 and factor[hi] - ends.max() > 0.2 * rng:
+        return "peaked"
+    chord = np.interp(x, x[[0, -1]], ends)
+    dev = factor - chord
+    if np.abs(dev).max() < 0.1 * rng:
+        return "linear"
+    return "convex" if dev.mean() < 0 else "concave"
+
+
+def catalogue_match(term: Term, sign: str) -> str | None:
+    """The catalogue term whose law a learned curve of this term and direction is (None: it is
+    none of them)."""
+    m = CATALOGUE_MATCH.get((term.parameter, term.covariate))
+    return m[0] if m is not None and sign in m[1] else None
+
+
+def describe(fit: LearnedFit, z_needed: float) -> dict:
+    """learned.json (docs/diagnosis.md): per kept term its parameter, covariate, direction,
+    shape, the factor over the covariate's 5-95 % span of the knots, the curve (the mean of the
+    folds' knot values, a log factor) and its band (the two folds' curves), the sentence, the
+    catalogue term it matches; the test (held-out gain [m], z against z_needed, own-fit z,
+    effect) and each fold's screen and trials."""
+    out = {"accepted": bool(fit.accepted), "improvement": fit.improvement, "se": fit.se, "z": fit.z,
+           "held_z": fit.held_z, "own_z": fit.own_z, "z_needed": z_needed, "effect": fit.effect,
+           "seconds": round(fit.seconds, 2), "terms": [],
+           "folds": [{"term": c.term.name if c.term else None, "gradients": c.gradients, "trials": c.trials}
+                     for c in fit.folds]}
+    for term in fit.terms:
+        basis = fit.folds[0].model.bases[term]
+        vals = np.stack([basis.values(c.model.w[term].detach().numpy()) for c in fit.folds])
+        mean = vals.mean(0)
+        x = np.linspace(basis.knots[0], basis.knots[-1], 41)
+        f = np.exp(np.interp(x, basis.knots, mean))
+        lo, hi = (float(v) for v in np.interp([0.05, 0.95], [0, 1], basis.knots[[0, -1]]))
+        ratio = float(np.exp(np.interp(hi, basis.knots, mean) - np.interp(lo, basis.knots, mean)))
+        sign = "+" if ratio > 1 else "-"
+        form = shape(x, f)
+        match = catalogue_match(term, sign)
+        verb = "rises" if sign == "+" else "falls"
+        how = {"linear": "", "convex": " convexly", "concave": " concavely"}.get(form, f" ({form.replace('_', '-')})")
+        sentence = (f"{WORDS[term.parameter]} {verb}{how} with {COVARIATE_WORDS[term.covariate]} (x{ratio:.2f} from "
+                    f"{lo:.3g} to {hi:.3g} {UNITS[term.covariate]})")
+        sentence = sentence[0].upper() + sentence[1:]
+        sentence += (f"; the law of {match}" if match else "; no catalogue term has this law")
+        out["terms"].append({"parameter": term.parameter, "covariate": term.covariate, "direction": sign,
+                             "shape": form, "factor": ratio, "from": lo, "to": hi, "unit": UNITS[term.covariate],
+                             "knots": basis.knots.tolist(), "log_factor": mean.tolist(),
+                             "band": [vals.min(0).tolist(), vals.max(0).tolist()], "catalogue_match": match,
+                             "sentence": sentence + "."})
+    return out
