@@ -13,7 +13,8 @@ from torchsoil.engines import Outcome
 from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.synth.scenario import make_terrain_pair
 
-CFG = DiagnosisConfig(n_fit=2, sections=((0.3, 1.0), (0.0, 0.5)), dig_orders=("robot", "wheel"), refine_steps=1)
+CFG = DiagnosisConfig(n_fit=2, sections=((0.3, 1.0), (0.0, 0.5)), dig_orders=("robot", "wheel"), refine_steps=1,
+                      learned=False)
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +76,7 @@ def test_the_per_visit_pass_runs_on_the_pool_beside_the_candidates(tmp_path, mon
     from torchsoil.diagnosis import phases as run_module
 
     pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
-    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
+    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1, learned=False)
     here = []
     original = run_module.run_visits
     monkeypatch.setattr(run_module, "run_visits", lambda *a, **k: here.append(1) or original(*a, **k))

@@ -19,15 +19,16 @@ a parameter that changes along the path is the soil changing, which is what the 
 parameters are for.
 
 The modifier is fitted like a catalogue term, by two-fold block cross-validation
-(`learn`): on each fold's windows, the terms whose per-window fitted parameter follows a
-covariate (`screen`, an F test of the curve against a constant) are fitted through the
-simulator by autograd (`fit_weights`): each window's base fit, scaled back to the
-covariate's reference (its parameters over exp(f) at its own ground), predicts its own ground and
-the ground 2, 4 and 6 strides back under exp(f) there; the knots minimise the relative
-cost with a penalty on their second differences. The estimator then runs over the drive
-with each fold's modifier, and the other fold's windows are scored on ground they were not
-fitted on, as for a catalogue term. A term is kept only where both folds chose it, with one
-direction.
+(`learn`). On each fold's windows, each window's base fit, scaled back to the covariate's
+reference (its parameters over exp(f) at its own ground), predicts its own ground and the
+ground 2, 4 and 6 strides back under exp(f) there (`objective`: the mean cost over the base
+model's). The terms of the steepest gradient of that objective at f = 0 (`gradient_screen`,
+autograd through the simulator) are fitted on a few windows, and the one that lowers it most
+is the fold's (`choose_term`). Where both folds chose the same term, each fold's curve is
+fitted on more of its windows with a penalty on its second differences (`fit_term`,
+`fit_weights`), the estimator runs over the drive with each fold's modifier, and the other
+fold's windows are scored on ground they were not fitted on, as for a catalogue term. The
+term is kept only where both folds' curves run in one direction.
 """
 
 from __future__ import annotations
@@ -381,12 +382,10 @@ def distinct(drive: DriveSignals, bases: dict[Term, Basis], r: float = 0.98) -> 
 
 
 def choose_term(estimator, bases: dict[Term, Basis], drive: DriveSignals, robot: Robot, fits: dict, offsets,
-                view: str, dig_order: str, n_trials: int = 2, min_gain: float = 0.01,
-                steps: int = 12) -> FoldChoice:
+                view: str, dig_order: str, n_trials: int = 2, min_gain: float = 0.01) -> FoldChoice:
     """One fold's term: the `n_trials` terms of the steepest gradient (`gradient_screen`) each
-    fitted on a few of the fold's windows (8, 6 steps), the one that lowers the objective most,
-    by at least `min_gain` of the base model's, then fitted on up to 12 windows for `steps`
-    steps."""
+    fitted on a few of the fold's windows (8, 8 steps); the one that lowers the objective most,
+    by at least `min_gain` of the base model's (None: none did)."""
     small = fold_pairs(estimator, fits, offsets, max_windows=8)
     if not small:
         return FoldChoice({}, {})
@@ -396,16 +395,21 @@ def choose_term(estimator, bases: dict[Term, Basis], drive: DriveSignals, robot:
     trials = {}
     for t in ranked:
         m = LearnedModel({t: bases[t]}, drive, robot, view=view, dig_order=dig_order)
-        trials[t] = min(fit_weights(estimator, m, small, small_cost, steps=6))
+        trials[t] = min(fit_weights(estimator, m, small, small_cost, steps=8))
     out = FoldChoice({t.name: g for t, g in grads.items()}, {t.name: v for t, v in trials.items()})
     best = min(trials, key=trials.get, default=None)
-    if best is None or trials[best] > 1.0 - min_gain:
-        return out
-    pairs = fold_pairs(estimator, fits, offsets, max_windows=12)
-    model = LearnedModel({best: bases[best]}, drive, robot, view=view, dig_order=dig_order)
-    fit_weights(estimator, model, pairs, objective(estimator, LearnedModel({}, drive, robot), pairs)[1], steps)
-    out.term, out.model = best, model
+    if best is not None and trials[best] <= 1.0 - min_gain:
+        out.term = best
     return out
+
+
+def fit_term(estimator, term: Term, basis: Basis, drive: DriveSignals, robot: Robot, fits: dict, offsets,
+             view: str, dig_order: str, steps: int = 20) -> LearnedModel:
+    """A fold's model of one term, fitted on up to 16 of its windows for `steps` steps."""
+    pairs = fold_pairs(estimator, fits, offsets, max_windows=16)
+    model = LearnedModel({term: basis}, drive, robot, view=view, dig_order=dig_order)
+    fit_weights(estimator, model, pairs, objective(estimator, LearnedModel({}, drive, robot), pairs)[1], steps)
+    return model
 
 
 def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=None) -> LearnedFit:
@@ -427,17 +431,21 @@ def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=N
                              if (b := make_basis(t, drive, robot, min_spread=cfg.min_spread)) is not None})
     view = base.view or "last_visit"
     estimator = Estimator(pair, est, sim, **shared_of(base))
-    choices = []
+    choices, fits = [], []
     for f in (0, 1):
         if progress is not None:
             progress.set_postfix_str(f"learned modifier, fold {f}")
-        fits = {k: th for k in np.flatnonzero(lab == f).tolist()
-                if (th := estimator.free_from_row(rows[k])) is not None}
-        choices.append(choose_term(estimator, bases, drive, robot, fits, cfg.offsets, view, sim.dig_order))
+        fits.append({k: th for k in np.flatnonzero(lab == f).tolist()
+                     if (th := estimator.free_from_row(rows[k])) is not None})
+        choices.append(choose_term(estimator, bases, drive, robot, fits[f], cfg.offsets, view, sim.dig_order))
     out = LearnedFit(tuple(choices))
-    a, b = choices
-    if a.term is None or a.term != b.term or direction(bases[a.term], a.model.w[a.term]) != direction(
-            bases[b.term], b.model.w[b.term]):
+    term = choices[0].term
+    if term is None or term != choices[1].term:
+        out.seconds = time.perf_counter() - t0
+        return out
+    for c, fit in zip(choices, fits, strict=True):
+        c.model = fit_term(estimator, term, bases[term], drive, robot, fit, cfg.offsets, view, sim.dig_order)
+    if direction(bases[term], choices[0].model.w[term]) != direction(bases[term], choices[1].model.w[term]):
         out.seconds = time.perf_counter() - t0
         return out
     passes = [run_pass(pair, est, sim, c.model, profiles=False, offsets=cfg.offsets, cache=cache, **shared_of(base))
@@ -449,7 +457,7 @@ def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=N
             v[lab != f] = getattr(passes[f], name)[lab != f]
         series[name] = v
     imp, se, held_z, own_z, z = term_test(base.held_out, series["held_out"], base.residual, series["residual"])
-    return LearnedFit(out.folds, [a.term], series["held_out"], series["residual"], series["prediction"], imp, se,
+    return LearnedFit(out.folds, [term], series["held_out"], series["residual"], series["prediction"], imp, se,
                       held_z, own_z, z, min(effect_size(c.model) for c in choices), tuple(passes),
                       seconds=time.perf_counter() - t0)
 

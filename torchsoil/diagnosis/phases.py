@@ -638,9 +638,9 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
 def with_learned(told: Verdict, fit: learned.LearnedFit | None, described: dict | None, base: Pass,
                  where: Located, est: EstimatorConfig, cfg: DiagnosisConfig) -> Verdict:
     """The verdict with the learned modifier: named where it was accepted and the catalogue named
-    nothing, or named a term of another law (another parameter or covariate) that the learned
-    one predicts the held-out ground better than (paired z above the two-sided level of
-    cfg.alpha_accept). The name is the catalogue term whose law the curve is
+    nothing, or named a term of another law (another parameter or covariate) whose mean
+    held-out gain the learned one's exceeds (both passed their own tests: they are told apart
+    as `by_gain` tells the catalogue's terms apart). The name is the catalogue term whose law the curve is
     (`learned.catalogue_match`), else "learned"; its parameters the factor over the
     covariate's span (`<parameter>_factor`, `<covariate>_from`, `<covariate>_to`)."""
     if fit is None or not fit.accepted:
@@ -650,7 +650,7 @@ def with_learned(told: Verdict, fit: learned.LearnedFit | None, described: dict 
     if told.verdict == "missing_physics":
         if told.best is None or match == told.named:
             return told
-        if paired_improvement(told.best.held_out, fit.held_out)[2] < z_two_sided(cfg.alpha_accept):
+        if not fit.improvement > told.best.improvement:
             return told
     s = where.s
     spans = _spans(outliers(base.held_out - fit.held_out), s - est.window / 2, s + est.window / 2)

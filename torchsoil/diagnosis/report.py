@@ -68,6 +68,29 @@ def learned_text(learned: dict, s: dict, span: str) -> str:
             f"Noise floor {_mm(s['noise_floor'])}.")
 
 
+def learned_markdown(learned: dict) -> str:
+    """report.md's section on the learned modifier: each fold's screen and choice, the kept
+    term's curve and the held-out test."""
+    lines = ["| fold | steepest terms (gradient) | trial fits (objective, base 1) | chosen |",
+             "| --- | --- | --- | --- |"]
+    for i, f in enumerate(learned["folds"]):
+        top = sorted(f["gradients"].items(), key=lambda kv: -kv[1])[:3]
+        lines.append(f"| {i} | {', '.join(f'{k} {v:.3g}' for k, v in top) or '-'} | "
+                     f"{', '.join(f'{k} {v:.3f}' for k, v in f['trials'].items()) or '-'} | {f['term'] or 'none'} |")
+    for t in learned["terms"]:
+        lines += ["", f"- {t['sentence']} Shape: {t['shape']}; knots {[round(k, 3) for k in t['knots']]} "
+                  f"{t['unit']}, factors {[round(math.exp(v), 3) for v in t['log_factor']]}."]
+    if learned["terms"]:
+        lines += ["", f"Held-out gain {_mm(learned['improvement'])} +- {_mm(learned['se'])}, z = "
+                  f"{learned['held_z']:.2f} held-out, {learned['own_z']:.2f} own fit, {learned['z']:.2f} both "
+                  f"(needed {learned['z_needed']:.2f}); effect {100 * learned['effect']:.0f} %; "
+                  + ("named." if learned.get("named") else "accepted, not named." if learned["accepted"]
+                     else "not accepted.")]
+    else:
+        lines += ["", "The folds chose no term in common: nothing learned."]
+    return "\n".join(lines)
+
+
 def learned_note(learned: dict | None) -> str:
     """A sentence on a learned modifier that was fitted but not named (short of its level, or a
     catalogue term predicted as well), else ''."""
@@ -523,6 +546,8 @@ def write_markdown(diag, path: Path, figures: dict[str, str], input_name: str) -
     rev = getattr(diag, "revisits", None)
     if rev is not None:
         lines += ["## Ground driven more than once", "", revisit_markdown(rev), ""]
+    if getattr(diag, "learned", None) is not None:
+        lines += ["## Learned modifier", "", learned_markdown(diag.learned), ""]
     lines += ["## Figures", ""]
     lines += [f"![{k}]({v})" for k, v in figures.items()]
     path.write_text("\n".join(lines) + "\n")
