@@ -165,3 +165,32 @@ def test_the_description_says_what_the_curve_follows_by_how_much():
     # factors 1, 1.40, 2 at 0, 0.2, 0.4 rad/s: below the chord (1.5 half way), a convex rise
     assert t["factor"] == pytest.approx(want) and t["shape"] == "convex"
     assert t["sentence"].startswith("Sinkage rises convexly with turn rate (x") and "no catalogue term" in t["sentence"]
+
+
+def visit_rows(beta_per_pass, n_windows=10, seed=0):
+    """Per-visit rows of windows each driven twice (2 wheel passes before the second visit),
+    beta [deg] times beta_per_pass per pass at the second, with 1 % noise."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for k in range(n_windows):
+        b0 = 30.0 * (1 + 0.01 * rng.normal())
+        for visit, n in ((0, 0), (1, 2)):
+            beta = b0 * beta_per_pass ** n * (1 + 0.01 * rng.normal())
+            rows.append({"s": 0.4 * k, "visit": visit, "passes_before": n, "beta": beta, "chi": 0.5,
+                         "residual": 1e-3, "flags": ""})
+    return rows
+
+
+def test_a_parameter_falling_with_the_passes_on_the_same_ground_is_found_and_a_steady_one_is_not():
+    falling = L.visit_test(visit_rows(0.9), "beta", alpha=0.0125, materiality=0.05)
+    assert falling["accepted"] and falling["direction"] == "-"
+    assert falling["g"] == pytest.approx(0.9, abs=0.01) and falling["windows"] == 10
+    steady = L.visit_test(visit_rows(1.0), "beta", alpha=0.0125, materiality=0.05)
+    assert not steady["accepted"] and abs(steady["g"] - 1) < 0.01
+    small = L.visit_test(visit_rows(0.98), "beta", alpha=0.0125, materiality=0.05)
+    assert not small["accepted"]                        # 2 % per pass: under the materiality
+    few = L.visit_test(visit_rows(0.9, n_windows=3), "beta", alpha=0.0125, materiality=0.05)
+    assert not few["accepted"] and few["windows"] == 3
+    desc = L.describe_visits(falling)
+    assert desc["parameter"] == "beta" and desc["direction"] == "-" and desc["catalogue_match"] is None
+    assert desc["sentence"].startswith("The angle of repose falls with the passes")

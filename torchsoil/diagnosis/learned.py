@@ -34,6 +34,7 @@ term is kept only where both folds' curves run in one direction.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +42,10 @@ import torch
 
 from torchsoil.diagnosis.catalogue import PassCounts, ground_times, visit_key
 from torchsoil.diagnosis.covariates import DriveSignals
+from torchsoil.diagnosis.fit import run_pass, shared_of
+from torchsoil.diagnosis.stats import effective_n, folds, t_z, term_test, z_two_sided
+from torchsoil.estimate.cost import weighted_l1
+from torchsoil.estimate.estimator import Estimator
 from torchsoil.robot import Robot
 from torchsoil.sim import Modifiers
 
@@ -253,8 +258,6 @@ def objective(estimator, model: LearnedModel, pairs: list[tuple], base_cost: lis
     model's cost there (`base_cost`; None: these costs are the base's, so 1 at w = 0).
     backward: accumulate the gradient into the model's knot values (pair by pair, so that one
     simulation's graph is held at a time). Returns (objective, the costs [m])."""
-    from torchsoil.estimate.cost import weighted_l1
-
     estimator.modifiers = model.modifiers
     costs, total = [], 0.0
     for i, (wd, free, tg) in enumerate(pairs):
@@ -418,12 +421,6 @@ def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=N
     base: the base model's pass (fit.Pass; its rows, costs and shared windows); cfg:
     DiagnosisConfig (block_m, offsets, min_spread). The estimator runs with a fold's model only
     where both folds chose the same term with one direction."""
-    import time
-
-    from torchsoil.diagnosis.fit import run_pass, shared_of
-    from torchsoil.diagnosis.stats import folds, term_test
-    from torchsoil.estimate.estimator import Estimator
-
     t0 = time.perf_counter()
     robot, rows = pair.robot, base.rows
     lab = folds(len(rows), int(round(cfg.block_m / est.stride)))
@@ -531,3 +528,66 @@ def describe(fit: LearnedFit, z_needed: float) -> dict:
                              "band": [vals.min(0).tolist(), vals.max(0).tolist()], "catalogue_match": match,
                              "sentence": sentence + "."})
     return out
+
+
+def visit_parameters(rows: list[dict], parameter: str) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Per window fitted at two visits or more (per-visit params.csv rows: s, visit,
+    passes_before, chi, beta [deg], residual, flags; flagged or unfitted visits left out):
+    (s [m], (V,) wheel passes before each visit, (V,) the visit's fitted `parameter`), with more
+    passes at each later visit and a positive first value."""
+    by: dict[float, list[dict]] = {}
+    for r in rows:
+        if np.isfinite(float(r["residual"])) and not r.get("flags"):
+            by.setdefault(round(float(r["s"]), 6), []).append(r)
+    out = []
+    for s, rs in sorted(by.items()):
+        rs = sorted(rs, key=lambda r: int(r["visit"]))
+        if len(rs) < 2 or int(rs[0]["visit"]) != 0:
+            continue
+        n = np.array([float(r["passes_before"]) for r in rs])
+        v = np.array([float(r[parameter]) for r in rs])
+        if v[0] > 0 and np.all(np.diff(n) > 0) and np.all(np.isfinite(v)):
+            out.append((s, n, v))
+    return out
+
+
+def visit_test(rows: list[dict], parameter: str, alpha: float, materiality: float, floor: float = 1e-3) -> dict:
+    """Does a parameter change with the passes on the same ground? Per window its log factor
+    per wheel pass between its first visit and the later ones (least squares through 0; values
+    floored at `floor`), their mean tested against 0, two-sided at `alpha`, by a t test on the
+    effective number of windows (neighbouring windows share ground). The factor per pass
+    g = exp(mean) must change the parameter by `materiality` at least. Returns {windows,
+    n_eff, g, z, z_level, accepted, direction}."""
+    wins = visit_parameters(rows, parameter)
+    out = {"parameter": parameter, "covariate": "passes", "windows": len(wins), "accepted": False}
+    if len(wins) < 4:
+        return out
+    lg = []
+    for _, n, v in wins:
+        x, y = n[1:] - n[0], np.log(np.maximum(v[1:], floor) / max(v[0], floor))
+        lg.append(float((x * y).sum() / (x * x).sum()))
+    lg = np.array(lg)
+    n_eff = effective_n(len(lg), lg)
+    sd = float(np.std(lg, ddof=1))
+    t = abs(float(lg.mean())) / max(sd / math.sqrt(n_eff), 1e-12)
+    z = t_z(t, max(n_eff - 1.0, 1.0))
+    level = z_two_sided(alpha)
+    g = math.exp(float(lg.mean()))
+    return {**out, "n_eff": n_eff, "g": g, "z": z, "z_level": level, "direction": "+" if g > 1 else "-",
+            "accepted": bool(z > level and abs(g - 1.0) >= materiality)}
+
+
+
+
+def describe_visits(test: dict) -> dict:
+    """A learned term found on the ground driven again (`visit_test`), as `describe` gives a
+    curve: the factor per wheel pass on the parameter, its direction and sentence."""
+    p, g = test["parameter"], test["g"]
+    verb = "rises" if g > 1 else "falls"
+    sentence = (f"{WORDS[p]} {verb} with {COVARIATE_WORDS['passes']} (x{g:.2f} per wheel pass, its fits at each "
+                f"visit of the same ground over {test['windows']} windows); no catalogue term has this law.")
+    return {"parameter": p, "covariate": "passes", "direction": test["direction"], "shape": "per_pass",
+            "factor": g, "from": 0.0, "to": 1.0, "unit": UNITS["passes"], "knots": [0.0, 1.0],
+            "log_factor": [0.0, math.log(g)], "band": [[0.0, math.log(g)], [0.0, math.log(g)]],
+            "catalogue_match": catalogue_match(Term(p, "passes"), test["direction"]),
+            "sentence": sentence[0].upper() + sentence[1:]}

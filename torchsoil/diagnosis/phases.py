@@ -630,33 +630,49 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
     z_need = level_z(cfg.alpha_accept, 2)
     fit.accepted = bool(fit.terms and fit.z > z_need and fit.improvement >= choice.gain_min
                         and fit.effect >= cfg.effect_materiality and fit.own_z >= -cfg.own_fit_z)
+    described = learned.describe(fit, z_need)
+    if fit.terms:
+        s = np.array([r["s"] for r in base.rows])
+        described["spans"] = _spans(outliers(base.held_out - fit.held_out), s - est.window / 2, s + est.window / 2)
+        described["after"] = {"residual": float(np.nanmean(fit.residual)),
+                              "prediction": float(np.nanmean(fit.prediction))}
+    if getattr(pair, "visit_front", None) is not None:     # the deposit and repose on ground driven again
+        rows = visit_pass(pair, est, sim, base, cache).rows
+        tests = [learned.visit_test(rows, p, cfg.alpha_accept / 4, cfg.effect_materiality) for p in ("chi", "beta")]
+        described["visits"] = tests
+        found = [t for t in tests if t["accepted"]]
+        if found and not fit.accepted:
+            t = max(found, key=lambda t: t["z"])
+            described["terms"] = [learned.describe_visits(t)]
+            described["accepted"] = True
+            wins = learned.visit_parameters(rows, t["parameter"])
+            described["spans"] = _spans(np.ones(len(wins), bool), np.array([w[0] for w in wins]) - est.window / 2,
+                                        np.array([w[0] for w in wins]) + est.window / 2)
     if progress is not None:
         progress.update(1)
-    return fit, learned.describe(fit, z_need)
+    return fit, described
 
 
-def with_learned(told: Verdict, fit: learned.LearnedFit | None, described: dict | None, base: Pass,
-                 where: Located, est: EstimatorConfig, cfg: DiagnosisConfig) -> Verdict:
+def with_learned(told: Verdict, fit: learned.LearnedFit | None, described: dict | None) -> Verdict:
     """The verdict with the learned modifier: named where it was accepted and the catalogue named
     nothing, or named a term of another law (another parameter or covariate) whose mean
     held-out gain the learned one's exceeds (both passed their own tests: they are told apart
-    as `by_gain` tells the catalogue's terms apart). The name is the catalogue term whose law the curve is
-    (`learned.catalogue_match`), else "learned"; its parameters the factor over the
-    covariate's span (`<parameter>_factor`, `<covariate>_from`, `<covariate>_to`)."""
-    if fit is None or not fit.accepted:
+    as `by_gain` tells the catalogue's terms apart); a parameter that changes between the
+    visits of the same ground (`learned.visit_test`) only where nothing is named. The name is
+    the catalogue term whose law the curve is (`learned.catalogue_match`), else "learned"; its
+    parameters the factor over the covariate's span (`<parameter>_factor`, `<covariate>_from`, `<covariate>_to`)."""
+    if described is None or not described["accepted"]:
         return told
     term = described["terms"][0]
     match = term["catalogue_match"]
     if told.verdict == "missing_physics":
-        if told.best is None or match == told.named:
+        if told.best is None or match == told.named or not fit.accepted:
             return told
         if not fit.improvement > told.best.improvement:
             return told
-    s = where.s
-    spans = _spans(outliers(base.held_out - fit.held_out), s - est.window / 2, s + est.window / 2)
+    spans, after = described["spans"], described.get("after", told.before)
     located = told.verdict == "unexplained" and told.cross != "mixed"
     cross = told.cross if located else learned.ZONE_OF[term["parameter"]]
-    after = {"residual": float(np.nanmean(fit.residual)), "prediction": float(np.nanmean(fit.prediction))}
     params = {f"{term['parameter']}_factor": round(term["factor"], 4), f"{term['covariate']}_from": term["from"],
               f"{term['covariate']}_to": term["to"]}
     described["named"] = True
@@ -732,7 +748,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     told = name_cause(base, choice.best, revisit, est.window,
                       *location_verdict(pair, cfg, est, base, drive, where, choice.best))
     fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, progress, cache)
-    told = with_learned(told, fit, described, base, where, est, cfg)
+    told = with_learned(told, fit, described)
     return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told, described)
 
 

@@ -59,6 +59,12 @@ def learned_text(learned: dict, s: dict, span: str) -> str:
     t = learned["terms"][0]
     name = (f"the law of {t['catalogue_match']}" if t["catalogue_match"] else
             "a law no catalogue term has (missing_physics: learned)")
+    if t["shape"] == "per_pass":
+        v = next(v for v in learned["visits"] if v["parameter"] == t["parameter"])
+        return (f"The base model leaves out {name}. {t['sentence']} Each visit of the ground driven again was "
+                f"fitted on its own maps: the factor per pass is tested across the windows paired visit by visit "
+                f"(z = {v['z']:.1f} against {v['z_level']:.1f}, {v['n_eff']:.0f} effective windows). It matters "
+                f"at {span}. Noise floor {_mm(s['noise_floor'])}.")
     return (f"The base model leaves out {name}. {t['sentence']} A learned modifier (the parameter times exp of a "
             f"curve of the covariate, fitted through the simulator on each fold's windows and scored on the "
             f"other fold's) lowers the cost of predicting held-out ground from {_mm(s['cost_before']['prediction'])} "
