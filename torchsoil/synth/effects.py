@@ -28,7 +28,7 @@ names; its direction is the sign of k, phi rising with x): a correct diagnosis n
 `missing_physics: learned` with that parameter, covariate and direction (`expected`). tread
 is not such a law (the verdict is `unexplained`). pass_loosening counts, like hardening under
 dig order "robot", the visits before whose footprints covered the cell, and sets the angle the
-visit's digs relax to (the moved soil's and, in cohesive soil, the intact ground's stays).
+visit's digs relax to (in cohesive soil the moved soil's; the intact ground keeps its own).
 """
 
 from __future__ import annotations
