@@ -7,7 +7,7 @@
     (each command that takes a bag also: --front-topic, --back-topic, --imu-topic, --extrinsic)
     torchsoil export RUN --out DIR [--anchor LAT,LON,HEADING_DEG] [--formats geotiff gpkg mcap]
     torchsoil record --scenario NAME --out PATH [--pair-only [--realistic]] [--convention C] [--no-imu] [--session K]
-    torchsoil study [--quick | --randomized N [--null M] | --foreign DIR] [--out DIR] [--engine local|ray]
+    torchsoil study [--quick | --randomized N [--null M] [--learned L] | --foreign DIR] [--out DIR] [--engine local|ray]
     torchsoil rollout --out DIR
     torchsoil bench [--only sim estimator] [--quick]
     torchsoil settings [SECTION ...]          # the effective settings as YAML
@@ -306,6 +306,10 @@ def _add_study(sub) -> None:
     mode.add_argument("--foreign", type=Path, metavar="DIR", help="directory of foreign terrain pairs")
     p.add_argument("--null", type=int, default=20, metavar="M", help="with --randomized: M null drives (default 20)")
     p.add_argument("--seed", type=int, default=0, help="with --randomized: study seed")
+    p.add_argument("--learned", type=int, default=0, metavar="L",
+                   help="with --randomized: also L drives with a random law outside the catalogue that a learned "
+                        "modifier names (chi with speed, d with turn rate, beta with passes; default 0), scored on "
+                        "the parameter, covariate and direction named")
     p.add_argument("--revisits", action="store_true",
                    help="with --randomized: only its drives over their own ruts (out-and-back, loop, lane changes; "
                         "hardening and null drives), with the visit layers of a pipeline that keeps every visit")
@@ -584,7 +588,8 @@ def cmd_study(args) -> int:
     from torchsoil.jobs.study import study
 
     print(study(_settings(args), args.out, quick=args.quick, randomized=args.randomized, null=args.null,
-                seed=args.seed, revisits=args.revisits, foreign=args.foreign, redraws=args.redraws,
+                seed=args.seed, revisits=args.revisits, learned=args.learned, foreign=args.foreign,
+                redraws=args.redraws,
                 threads=args.threads, engine=args.engine, workers=args.workers, address=args.ray_address))
     return 0
 

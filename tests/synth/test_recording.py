@@ -60,6 +60,15 @@ def test_bag_layout_and_sidecars(rec):
     assert stats["points"] > 1e5
 
 
+def test_truth_states_the_expected_verdict_in_the_foreign_truth_s_shape(rec):
+    from torchsoil.synth.truthfile import load_truth
+
+    out, _, _ = rec
+    truth = load_truth(out)
+    assert truth.meta["expected"] == truth.expected == {"verdict": "adequate", "missing_physics": None,
+                                                        "cross_track": None, "covariate": None}
+
+
 def test_tf_static_holds_the_extrinsics(rec):
     out, _, msgs = rec
     (t, typ, msg), = msgs["/tf_static"]

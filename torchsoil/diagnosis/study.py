@@ -35,6 +35,7 @@ from torchsoil.diagnosis.report import mean_sinkage
 from torchsoil.diagnosis.stats import SAME, by_fold, fold_choice, folds, gain_material, term_test
 from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.settings import DiagnosisConfig, Settings
+from torchsoil.synth import effects as fx
 from torchsoil.synth.scenario import make_terrain_pair
 
 CHANGED = 1e-3  # m: a cell's ground changed where the noise-free |H_b - H_f| exceeds this (model error zone)
@@ -51,15 +52,75 @@ def _append(out: Path, rec: dict) -> None:
         f.write(json.dumps(rec) + "\n")
 
 
-def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: float, **extra) -> dict:
+def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: float,
+            want_learned: dict | None = None, **extra) -> dict:
     """One line of cases.jsonl: the diagnosis' verdict against the truth, with each candidate's
-    held-out test (`held_out_tests`) and the numbers behind it (`held_out_series`)."""
+    held-out test (`held_out_tests`) and the numbers behind it (`held_out_series`).
+
+    For a law outside the catalogue that a learned modifier describes (want_id "learned",
+    want_learned its parameter, covariate and direction: `wanted_term`) the record also keeps
+    the diagnosis' `learned` section and `learned_match` (`learned_match` of its `named_terms`),
+    and it is `correct` where the verdict is right and a named term agrees in all three (a
+    catalogue id counts where its term is the wanted one: slip_sinkage for d following traction
+    upwards); otherwise `correct` wants the verdict and the id."""
     s = diag.summary
+    match = learned_match(want_learned, named_terms(s)) if want_learned is not None else None
+    right_id = match["right"] if match is not None else s["missing_physics"] == want_id
     return {"case": name, "want": want_verdict, "want_id": want_id, "verdict": s["verdict"],
             "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
             "cost_before": s["cost_before"], "cost_after": s["cost_after"], "noise_floor": s.get("noise_floor"),
-            "correct": s["verdict"] == want_verdict and s["missing_physics"] == want_id, "seconds": seconds,
+            "correct": s["verdict"] == want_verdict and right_id, "seconds": seconds,
+            "want_learned": want_learned, "learned": s.get("learned"), "learned_match": match,
             "tests": held_out_tests(diag), "series": held_out_series(diag), "revisits": revisit_test(diag), **extra}
+
+
+# a catalogue term named is a learned modifier of these (parameter, covariate), its direction
+# the sign of its fitted coefficient (as learned.CATALOGUE_MATCH pairs them)
+CATALOGUE_TERMS: dict[str, tuple[str, tuple[tuple[str, str], ...]]] = {
+    "speed_dependent_sinkage": ("k_speed", (("d", "speed"),)),
+    "slip_sinkage": ("k_slip", (("d", "traction"), ("d", "accel"))),
+    "lateral_load_transfer": ("k_lateral", (("d_side", "lateral_load"), ("d_side", "roll"))),
+    "multi_pass_hardening": ("k_pass", (("d", "passes"),)),
+}
+TERM_KEYS = ("parameter", "covariate", "direction")
+
+
+def wanted_term(expected: dict | None) -> dict | None:
+    """{parameter, covariate, direction} a truth's `expected` (effects.expected, a foreign
+    truth's) wants a learned modifier to name; None unless its missing_physics is "learned"."""
+    if not expected or expected.get("missing_physics") != "learned":
+        return None
+    return {k: expected.get(k) for k in TERM_KEYS}
+
+
+def named_terms(summary: dict) -> list[dict]:
+    """The learned terms a diagnosis (its summary, diagnosis.json) names: its `learned.terms`
+    ({parameter, covariate, direction, ...}) and, where its verdict names a catalogue id of
+    CATALOGUE_TERMS with a fitted coefficient, that term's (parameter, covariate) pairs with the
+    coefficient's sign as direction (`from`: the id)."""
+    terms = [dict(t) for t in ((summary.get("learned") or {}).get("terms") or [])]
+    eid = summary.get("missing_physics")
+    if summary.get("verdict") == "missing_physics" and eid in CATALOGUE_TERMS:
+        name, pairs = CATALOGUE_TERMS[eid]
+        k = (summary.get("extension_parameters") or {}).get(name)
+        if k is not None:
+            terms += [{"parameter": p, "covariate": c, "direction": "-" if k < 0 else "+", "from": eid}
+                      for p, c in pairs]
+    return terms
+
+
+def learned_match(want: dict, terms: list[dict]) -> dict:
+    """How the named terms agree with the wanted {parameter, covariate, direction}: of the term
+    that agrees most (covariate first, then direction, then parameter) whether its covariate
+    agrees, its direction (counted only on the right covariate), its parameter, `right` all
+    three, and the `term` itself (None, and all False, where no term was named)."""
+    def score(t):
+        cov = t.get("covariate") == want["covariate"]
+        return cov, cov and t.get("direction") == want["direction"], t.get("parameter") == want["parameter"]
+
+    best = max(terms, key=score, default=None)
+    cov, dirn, par = score(best) if best is not None else (False, False, False)
+    return {"covariate": cov, "direction": dirn, "parameter": par, "right": cov and dirn and par, "term": best}
 
 
 def revisit_test(diag) -> dict | None:
@@ -163,15 +224,17 @@ def retest(rec: dict, block_m: float = _DIAG.block_m, stride: float = 0.4, alpha
 def study_case(case: tuple, settings: Settings) -> dict:
     """The record of one (name, scenario, seed, verdict, id) case: its drive made (with visit
     layers where it drives over its own ruts, as a pipeline keeping every visit writes them)
-    and diagnosed (`_record`), with the world's effect law, the tyre and measurement draws and
-    the drive's length [m]."""
+    and diagnosed (`_record`; for id "learned" the term wanted is the law's, effects.expected),
+    with the world's effect law, the tyre and measurement draws and the drive's length [m]."""
     name, scn, seed, want_verdict, want_id = case
+    law = scn.get("effects", {}) if isinstance(scn, dict) else scn.effects
+    want_learned = wanted_term(fx.expected(fx.resolve(law))) if want_id == "learned" else None
     t0 = time.perf_counter()
     data = make_terrain_pair(scn, seed=seed, visits=True)
     pair = TerrainPair.from_mapping(data)
     diag = diagnose(pair, settings.diagnosis, settings.estimator, settings.sim)
     xy = pair.poses[:, 1:3]
-    return _record(name, diag, want_verdict, want_id, time.perf_counter() - t0, seed=seed,
+    return _record(name, diag, want_verdict, want_id, time.perf_counter() - t0, want_learned, seed=seed,
                    law=scn.get("effects", {}) if isinstance(scn, dict) else {},
                    nuisances=json.loads(str(data["nuisances"])),
                    length_m=float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()))
@@ -220,15 +283,51 @@ def _label(verdict, eid):
     return eid if verdict == "missing_physics" else verdict
 
 
+def _term_label(t: dict) -> str:
+    return f"learned {t.get('parameter')}~{t.get('covariate')}{t.get('direction')}"
+
+
+def _truth_label(r: dict) -> str:
+    return _term_label(r["want_learned"]) if r.get("want_learned") else _label(r["want"], r["want_id"])
+
+
+def _verdict_label(r: dict) -> str:
+    """The verdict's column: the truth's own where a learned term was right; a learned verdict
+    by its (best-matching, else first) term; otherwise the id or the verdict."""
+    m = r.get("learned_match")
+    if m is not None and m["right"]:
+        return _truth_label(r)
+    if r["verdict"] == "missing_physics" and r["id"] == "learned":
+        t = (m or {}).get("term") or next(iter((r.get("learned") or {}).get("terms") or []), None)
+        return _term_label(t) if t else "learned"
+    return _label(r["verdict"], r["id"])
+
+
+def _named_right(r: dict) -> bool:
+    m = r.get("learned_match")
+    return m["right"] if m is not None else r["id"] == r["want_id"]
+
+
 def error_rates(records: list[dict]) -> dict:
     """false_alarms / nulls: drives without missing physics (expected `adequate`) given
-    another verdict; wrong_id: drives with an effect where a catalogue id was named that is
-    not the true one (out-of-catalogue effects included; a null drive named is a false alarm,
-    counted there); seconds_per_case: mean wall time."""
+    another verdict (a learned term named included); wrong_id: drives with an effect where an
+    id was named that is not the true one (out-of-catalogue effects included; for a learned
+    law, a name whose term is not the wanted one, `learned_match`; a null drive named is a false
+    alarm, counted there); learned: drives with a learned law, learned_right those named right
+    and learned_covariate, learned_direction, learned_parameter those whose best-matching term
+    (`learned_match`) had that right (on a missing_physics verdict); seconds_per_case: mean wall
+    time."""
     nulls = [r for r in records if r["want"] == "adequate"]
+    learned = [r for r in records if r.get("want_learned")]
+
+    def got(r, key):
+        return r["verdict"] == "missing_physics" and bool((r.get("learned_match") or {}).get(key))
+
     return {"nulls": len(nulls), "false_alarms": sum(r["verdict"] != "adequate" for r in nulls),
-            "wrong_id": sum(r["verdict"] == "missing_physics" and r["id"] != r["want_id"]
+            "wrong_id": sum(r["verdict"] == "missing_physics" and not _named_right(r)
                             for r in records if r["want"] != "adequate"),
+            "learned": len(learned), "learned_right": sum(bool(r["correct"]) for r in learned),
+            **{f"learned_{k}": sum(got(r, k) for r in learned) for k in TERM_KEYS},
             "seconds_per_case": float(np.mean([r["seconds"] for r in records])) if records else math.nan}
 
 
@@ -237,7 +336,7 @@ def confusion(records: list[dict]) -> str:
     null drives and the count of wrong ids named; and the case list."""
     counts: dict[str, Counter] = {}
     for r in records:
-        counts.setdefault(_label(r["want"], r["want_id"]), Counter())[_label(r["verdict"], r["id"])] += 1
+        counts.setdefault(_truth_label(r), Counter())[_verdict_label(r)] += 1
     cols = sorted({c for v in counts.values() for c in v})
     lines = ["| truth \\ verdict | " + " | ".join(cols) + " | right |", "|" + " --- |" * (len(cols) + 2)]
     for t, c in sorted(counts.items()):
@@ -247,11 +346,16 @@ def confusion(records: list[dict]) -> str:
     rate = f"{e['false_alarms'] / e['nulls']:.2f}" if e["nulls"] else "n/a"
     lines += ["", f"right: {right}/{len(records)}",
               f"false alarms on null drives: {e['false_alarms']}/{e['nulls']} (rate {rate})",
-              f"wrong id named: {e['wrong_id']}", f"time per case: {e['seconds_per_case']:.0f} s", "",
+              f"wrong id named: {e['wrong_id']}"]
+    if e["learned"]:
+        n = e["learned"]
+        lines.append(f"learned laws named right: {e['learned_right']}/{n} (covariate {e['learned_covariate']}/{n}, "
+                     f"direction {e['learned_direction']}/{n}, parameter {e['learned_parameter']}/{n})")
+    lines += [f"time per case: {e['seconds_per_case']:.0f} s", "",
               "| case | verdict | parameters | prediction before -> after [mm] | z (needed) |",
               "| --- | --- | --- | --- | --- |"]
     for r in records:
-        lines.append(f"| {r['case']} | {_label(r['verdict'], r['id'])} | {r['parameters']} | "
+        lines.append(f"| {r['case']} | {_verdict_label(r)} | {r['parameters']} | "
                      f"{1e3 * r['cost_before']['prediction']:.3f} -> {1e3 * r['cost_after']['prediction']:.3f} | "
                      f"{_margin(r)} |")
     return "\n".join(lines) + "\n"
@@ -259,7 +363,12 @@ def confusion(records: list[dict]) -> str:
 
 def _margin(r: dict) -> str:
     """The z of the true term against the z it needed (of the nearest to acceptance
-    when the drive has no catalogue effect), '-' for records without tests."""
+    when the drive has no catalogue effect), '-' for records without tests; for a learned law
+    the best-matching term named and its held-out gain."""
+    if r.get("want_learned"):
+        t = (r.get("learned_match") or {}).get("term")
+        gain = (t or {}).get("held_out_gain")
+        return "no term named" if t is None else _term_label(t) + ("" if gain is None else f" gain {gain:.3g}")
     tests = r.get("tests")
     if tests is None:
         return "-"
@@ -398,7 +507,9 @@ def truth_coefficients(truth: dict) -> dict[str, float]:
 
 
 def foreign_case(directory: Path, name: str, settings: Settings, redraws: int = 0) -> dict:
-    """The record of one foreign pair: its diagnosis, the truth's coefficients and, with
+    """The record of one foreign pair: its diagnosis (scored as `_record` does, a truth whose
+    `expected` says missing_physics "learned" on its parameter, covariate and direction), the
+    truth's coefficients and, with
     noise-free surfaces, the model error fitted to the pair and to the surfaces [mm], and
     fitted to `redraws` other draws of the pair's noise (`redraw_noise`, seeded by the name)."""
     t0 = time.perf_counter()
@@ -418,7 +529,8 @@ def foreign_case(directory: Path, name: str, settings: Settings, redraws: int = 
         extra["model_error_fitted_mm"] = 1e3 * model_error(simulated_back(with_section(pair, sec), fitted), clean)
         extra["model_error_fitted_clean_mm"] = 1e3 * model_error(
             simulated_back(with_section(clean, sec), fitted), clean)
-    return _record(name, diag, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0, **extra)
+    return _record(name, diag, exp["verdict"], exp.get("missing_physics"), time.perf_counter() - t0,
+                   wanted_term(exp), **extra)
 
 
 def _median_d(rows: list[dict]) -> float:

@@ -14,18 +14,20 @@ from torchsoil.settings import Settings
 
 
 def study(settings: Settings, out: str | Path | None = None, *, quick: bool = False, randomized: int | None = None,
-          null: int = 20, seed: int = 0, revisits: bool = False, foreign: str | Path | None = None,
+          null: int = 20, seed: int = 0, revisits: bool = False, learned: int = 0, foreign: str | Path | None = None,
           redraws: int = 0, threads: int | None = None, engine: str | None = None, workers: int | None = None,
           address: str | None = None) -> str:
     """The study's confusion table (Markdown; also OUT/confusion.md, OUT/cases.jsonl one line per
     drive, and a rerun resumes). Default: the fixed synthetic cases (`quick`: one per kind);
-    `randomized` N drives with a random effect plus `null` null drives (`revisits`: only those
-    over their own ruts); `foreign`: the terrain pairs of another simulator in that folder, with
-    `redraws` other draws of each pair's noise. With any of engine, workers, address, each drive
+    `randomized` N drives with a random effect plus `learned` drives with a random law outside
+    the catalogue that a learned modifier names (speed_deposit, turn_scrub, pass_loosening)
+    plus `null` null drives (`revisits`: only those over their own ruts); `foreign`: the
+    terrain pairs of another simulator in that folder, with `redraws` other draws of each
+    pair's noise. With any of engine, workers, address, each drive
     is a task on that engine (settings.fleet's CPUs and memory each); otherwise all run here
     with `threads` torch threads."""
-    if revisits and randomized is None:
-        raise ValueError("--revisits selects among --randomized N drives")
+    if (revisits or learned) and randomized is None:
+        raise ValueError("--revisits and --learned go with --randomized N")
     if redraws < 0 or (redraws and foreign is None):
         raise ValueError(f"--redraws {redraws}: a count >= 0, and only with --foreign")
     on_engine = any(v is not None for v in (engine, workers, address))
@@ -37,7 +39,7 @@ def study(settings: Settings, out: str | Path | None = None, *, quick: bool = Fa
             return run_foreign(Path(foreign), Path(out or "out/diagnosis_study_foreign"), settings, engine=eng,
                                redraws=redraws)
         if randomized is not None:
-            cases = randomized_cases(randomized, null, seed)
+            cases = randomized_cases(randomized, null, seed, learned)
             cases = revisit_cases(cases) if revisits else cases
             return run_study(cases, Path(out or "out/diagnosis_study_randomized"), settings, engine=eng)
         cases = STUDY_CASES[::3] if quick else STUDY_CASES

@@ -18,6 +18,17 @@ under the base model's conditions, with a choosable functional form phi:
 | cohesive_walls | c0 + soil moisture | tan(beta) where the ground has not moved (native, cut; moved soil: beta) |
 | footprint_width | local d / d_ref | footprint radius |
 | tread (out of catalogue) | wheel arc length s | extra floor depth amp (1 + cos(2 pi s / wavelength)) / 2 |
+| speed_deposit (out of catalogue) | v / v_ref - 1 | deposit share chi, within [0, 1] |
+| turn_scrub (out of catalogue) | abs(yaw rate) / r_ref | sinkage d |
+| pass_loosening (out of catalogue) | passes before (0 on the first) | angle of repose beta, within 89 deg |
+
+The last three are laws outside the catalogue that a learned modifier exp(f(covariate)) on one
+model parameter can describe (LEARNED: the parameter and the covariate, in the learned stage's
+names; its direction is the sign of k, phi rising with x): a correct diagnosis names them
+`missing_physics: learned` with that parameter, covariate and direction (`expected`). tread
+is not such a law (the verdict is `unexplained`). pass_loosening counts, like hardening under
+dig order "robot", the visits before whose footprints covered the cell, and sets the angle the
+visit's digs relax to (in cohesive soil the moved soil's; the intact ground keeps its own).
 """
 
 from __future__ import annotations
@@ -28,7 +39,10 @@ import numpy as np
 
 CATALOGUE = ("multi_pass_hardening", "speed_dependent_sinkage", "slip_sinkage",
              "lateral_load_transfer", "cohesive_walls", "footprint_width")
-OUT_OF_CATALOGUE = ("tread",)
+# out-of-catalogue laws a learned modifier describes: (parameter, covariate) it acts on and follows
+LEARNED: dict[str, tuple[str, str]] = {"speed_deposit": ("chi", "speed"), "turn_scrub": ("d", "turn_rate"),
+                                       "pass_loosening": ("beta", "passes")}
+OUT_OF_CATALOGUE = ("tread", *LEARNED)
 EFFECTS = CATALOGUE + OUT_OF_CATALOGUE
 FORMS = ("linear", "power", "saturating", "threshold")
 # what a diagnosis should find for each effect (docs/formats.md section 4 `where`): the signal the
@@ -41,6 +55,9 @@ SIGNATURES: dict[str, dict] = {
     "cohesive_walls": {"covariate": None, "cross_track": "rut_wall"},
     "footprint_width": {"covariate": None, "cross_track": "rut_wall"},
     "tread": {"covariate": "along_track_period", "cross_track": "rut_floor"},
+    "speed_deposit": {"covariate": "speed", "cross_track": "berm"},
+    "turn_scrub": {"covariate": "turn_rate", "cross_track": "rut_floor"},
+    "pass_loosening": {"covariate": "passes", "cross_track": "rut_wall"},
 }
 G = 9.81  # m/s^2
 
@@ -52,6 +69,9 @@ DEFAULTS: dict[str, dict] = {
     "cohesive_walls": {"form": "linear", "k": 0.8, "p": 1.0, "x_s": 1.0, "c0": 1.0},
     "footprint_width": {"form": "linear", "k": 0.5, "p": 1.0, "x_s": 1.0, "d_ref": 0.05},
     "tread": {"amp": 0.007, "wavelength": 0.2},
+    "speed_deposit": {"form": "linear", "k": 0.8, "p": 1.0, "x_s": 0.5, "v_ref": 1.0},
+    "turn_scrub": {"form": "linear", "k": 0.6, "p": 1.0, "x_s": 1.0, "r_ref": 0.5},
+    "pass_loosening": {"form": "linear", "k": -0.3, "p": 1.0, "x_s": 1.0},
 }
 
 
@@ -122,7 +142,50 @@ def pose_depth_factor(effects: dict[str, dict], speed, accel, pitch, roll, yaw_r
         side = np.sign(wheels_y)[:, None]                            # +1 left, -1 right
         shift = 2 * e["h_cg"] / track_width * (a_lat / G + np.sin(np.asarray(roll)))[None]
         f = f * factor(-side * shift, e)
+    if "turn_scrub" in effects:
+        e = effects["turn_scrub"]
+        f = f * factor(np.abs(np.asarray(yaw_rate)) / e["r_ref"], e)[None]
     return f
+
+
+def deposit_share(effects: dict[str, dict], chi, speed):
+    """The deposit share where the soil is dug at travel speed `speed` [m/s] (arrays that
+    broadcast): chi x factor(v / v_ref - 1) within [0, 1] under speed_deposit; chi itself
+    (the same object) without it."""
+    if "speed_deposit" not in effects:
+        return chi
+    e = effects["speed_deposit"]
+    return np.clip(np.asarray(chi) * factor(np.asarray(speed) / e["v_ref"] - 1.0, e), 0.0, 1.0)
+
+
+def repose_tan_beta(effects: dict[str, dict], beta: np.ndarray, tan_beta: np.ndarray, passes_before
+                    ) -> np.ndarray:
+    """tan of the angle of repose the digs of a visit relax to, for cells whose footprints
+    covered them in `passes_before` earlier visits: tan(beta x factor(passes before)), beta
+    [rad] within 89 deg, under pass_loosening; tan_beta itself (the same object) without it."""
+    if "pass_loosening" not in effects:
+        return tan_beta
+    e = effects["pass_loosening"]
+    b = np.asarray(beta) * factor(np.asarray(passes_before, dtype=np.float64), e)
+    return np.tan(np.minimum(b, math.radians(89.0)))
+
+
+def expected(effects: dict[str, dict]) -> dict:
+    """What a correct diagnosis says of a world with these effects (`resolve`d), in the shape
+    of a foreign truth's `expected` (docs/formats.md section 4): verdict, missing_physics,
+    cross_track and covariate (SIGNATURES); for a learned law (LEARNED) missing_physics
+    "learned" and also the parameter and the direction ("+" where the parameter grows with the
+    covariate: k >= 0). With several effects the first catalogue one, else the first learned."""
+    none = {"verdict": "adequate", "missing_physics": None, "cross_track": None, "covariate": None}
+    cat = [e for e in effects if e in CATALOGUE]
+    if cat:
+        return {"verdict": "missing_physics", "missing_physics": cat[0], **SIGNATURES[cat[0]]}
+    learned = [e for e in effects if e in LEARNED]
+    if learned:
+        eid = learned[0]
+        return {"verdict": "missing_physics", "missing_physics": "learned", **SIGNATURES[eid],
+                "parameter": LEARNED[eid][0], "direction": "-" if effects[eid]["k"] < 0 else "+"}
+    return {**none, "verdict": "unexplained"} if effects else none
 
 
 def pass_depth_factor(effects: dict[str, dict], pass_index: np.ndarray) -> np.ndarray | float:

@@ -11,7 +11,8 @@ Files written for `make_recording(..., out=PATH)`::
                           fields, true poses, time of last wheel passage, and on ground driven
                           twice or more the noise-free visit layers (tools under test must not
                           read it)
-    PATH.truth.json       scenario, effects and parameters, seed, extrinsics, clock, and the
+    PATH.truth.json       scenario, effects and parameters, seed, the verdict a correct
+                          diagnosis gives (`expected`, effects.expected), extrinsics, clock, and the
                           datum tying the world to UTM (`datum`: epsg, east, north, yaw,
                           scale, up, as torchsoil.geo.georef.Georef)
 
@@ -362,8 +363,8 @@ def write_sidecars(truth: Truth, out: Path, seed: int, specs: list[LidarSpec] | 
         "catalogue_effects": [e for e in eff if e in fx.CATALOGUE],
         "out_of_catalogue_effects": [e for e in eff if e in fx.OUT_OF_CATALOGUE],
         "effect_signatures": {e: fx.SIGNATURES[e] for e in eff},
-        "expected_verdict": ("adequate" if not eff else "unexplained" if all(e in fx.OUT_OF_CATALOGUE for e in eff)
-                             else "missing_physics"),
+        "expected_verdict": fx.expected(eff)["verdict"],
+        "expected": fx.expected(eff),
         "scenario_spec": truth.scenario.model_dump(mode="json"),
         "bag_time_of_t0_ns": bag_t0_ns(truth),
         "time_note": "truth and pair pose times t are seconds after bag_time_of_t0_ns",

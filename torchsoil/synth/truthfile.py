@@ -20,7 +20,7 @@ class TruthFile:
     pass_time (V, X, Y) s at which base_link passed closest in it, n_visits, t_last_wheel,
     poses (N, 7), soil_d / soil_chi / soil_beta / soil_moisture, cylinders, boxes, and where a
     cell was visited twice or more the noise-free visit_front / visit_back (V, X, Y) m, ...);
-    meta: PATH.truth.json (scenario, seed, effects, extrinsics, clock)."""
+    meta: PATH.truth.json (scenario, seed, effects, expected, extrinsics, clock)."""
 
     grid: Grid
     arrays: dict[str, np.ndarray]
@@ -33,6 +33,15 @@ class TruthFile:
     def t0(self) -> float:
         """Bag time [s] of truth time 0."""
         return self.meta["bag_time_of_t0_ns"] / 1e9
+
+    @property
+    def expected(self) -> dict:
+        """What a correct diagnosis says of the recording (`effects.expected`: verdict,
+        missing_physics, cross_track, covariate, and for a learned law parameter and direction),
+        from the JSON's `expected` (older files: worked out from its `effects`)."""
+        from torchsoil.synth import effects as fx
+
+        return self.meta.get("expected") or fx.expected(self.meta.get("effects") or {})
 
     @property
     def scenario(self):

@@ -209,7 +209,9 @@ def simulate_world(grid: Grid, h0: np.ndarray | SoilState, traj: Trajectory, rob
         held.lay(h, sel, dug)
         loose[:] += h - laid                # deposits are loose soil (cohesive soil's state)
         _forget(lead_held, sel, dug)        # laid on h above; the next visit's turns start from h
-        _relax_box(h, loose, sel, tan_beta, tan_intact if cohesive else None, dx, config)
+        # pass_loosening: the angle these digs relax to follows the visits before (not yet this one)
+        _relax_box(h, loose, sel, fx.repose_tan_beta(eff, sf["beta"], tan_beta, dug_visits),
+                   tan_intact if cohesive else None, dx, config)
         done = sel.copy()
         pending[done] = False
         dug_visits[done] += dug[done]
@@ -284,8 +286,10 @@ def simulate_world(grid: Grid, h0: np.ndarray | SoilState, traj: Trajectory, rob
         if "tread" in eff:          # a lug marks the cell where the wheel's centre passes it
             depth = depth + fx.tread_depth(eff, geom["arc"])
 
+        # speed_deposit: per wheel-cell, the share at the speed of the pose nearest it
+        chi = fx.deposit_share(eff, sf["chi"][win], sp[pidx])
         h[win], deposits, covered, domain, targets = _step(h[win], ref, geom, radius0 * rscale, robot, depth,
-                                                           sf["chi"][win], config, section, first=idx[0] == 0,
+                                                           chi, config, section, first=idx[0] == 0,
                                                            final=idx[-1] == len(traj.poses) - 1)
         _advance_turns(lead, win, turn, targets, turn_dug, covered)
         held.add(deposits, (i0, j0), grid.shape)
@@ -559,8 +563,8 @@ def chunk_geometry(grid: Grid, poses: np.ndarray, wxy: np.ndarray, reach: float,
 def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config: WorldConfig,
           section: str = "taper", first: bool = True, final: bool = True):
     """Sinkage and deposition of one chunk on window arrays (X, Y) [m]; h_ref (X, Y) or per
-    wheel (K, X, Y) [m]; depth (K, X, Y) [m], chi (X, Y) the soil's displacement-compaction
-    ratio where the soil is dug.
+    wheel (K, X, Y) [m]; depth (K, X, Y) [m], chi (X, Y), or per wheel (K, X, Y), the soil's
+    displacement-compaction ratio where the soil is dug.
 
     Sinkage h <- min(h, h_ref - s * depth) over each footprint; the height removed under
     each wheel goes, times the local chi, to the band of width config.band_width cells
@@ -584,7 +588,8 @@ def _step(h, h_ref, geom: dict, radius: float, robot: Robot, depth, chi, config:
     owner = covered & (np.arange(len(dist))[:, None, None] == np.where(covered, s + 1, 0).argmax(0)[None])
     beyond = (geom["ahead"] if not final else False) | (geom["behind"] if not first else False)
     band = (dist > radius) & (dist <= radius + config.band_width * geom["dx"]) & ~covered_any & ~beyond
-    deposits = [(geom["bin"][k][owner[k]], removed[owner[k]], geom["bin"][k][band[k]], np.nonzero(band[k]))
+    deposits = [(geom["bin"][k][owner[k]], (removed[k] if removed.ndim == 3 else removed)[owner[k]],
+                 geom["bin"][k][band[k]], np.nonzero(band[k]))
                 for k in range(len(dist))]
     domain = dist.min(0) <= radius + config.relax_margin * robot.wheel_width
     return h_dug, deposits, covered, domain, targets
