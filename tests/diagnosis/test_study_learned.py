@@ -16,7 +16,8 @@ CHI_SPEED_UP = {"parameter": "chi", "covariate": "speed", "direction": "+"}
 
 
 def summary(verdict="missing_physics", eid="learned", terms=(), params=None):
-    """A diagnosis summary (diagnosis.json) as the learned stage writes it."""
+    """A diagnosis summary (diagnosis.json) with its learned modifier's terms under `learned`
+    (`fake_diag` moves them where a Diagnosis holds them)."""
     return {"verdict": verdict, "missing_physics": eid, "where": {"cross_track": None, "along_track": [],
                                                                   "covariate": None},
             "extension_parameters": params or {}, "cost_before": {"prediction": 0.004},
@@ -25,9 +26,15 @@ def summary(verdict="missing_physics", eid="learned", terms=(), params=None):
 
 
 def fake_diag(s):
-    """The least of a Diagnosis `_record` reads: its summary, no catalogue fits, no windows."""
-    return SimpleNamespace(summary=s, evidence={"z_accept": {}, "candidates": {}}, fits=[], windows={"s": []},
-                           base=SimpleNamespace(held_out=[], residual=[]))
+    """The least of a Diagnosis `_record` reads: its summary (diagnosis.json: `learned` taken
+    out), its learned modifier (learned.json, named with a missing_physics verdict), no
+    catalogue fits, no windows."""
+    s = dict(s)
+    learned = s.pop("learned", None)
+    if learned is not None:
+        learned = {**learned, "named": s["verdict"] == "missing_physics"}
+    return SimpleNamespace(summary=s, learned=learned, evidence={"z_accept": {}, "candidates": {}}, fits=[],
+                           windows={"s": []}, base=SimpleNamespace(held_out=[], residual=[]))
 
 
 def term(parameter, covariate, direction, gain=0.1):

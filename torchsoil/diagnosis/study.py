@@ -64,13 +64,14 @@ def _record(name: str, diag, want_verdict: str, want_id: str | None, seconds: fl
     catalogue id counts where its term is the wanted one: slip_sinkage for d following traction
     upwards); otherwise `correct` wants the verdict and the id."""
     s = diag.summary
-    match = learned_match(want_learned, named_terms(s)) if want_learned is not None else None
+    learned = getattr(diag, "learned", None)
+    match = learned_match(want_learned, named_terms(s, learned)) if want_learned is not None else None
     right_id = match["right"] if match is not None else s["missing_physics"] == want_id
     return {"case": name, "want": want_verdict, "want_id": want_id, "verdict": s["verdict"],
             "id": s["missing_physics"], "where": s["where"], "parameters": s["extension_parameters"],
             "cost_before": s["cost_before"], "cost_after": s["cost_after"], "noise_floor": s.get("noise_floor"),
             "correct": s["verdict"] == want_verdict and right_id, "seconds": seconds,
-            "want_learned": want_learned, "learned": s.get("learned"), "learned_match": match,
+            "want_learned": want_learned, "learned": learned, "learned_match": match,
             "tests": held_out_tests(diag), "series": held_out_series(diag), "revisits": revisit_test(diag), **extra}
 
 
@@ -93,12 +94,13 @@ def wanted_term(expected: dict | None) -> dict | None:
     return {k: expected.get(k) for k in TERM_KEYS}
 
 
-def named_terms(summary: dict) -> list[dict]:
-    """The learned terms a diagnosis (its summary, diagnosis.json) names: its `learned.terms`
-    ({parameter, covariate, direction, ...}) and, where its verdict names a catalogue id of
+def named_terms(summary: dict, learned: dict | None = None) -> list[dict]:
+    """The learned terms a diagnosis (its summary, diagnosis.json, and its learned modifier,
+    learned.json) names: the learned modifier's `terms` ({parameter, covariate, direction, ...})
+    where it was named, and, where its verdict names a catalogue id of
     CATALOGUE_TERMS with a fitted coefficient, that term's (parameter, covariate) pairs with the
     coefficient's sign as direction (`from`: the id)."""
-    terms = [dict(t) for t in ((summary.get("learned") or {}).get("terms") or [])]
+    terms = [dict(t) for t in (learned or {}).get("terms") or []] if (learned or {}).get("named") else []
     eid = summary.get("missing_physics")
     if summary.get("verdict") == "missing_physics" and eid in CATALOGUE_TERMS:
         name, pairs = CATALOGUE_TERMS[eid]
