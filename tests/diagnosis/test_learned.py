@@ -194,3 +194,33 @@ def test_a_parameter_falling_with_the_passes_on_the_same_ground_is_found_and_a_s
     desc = L.describe_visits(falling)
     assert desc["parameter"] == "beta" and desc["direction"] == "-" and desc["catalogue_match"] is None
     assert desc["sentence"].startswith("The angle of repose falls with the passes")
+
+
+@pytest.fixture(scope="module")
+def deposit_drive():
+    """The study's drive whose deposit share grows with speed (chi x (1 + 0.8 (v - 1)), the
+    recorder's world), and the base model's pass over it."""
+    from torchsoil.diagnosis.fit import run_pass
+    from torchsoil.diagnosis.study_cases import scenario
+    from torchsoil.io.terrain_pair import TerrainPair
+    from torchsoil.settings import Settings
+    from torchsoil.synth.scenario import make_terrain_pair
+
+    pair = TerrainPair.from_mapping(make_terrain_pair(scenario("speed_deposit"), seed=1))
+    s = Settings()
+    return pair, s, run_pass(pair, s.estimator, s.sim, offsets=s.diagnosis.offsets)
+
+
+def test_a_deposit_share_following_speed_is_learned_through_the_simulator(deposit_drive):
+    from torchsoil.diagnosis.stats import level_z
+
+    pair, s, base = deposit_drive
+    fit = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis)
+    assert [c.term for c in fit.folds] == [L.Term("chi", "speed")] * 2 and fit.terms == [L.Term("chi", "speed")]
+    assert fit.z > level_z(s.diagnosis.alpha_accept, 2) and fit.improvement > 0
+    out = L.describe(fit, 1.95)["terms"][0]
+    assert out["direction"] == "+" and out["catalogue_match"] is None
+    # the world's factor from the 5 % to the 95 % speed of the knots' span, against the curve's
+    v_lo, v_hi = (np.interp(q, [0, 1], [out["knots"][0], out["knots"][-1]]) for q in (0.05, 0.95))
+    world = (1 + 0.8 * (v_hi - 1)) / (1 + 0.8 * (v_lo - 1))
+    assert 0.6 * world < out["factor"] < 1.5 * world

@@ -622,12 +622,17 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
     term with one direction and, as a catalogue term must, its combined z passes the level of
     cfg.alpha_accept for a two-signed coefficient (`stats.level_z`), its gain is material
     (choice.gain_min), its effect at least cfg.effect_materiality and the windows' own fit no
-    worse (cfg.own_fit_z). Returns (the fit, its description for learned.json) or (None, None)
-    with cfg.learned off."""
+    worse (cfg.own_fit_z); for chi and beta (one factor per visit simulated, which the window's
+    own fit takes up) the held-out z alone, and no own-fit condition. Returns (the fit, its
+    description for learned.json) or (None, None) with cfg.learned off."""
     if not cfg.learned:
         return None, None
     fit = learned.learn(pair, est, sim, base, drive, cfg, cache, progress)
     z_need = level_z(cfg.alpha_accept, 2)
+    if fit.terms and fit.terms[0].parameter in ("chi", "beta"):
+        # a factor per visit simulated: the window's own fit takes it up whole (its chi or beta
+        # scaled), so its own residual carries no evidence, and the held-out test stands alone
+        fit.z, fit.own_z = fit.held_z, math.inf
     fit.accepted = bool(fit.terms and fit.z > z_need and fit.improvement >= choice.gain_min
                         and fit.effect >= cfg.effect_materiality and fit.own_z >= -cfg.own_fit_z)
     described = learned.describe(fit, z_need)
