@@ -199,14 +199,16 @@ def test_a_parameter_falling_with_the_passes_on_the_same_ground_is_found_and_a_s
 @pytest.fixture(scope="module")
 def deposit_drive():
     """The study's drive whose deposit share grows with speed (chi x (1 + 0.8 (v - 1)), the
-    recorder's world), and the base model's pass over it."""
+    recorder's world; the speed changes every 2 m), and the base model's pass over it."""
     from torchsoil.diagnosis.fit import run_pass
     from torchsoil.diagnosis.study_cases import scenario
     from torchsoil.io.terrain_pair import TerrainPair
     from torchsoil.settings import Settings
     from torchsoil.synth.scenario import make_terrain_pair
 
-    pair = TerrainPair.from_mapping(make_terrain_pair(scenario("speed_deposit"), seed=1))
+    sc = scenario("speed_deposit")
+    sc["soil"]["base"]["chi"] = 0.5              # berms that show the deposit share over the maps' noise
+    pair = TerrainPair.from_mapping(make_terrain_pair(sc, seed=1))
     s = Settings()
     return pair, s, run_pass(pair, s.estimator, s.sim, offsets=s.diagnosis.offsets)
 
@@ -217,10 +219,29 @@ def test_a_deposit_share_following_speed_is_learned_through_the_simulator(deposi
     pair, s, base = deposit_drive
     fit = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis)
     assert [c.term for c in fit.folds] == [L.Term("chi", "speed")] * 2 and fit.terms == [L.Term("chi", "speed")]
-    assert fit.z > level_z(s.diagnosis.alpha_accept, 2) and fit.improvement > 0
+    # a factor per window's visit: the held-out test alone (phases.learned_check)
+    assert fit.held_z > level_z(s.diagnosis.alpha_accept, 2) and fit.improvement > 0
     out = L.describe(fit, 1.95)["terms"][0]
     assert out["direction"] == "+" and out["catalogue_match"] is None
     # the world's factor from the 5 % to the 95 % speed of the knots' span, against the curve's
     v_lo, v_hi = (np.interp(q, [0, 1], [out["knots"][0], out["knots"][-1]]) for q in (0.05, 0.95))
     world = (1 + 0.8 * (v_hi - 1)) / (1 + 0.8 * (v_lo - 1))
     assert 0.6 * world < out["factor"] < 1.5 * world
+
+
+def test_the_same_drive_without_the_law_learns_nothing():
+    from torchsoil.diagnosis.fit import run_pass
+    from torchsoil.diagnosis.stats import level_z
+    from torchsoil.diagnosis.study_cases import scenario
+    from torchsoil.io.terrain_pair import TerrainPair
+    from torchsoil.settings import Settings
+    from torchsoil.synth.scenario import make_terrain_pair
+
+    sc = scenario("speed_deposit")
+    sc["soil"]["base"]["chi"] = 0.5
+    sc["effects"] = {}
+    pair = TerrainPair.from_mapping(make_terrain_pair(sc, seed=1))
+    s = Settings()
+    base = run_pass(pair, s.estimator, s.sim, offsets=s.diagnosis.offsets)
+    fit = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis)
+    assert not (fit.terms and fit.held_z > level_z(s.diagnosis.alpha_accept, 2))

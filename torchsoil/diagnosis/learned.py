@@ -406,6 +406,28 @@ def choose_term(estimator, bases: dict[Term, Basis], drive: DriveSignals, robot:
     return out
 
 
+def transported(estimator, rows: list[dict], offsets: tuple[int, ...], only: np.ndarray | None = None) -> np.ndarray:
+    """(W,) each window's held-out cost [m]: the mean cost of its fit (params.csv `rows`) on the
+    ground of the windows `offsets` strides away (back and ahead: a law shows where its
+    covariate changes between the fit's ground and the ground predicted), under the
+    estimator's modifiers; NaN without a fit or such ground. only: (W,) the windows to score."""
+    out = np.full(len(rows), np.nan)
+    for k, row in enumerate(rows):
+        estimator.forget_before(k - max(abs(o) for o in offsets))    # windows are taken in order
+        free = estimator.free_from_row(row) if only is None or only[k] else None
+        if free is None:
+            continue
+        costs = []
+        for o in offsets:
+            j = k - o
+            tg = estimator.data(j) if 0 <= j < len(rows) else None
+            if tg is not None and "few_valid" not in tg.flags:
+                costs.append(estimator.predict(free, tg)[1])
+        if costs:
+            out[k] = float(np.mean(costs))
+    return out
+
+
 def fit_term(estimator, term: Term, basis: Basis, drive: DriveSignals, robot: Robot, fits: dict, offsets,
              view: str, dig_order: str, steps: int = 20) -> LearnedModel:
     """A fold's model of one term, fitted on up to 16 of its windows for `steps` steps."""
@@ -447,13 +469,22 @@ def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=N
         return out
     passes = [run_pass(pair, est, sim, c.model, profiles=False, offsets=cfg.offsets, cache=cache, **shared_of(base))
               for c in choices]
+    both = tuple(o * sign for o in cfg.offsets for sign in (1, -1))
+    estimator.modifiers = None
+    base_held = transported(estimator, rows, both)
     series = {}
     for name in ("held_out", "residual", "prediction"):
         v = np.full(len(rows), np.nan)
         for f in (0, 1):                        # each fold's windows under the other fold's model
-            v[lab != f] = getattr(passes[f], name)[lab != f]
+            if name == "held_out":
+                estimator.modifiers = choices[f].model.modifiers
+                held = transported(estimator, passes[f].rows, both, lab != f)
+                v[lab != f] = held[lab != f]
+            else:
+                v[lab != f] = getattr(passes[f], name)[lab != f]
         series[name] = v
-    imp, se, held_z, own_z, z = term_test(base.held_out, series["held_out"], base.residual, series["residual"])
+    estimator.modifiers = None
+    imp, se, held_z, own_z, z = term_test(base_held, series["held_out"], base.residual, series["residual"])
     return LearnedFit(out.folds, [term], series["held_out"], series["residual"], series["prediction"], imp, se,
                       held_z, own_z, z, min(effect_size(c.model) for c in choices), tuple(passes),
                       seconds=time.perf_counter() - t0)
