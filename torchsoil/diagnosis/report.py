@@ -11,6 +11,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.image import imread
 
+from torchsoil.diagnosis.learned import WORDS
 from torchsoil.plotting import coarse, coarse_extent
 
 KEYS = ("verdict", "missing_physics", "where", "explanation", "cost_before", "cost_after", "noise_floor",
@@ -100,12 +101,23 @@ def learned_markdown(learned: dict) -> str:
 def learned_note(learned: dict | None) -> str:
     """A sentence on a learned modifier that was fitted but not named (short of its level, or a
     catalogue term predicted as well), else ''."""
-    if not learned or learned.get("named") or not learned.get("terms"):
+    if not learned or learned.get("named"):
         return ""
+    visits = [v for v in learned.get("visits") or [] if v.get("z", 0.0) > 1.0]
+    seen = ""
+    if visits:
+        v = max(visits, key=lambda v: v["z"])
+        seen = (f" On the ground driven again, {WORDS[v['parameter']]} {'rises' if v['g'] > 1 else 'falls'} "
+                f"by x{v['g']:.2f} per wheel pass between the visits (z = {v['z']:.2f} against {v['z_level']:.2f} "
+                f"needed, {v['windows']} windows): not named.")
+    if not learned.get("terms"):
+        return seen
     t = learned["terms"][0]
     why = ("the catalogue's term predicts the held-out ground as well" if learned["accepted"] else
            f"z = {learned['z']:.2f} against {learned['z_needed']:.2f} needed")
-    return (f" A learned modifier found: {t['sentence'][0].lower() + t['sentence'][1:-1]}; not named ({why}).")
+    return (f" A learned modifier found: {t['sentence'][0].lower() + t['sentence'][1:-1]}; not named ({why})."
+            + seen)
+
 
 
 def _nearest(diag) -> str:
