@@ -245,3 +245,36 @@ def test_the_same_drive_without_the_law_learns_nothing():
     base = run_pass(pair, s.estimator, s.sim, offsets=s.diagnosis.offsets)
     fit = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis)
     assert not (fit.terms and fit.held_z > level_z(s.diagnosis.alpha_accept, 2))
+
+
+def test_the_verdict_names_the_learned_law_where_the_catalogue_names_none_or_predicts_less():
+    from torchsoil.diagnosis.phases import Verdict, with_learned
+
+    before = {"residual": 3e-3, "prediction": 4e-3}
+    term = {"parameter": "chi", "covariate": "speed", "direction": "+", "factor": 1.9, "from": 0.5, "to": 1.5,
+            "catalogue_match": None}
+    described = {"accepted": True, "terms": [term], "spans": [[2.0, 4.0]],
+                 "after": {"residual": 2.9e-3, "prediction": 3.5e-3}}
+    fit = SimpleNamespace(accepted=True, improvement=2e-4)
+    unexplained = Verdict("unexplained", "berm", [[1.0, 2.0]], None, None, None, before, before, {})
+    told = with_learned(unexplained, fit, dict(described))
+    assert (told.verdict, told.named, told.covariate, told.cross) == ("missing_physics", "learned", "speed", "berm")
+    assert told.params == {"chi_factor": 1.9, "speed_from": 0.5, "speed_to": 1.5}
+    assert told.after["prediction"] == 3.5e-3 and told.spans == [[2.0, 4.0]]
+    adequate = Verdict("adequate", "mixed", [], None, None, None, before, before, {})
+    assert with_learned(adequate, fit, dict(described)).cross == "berm"       # where chi shows
+    # a catalogue term named: the learned one only where it gains more on held-out ground
+    speed = SimpleNamespace(improvement=1e-4)
+    named = Verdict("missing_physics", "rut_floor", [], "speed", "speed_dependent_sinkage", speed, before, before,
+                    {"k_speed": 0.5})
+    assert with_learned(named, fit, dict(described)).named == "learned"
+    speed.improvement = 3e-4
+    assert with_learned(named, fit, dict(described)).named == "speed_dependent_sinkage"
+    speed.improvement = 1e-4
+    same = dict(described, terms=[{**term, "parameter": "d", "catalogue_match": "speed_dependent_sinkage"}])
+    assert with_learned(named, fit, same).named == "speed_dependent_sinkage"   # the catalogue's law itself
+    # found on the ground driven again only (no held-out fit): named only where nothing else is
+    visits_only = SimpleNamespace(accepted=False, improvement=0.0)
+    assert with_learned(named, visits_only, dict(described)).named == "speed_dependent_sinkage"
+    assert with_learned(unexplained, visits_only, dict(described)).named == "learned"
+    assert with_learned(unexplained, fit, {**described, "accepted": False}) is unexplained
