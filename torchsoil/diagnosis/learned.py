@@ -437,12 +437,15 @@ def fit_term(estimator, term: Term, basis: Basis, drive: DriveSignals, robot: Ro
     return model
 
 
-def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=None) -> LearnedFit:
+def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=None,
+          named: str | None = None) -> LearnedFit:
     """The learned modifier of one drive, cross-validated (module docstring).
 
     base: the base model's pass (fit.Pass; its rows, costs and shared windows); cfg:
     DiagnosisConfig (block_m, offsets, min_spread). The estimator runs with a fold's model only
-    where both folds chose the same term with one direction."""
+    where both folds chose the same term with one direction, and its law is not that of the
+    catalogue term already `named` (`catalogue_match`: that term's own test stands; the curve is
+    kept, `terms` set, untested)."""
     t0 = time.perf_counter()
     robot, rows = pair.robot, base.rows
     lab = folds(len(rows), int(round(cfg.block_m / est.stride)))
@@ -466,6 +469,9 @@ def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=N
         c.model = fit_term(estimator, term, bases[term], drive, robot, fit, cfg.offsets, view, sim.dig_order)
     if direction(bases[term], choices[0].model.w[term]) != direction(bases[term], choices[1].model.w[term]):
         out.seconds = time.perf_counter() - t0
+        return out
+    if named is not None and catalogue_match(term, direction(bases[term], choices[0].model.w[term])) == named:
+        out.terms, out.seconds = [term], time.perf_counter() - t0
         return out
     passes = [run_pass(pair, est, sim, c.model, profiles=False, offsets=cfg.offsets, cache=cache, **shared_of(base))
               for c in choices]
@@ -531,8 +537,13 @@ def describe(fit: LearnedFit, z_needed: float) -> dict:
     folds' knot values, a log factor) and its band (the two folds' curves), the sentence, the
     catalogue term it matches; the test (held-out gain [m], z against z_needed, own-fit z,
     effect) and each fold's screen and trials."""
-    out = {"accepted": bool(fit.accepted), "improvement": fit.improvement, "se": fit.se, "z": fit.z,
-           "held_z": fit.held_z, "own_z": fit.own_z, "z_needed": z_needed, "effect": fit.effect,
+    def num(x):                                      # JSON: a test not run is null
+        return float(x) if math.isfinite(x) else None
+
+    tested = fit.held_out is not None
+    out = {"accepted": bool(fit.accepted), "tested": tested, "improvement": fit.improvement if tested else None,
+           "se": num(fit.se) if tested else None, "z": num(fit.z), "held_z": fit.held_z if tested else None,
+           "own_z": num(fit.own_z) if tested else None, "z_needed": z_needed, "effect": fit.effect,
            "seconds": round(fit.seconds, 2), "terms": [],
            "folds": [{"term": c.term.name if c.term else None, "gradients": c.gradients, "trials": c.trials}
                      for c in fit.folds]}

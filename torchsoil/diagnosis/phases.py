@@ -616,7 +616,7 @@ def name_cause(base: Pass, best: CandidateFit | None, revisit: dict | None, wind
 
 
 def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass,
-                  drive: DriveSignals, choice: Choice, progress=None,
+                  drive: DriveSignals, choice: Choice, named: str | None = None, progress=None,
                   cache: PassCache | None = None) -> tuple[learned.LearnedFit | None, dict | None]:
     """The learned modifier (`learned.learn`) and its test: accepted where both folds chose one
     term with one direction and, as a catalogue term must, its combined z passes the level of
@@ -627,7 +627,7 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
     description for learned.json) or (None, None) with cfg.learned off."""
     if not cfg.learned:
         return None, None
-    fit = learned.learn(pair, est, sim, base, drive, cfg, cache, progress)
+    fit = learned.learn(pair, est, sim, base, drive, cfg, cache, progress, named)
     z_need = level_z(cfg.alpha_accept, 2)
     if fit.terms and fit.terms[0].parameter in ("chi", "beta"):
         # a factor per visit simulated: the window's own fit takes it up whole (its chi or beta
@@ -636,7 +636,7 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
     fit.accepted = bool(fit.terms and fit.z > z_need and fit.improvement >= choice.gain_min
                         and fit.effect >= cfg.effect_materiality and fit.own_z >= -cfg.own_fit_z)
     described = learned.describe(fit, z_need)
-    if fit.terms:
+    if fit.held_out is not None:
         s = np.array([r["s"] for r in base.rows])
         described["spans"] = _spans(outliers(base.held_out - fit.held_out), s - est.window / 2, s + est.window / 2)
         described["after"] = {"residual": float(np.nanmean(fit.residual)),
@@ -752,7 +752,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     choice = choose_terms(fits, ranked, ev, cfg, base, alpha)
     told = name_cause(base, choice.best, revisit, est.window,
                       *location_verdict(pair, cfg, est, base, drive, where, choice.best))
-    fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, progress, cache)
+    fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, told.named, progress, cache)
     told = with_learned(told, fit, described)
     return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told, described)
 

@@ -70,8 +70,9 @@ def learned_text(learned: dict, s: dict, span: str) -> str:
             f"curve of the covariate, fitted through the simulator on each fold's windows and scored on the "
             f"other fold's) lowers the cost of predicting held-out ground from {_mm(s['cost_before']['prediction'])} "
             f"to {_mm(s['cost_after']['prediction'])} (paired over windows: {_mm(learned['improvement'])} +- "
-            f"{_mm(learned['se'])}, z = {learned['held_z']:.1f}; {learned['z']:.1f} with the windows' own fits, "
-            f"against {learned['z_needed']:.1f} allowed by noise). It matters most at {span}. "
+            f"{_mm(learned['se'])}, z = {learned['held_z']:.1f}"
+            + (f"; {learned['z']:.1f} with the windows' own fits" if learned["own_z"] is not None else "")
+            + f", against {learned['z_needed']:.1f} allowed by noise). It matters most at {span}. "
             f"Noise floor {_mm(s['noise_floor'])}.")
 
 
@@ -87,10 +88,14 @@ def learned_markdown(learned: dict) -> str:
     for t in learned["terms"]:
         lines += ["", f"- {t['sentence']} Shape: {t['shape']}; knots {[round(k, 3) for k in t['knots']]} "
                   f"{t['unit']}, factors {[round(math.exp(v), 3) for v in t['log_factor']]}."]
-    if learned["terms"]:
+    if learned["terms"] and not learned["tested"]:
+        lines += ["", "The law of the catalogue term named: tested as that term, not again."]
+    elif learned["terms"]:
         lines += ["", f"Held-out gain {_mm(learned['improvement'])} +- {_mm(learned['se'])}, z = "
-                  f"{learned['held_z']:.2f} held-out, {learned['own_z']:.2f} own fit, {learned['z']:.2f} both "
-                  f"(needed {learned['z_needed']:.2f}); effect {100 * learned['effect']:.0f} %; "
+                  f"{learned['held_z']:.2f} held-out, "
+                  + (f"{learned['own_z']:.2f} own fit, {learned['z']:.2f} both " if learned["own_z"] is not None
+                     else "no own-fit test (one factor per visit) ")
+                  + f"(needed {learned['z_needed']:.2f}); effect {100 * learned['effect']:.0f} %; "
                   + ("named." if learned.get("named") else "accepted, not named." if learned["accepted"]
                      else "not accepted.")]
     else:
@@ -114,6 +119,7 @@ def learned_note(learned: dict | None) -> str:
         return seen
     t = learned["terms"][0]
     why = ("the catalogue's term predicts the held-out ground as well" if learned["accepted"] else
+           "the law of the term named, tested as that term" if not learned["tested"] else
            f"z = {learned['z']:.2f} against {learned['z_needed']:.2f} needed")
     return (f" A learned modifier found: {t['sentence'][0].lower() + t['sentence'][1:-1]}; not named ({why})."
             + seen)
