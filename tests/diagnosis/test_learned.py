@@ -278,3 +278,21 @@ def test_the_verdict_names_the_learned_law_where_the_catalogue_names_none_or_pre
     assert with_learned(named, visits_only, dict(described)).named == "speed_dependent_sinkage"
     assert with_learned(unexplained, visits_only, dict(described)).named == "learned"
     assert with_learned(unexplained, fit, {**described, "accepted": False}) is unexplained
+
+
+def test_the_diagnosis_names_the_learned_deposit_law_and_writes_its_curve(deposit_drive, tmp_path):
+    import json
+
+    from torchsoil.diagnosis import DiagnosisConfig, diagnose
+    from torchsoil.diagnosis.report import validate_summary, write_all
+
+    pair, s, _ = deposit_drive
+    diag = diagnose(pair, DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1), s.estimator, s.sim)
+    summary = validate_summary(diag.summary)
+    assert (summary["verdict"], summary["missing_physics"]) == ("missing_physics", "learned")
+    assert summary["where"]["covariate"] == "speed" and summary["extension_parameters"]["chi_factor"] > 1
+    assert "deposit share rises" in summary["explanation"]
+    write_all(diag, pair, tmp_path, "deposit", tb=False)
+    out = json.loads((tmp_path / "learned.json").read_text())
+    assert out["named"] and out["terms"][0]["parameter"] == "chi" and (tmp_path / "learned.png").stat().st_size > 0
+    assert "## Learned modifier" in (tmp_path / "report.md").read_text()
