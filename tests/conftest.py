@@ -3,6 +3,7 @@ import os
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch starts its thread pool
 
 import math  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np
 import pytest
@@ -27,12 +28,30 @@ SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed":
                    "first_seconds": "node_body"}
 
 
+# test folders whose tests compile the same numba kernels (envs._step_numba: a fused soil step,
+# serial and parallel, about 20 s on a clean checkout): on one worker they are compiled once,
+# the other tests reading them from numba's cache
+SHARED_KERNELS = {"envs": "envs_kernels"}
+
+# the modules whose tests or shared fixtures take longest (tens of seconds each, --durations), run
+# first, longest first, so that the two workers do not wait at the end on one long test
+LONG_FIRST = ("diagnosis/test_diagnose.py", "node/test_node_ros1.py", "estimate/test_live.py",
+              "node/test_node_ros2.py", "diagnosis/test_checkpoint.py", "node/test_node_body.py",
+              "pipeline/test_synthetic.py", "jobs/test_fleet.py", "diagnosis/test_parallel.py", "test_manual.py")
+
+
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks
 def pytest_collection_modifyitems(config, items):
+    tests = Path(__file__).parent
     for item in items:
         groups = sorted({SHARED_FIXTURES[f] for f in getattr(item, "fixturenames", ()) if f in SHARED_FIXTURES})
+        if not groups and item.path.is_relative_to(tests):
+            folder = item.path.relative_to(tests).parts[0]
+            groups = [SHARED_KERNELS[folder]] if folder in SHARED_KERNELS else []
         if groups:
             item.add_marker(pytest.mark.xdist_group(groups[0]))
+    rank = {tests / m: i for i, m in enumerate(LONG_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path, len(rank)))     # stable: each module's own order kept
 
 
 @pytest.fixture(scope="session")

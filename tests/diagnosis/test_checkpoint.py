@@ -70,9 +70,18 @@ def short_drive():
     return TerrainPair.from_mapping(make_terrain_pair(sc, seed=3))
 
 
-def test_an_interrupted_diagnosis_resumes_and_ends_as_one_run_straight_through(tmp_path, short_drive, monkeypatch):
-    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
-    straight = diagnose(short_drive, cfg).summary
+ONE_FIT = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
+
+
+@pytest.fixture(scope="module")
+def straight(short_drive):
+    """The summary of the short drive's diagnosis run straight through (the tests below only read it)."""
+    return diagnose(short_drive, ONE_FIT).summary
+
+
+def test_an_interrupted_diagnosis_resumes_and_ends_as_one_run_straight_through(tmp_path, short_drive, straight,
+                                                                                monkeypatch):
+    cfg = ONE_FIT
 
     cache = PassCache(tmp_path / "passes", {"input": "short"})
     with pytest.raises(Interrupt):
@@ -117,11 +126,10 @@ class StopAtWindow(StopAfter):
             raise Interrupt
 
 
-def test_a_pass_killed_midway_resumes_from_its_last_window(tmp_path, short_drive, monkeypatch):
+def test_a_pass_killed_midway_resumes_from_its_last_window(tmp_path, short_drive, straight, monkeypatch):
     """Kept after every window (every=0), a base pass stopped as it reports window 10 goes on
     from window 10, not from the start, and the diagnosis ends as one run straight through."""
-    cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1)
-    straight = diagnose(short_drive, cfg).summary
+    cfg = ONE_FIT
     with pytest.raises(Interrupt):
         diagnose(short_drive, cfg, progress=StopAtWindow(10), cache=PassCache(tmp_path / "p", {"i": 1}, every=0))
     assert len(list((tmp_path / "p").glob("base-partial-*.pkl"))) == 1
@@ -145,24 +153,30 @@ def test_a_diagnose_killed_with_sigkill_resumes_to_the_straight_run(tmp_path, sh
     import time
     from pathlib import Path
 
+    from torchsoil.jobs.diagnose import diagnose_input
+    from torchsoil.settings import load_settings
+
     short_drive.save(tmp_path / "short.npz")
-    sets = [a for kv in ("diagnosis.n_fit=1", "diagnosis.sections=[]", "diagnosis.dig_orders=[]",
-                         "diagnosis.refine_steps=1", "diagnosis.checkpoint_s=0") for a in ("--set", kv)]
+    overrides = ("diagnosis.n_fit=1", "diagnosis.sections=[]", "diagnosis.dig_orders=[]", "diagnosis.refine_steps=1",
+                 "diagnosis.checkpoint_s=0")
+    sets = [a for kv in overrides for a in ("--set", kv)]
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
 
     def run(out, *extra):
         return subprocess.Popen([sys.executable, "-m", "torchsoil", "diagnose", str(tmp_path / "short.npz"), "--out",
                                  str(out), "--no-tensorboard", *sets, *extra], env=env,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
 
-    straight = run(tmp_path / "straight")
-    assert straight.communicate(timeout=600) and straight.returncode == 0
+    # the run straight through in this process, by the function the command calls (one pass worker: the
+    # same results as on a pool, tests/diagnosis/test_parallel.py), the killed run by the command itself
+    diagnose_input(tmp_path / "short.npz", tmp_path / "straight", load_settings(overrides=list(overrides)),
+                   progress=False, tensorboard=False, threads=1, workers=1)
     killed = run(tmp_path / "killed")
     passes = tmp_path / "killed" / "passes"
     while killed.poll() is None and not (passes.exists() and any(passes.glob("*-partial-*.pkl"))):
         time.sleep(0.01)
     assert killed.poll() is None, "the run ended before it could be killed"
-    killed.send_signal(signal.SIGKILL)
+    os.killpg(killed.pid, signal.SIGKILL)       # the command and its pass workers, as a job killed whole
     killed.wait()
     assert not (tmp_path / "killed" / "diagnosis.json").exists()
     again = run(tmp_path / "killed", "--resume")
@@ -182,7 +196,7 @@ def test_the_per_visit_pass_is_kept_and_read_back(tmp_path, monkeypatch):
     from torchsoil.diagnosis import phases as run_module
     from torchsoil.settings import Settings
 
-    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
+    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=4.0, once=3.0)[0])
     st, calls = Settings(), []
     original = run_module.run_visits
     monkeypatch.setattr(run_module, "run_visits", lambda *a, **k: calls.append(1) or original(*a, **k))

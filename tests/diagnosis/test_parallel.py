@@ -75,7 +75,7 @@ def test_the_per_visit_pass_runs_on_the_pool_beside_the_candidates(tmp_path, mon
     from tests.estimate.test_visits import two_visit_pair
     from torchsoil.diagnosis import phases as run_module
 
-    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=6.0, once=5.0)[0])
+    pair = TerrainPair.from_mapping(two_visit_pair(seed=4, d1=0.02, length=4.0, once=3.0)[0])
     cfg = DiagnosisConfig(n_fit=1, sections=(), dig_orders=(), refine_steps=1, learned=False)
     here = []
     original = run_module.run_visits
