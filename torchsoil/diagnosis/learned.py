@@ -43,6 +43,7 @@ import torch
 from torchsoil.diagnosis.catalogue import PassCounts, ground_times, visit_key
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.fit import run_pass, shared_of
+from torchsoil.diagnosis.revisits import visit_groups
 from torchsoil.diagnosis.stats import effective_n, folds, t_z, term_test, z_two_sided
 from torchsoil.estimate.cost import weighted_l1
 from torchsoil.estimate.estimator import Estimator
@@ -577,15 +578,8 @@ def visit_parameters(rows: list[dict], parameter: str) -> list[tuple[float, np.n
     passes_before, chi, beta [deg], residual, flags; flagged or unfitted visits left out):
     (s [m], (V,) wheel passes before each visit, (V,) the visit's fitted `parameter`), with more
     passes at each later visit and a positive first value."""
-    by: dict[float, list[dict]] = {}
-    for r in rows:
-        if np.isfinite(float(r["residual"])) and not r.get("flags"):
-            by.setdefault(round(float(r["s"]), 6), []).append(r)
     out = []
-    for s, rs in sorted(by.items()):
-        rs = sorted(rs, key=lambda r: int(r["visit"]))
-        if len(rs) < 2 or int(rs[0]["visit"]) != 0:
-            continue
+    for s, rs in visit_groups(rows):
         n = np.array([float(r["passes_before"]) for r in rs])
         v = np.array([float(r[parameter]) for r in rs])
         if v[0] > 0 and np.all(np.diff(n) > 0) and np.all(np.isfinite(v)):

@@ -67,20 +67,28 @@ class Revisit:
     rut_sim: dict | None = None
 
 
-def revisits(rows: list[dict], n_tracks: int) -> list[Revisit]:
-    """The windows of per-visit params.csv rows (keys s, visit, passes_before, d1..dT,
-    rut_depth, residual, flags) fitted at two visits or more, with more passes at each later
-    visit and a positive first sinkage; flagged or unfitted visits left out."""
+def visit_groups(rows: list[dict]) -> list[tuple[float, list[dict]]]:
+    """(s [m], its rows in visit order) of every window whose ground was fitted at two visits or
+    more from its first (per-visit params.csv rows; flagged or unfitted visits left out), in
+    window order."""
     by: dict[float, list[dict]] = {}
     for r in rows:
-        ok = np.isfinite(float(r["residual"])) and not r.get("flags")
-        if ok:
+        if np.isfinite(float(r["residual"])) and not r.get("flags"):
             by.setdefault(round(float(r["s"]), 6), []).append(r)
     out = []
     for s, rs in sorted(by.items()):
         rs = sorted(rs, key=lambda r: int(r["visit"]))
-        if len(rs) < 2 or int(rs[0]["visit"]) != 0:
-            continue
+        if len(rs) >= 2 and int(rs[0]["visit"]) == 0:
+            out.append((s, rs))
+    return out
+
+
+def revisits(rows: list[dict], n_tracks: int) -> list[Revisit]:
+    """The windows of per-visit params.csv rows (keys s, visit, passes_before, d1..dT,
+    rut_depth, residual, flags) fitted at two visits or more, with more passes at each later
+    visit and a positive first sinkage; flagged or unfitted visits left out."""
+    out = []
+    for s, rs in visit_groups(rows):
         n = np.array([float(r["passes_before"]) for r in rs])
         d = np.array([np.mean([float(r[f"d{t + 1}"]) for t in range(n_tracks)]) for r in rs])
         if d[0] <= 0 or np.any(np.diff(n) <= 0):
