@@ -266,27 +266,29 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
 
 
 def _revisit(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass, n_tracks: int,
-             progress=None, cache: PassCache | None = None) -> tuple[float, dict | None]:
+             progress=None, cache: PassCache | None = None) -> tuple[float, dict | None, object]:
     """Hardening on the same ground (revisits.hardening_across_visits) on a pair with visit
     layers, at half the family-wise level; where it names a law, the sinkage pass by pass under
     it (revisits.per_pass_fit, the dict's `per_pass`). Its passes kept in and read back from
-    `cache`. Returns (the level left to the catalogue's candidates, the test's dict or None
-    without visit layers)."""
+    `cache`. Returns (the level left to the catalogue's candidates, the test's dict and the
+    per-visit pass (revisits.VisitPass), both None without visit layers)."""
     if getattr(pair, "visit_front", None) is None:
-        return cfg.alpha_accept, None
-    rev = hardening_on_visits(pair, cfg, est, sim, base, n_tracks, cache)
+        return cfg.alpha_accept, None, None
+    vp = visit_pass(pair, est, sim, base, cache)
+    rev = hardening_on_visits(pair, cfg, est, sim, base, n_tracks, cache, vp)
     if progress is not None:
         progress.update(1)
-    return cfg.alpha_accept / 2, rev
+    return cfg.alpha_accept / 2, rev, vp
 
 
 def hardening_on_visits(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base, n_tracks: int,
-                        cache: PassCache | None = None) -> dict:
+                        cache: PassCache | None = None, vp=None) -> dict:
     """`_revisit`'s test (at half cfg.alpha_accept) and its pass-by-pass fit where it names a
     law, on the base pass's map nuisance and path index (`base`: a Pass, or anything with
     them), each kept in and read back from `cache`; a parallel.PassPool runs it beside the
-    candidates' passes. Returns the test's dict."""
-    vp = visit_pass(pair, est, sim, base, cache)
+    candidates' passes. vp: the per-visit pass when already run (`visit_pass`). Returns the
+    test's dict."""
+    vp = vp if vp is not None else visit_pass(pair, est, sim, base, cache)
     rev = hardening_across_visits(vp, cfg.alpha_accept / 2, cfg.effect_materiality, cfg.block_m, n_tracks,
                                   est.stride, max(1, int(round(est.window / est.stride))))
     if rev["accepted"]:
@@ -616,15 +618,17 @@ def name_cause(base: Pass, best: CandidateFit | None, revisit: dict | None, wind
 
 
 def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, base: Pass,
-                  drive: DriveSignals, choice: Choice, named: str | None = None, progress=None,
+                  drive: DriveSignals, choice: Choice, named: str | None = None, visits=None, progress=None,
                   cache: PassCache | None = None) -> tuple[learned.LearnedFit | None, dict | None]:
     """The learned modifier (`learned.learn`) and its test: accepted where both folds chose one
     term with one direction and, as a catalogue term must, its combined z passes the level of
     cfg.alpha_accept for a two-signed coefficient (`stats.level_z`), its gain is material
     (choice.gain_min), its effect at least cfg.effect_materiality and the windows' own fit no
     worse (cfg.own_fit_z); for chi and beta (one factor per visit simulated, which the window's
-    own fit takes up) the held-out z alone, and no own-fit condition. Returns (the fit, its
-    description for learned.json) or (None, None) with cfg.learned off."""
+    own fit takes up) the held-out z alone, and no own-fit condition; not tested where its law is
+    that of the catalogue term `named` (`learned.learn`). visits: the per-visit pass of a pair
+    with visit layers (`_revisit`), whose chi and beta are tested across visits. Returns (the
+    fit, its description for learned.json) or (None, None) with cfg.learned off."""
     if not cfg.learned:
         return None, None
     fit = learned.learn(pair, est, sim, base, drive, cfg, cache, progress, named)
@@ -641,8 +645,8 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
         described["spans"] = _spans(outliers(base.held_out - fit.held_out), s - est.window / 2, s + est.window / 2)
         described["after"] = {"residual": float(np.nanmean(fit.residual)),
                               "prediction": float(np.nanmean(fit.prediction))}
-    if getattr(pair, "visit_front", None) is not None:     # the deposit and repose on ground driven again
-        rows = visit_pass(pair, est, sim, base, cache).rows
+    if visits is not None:                                 # the deposit and repose on ground driven again
+        rows = visits.rows
         tests = [learned.visit_test(rows, p, cfg.alpha_accept / 4, cfg.effect_materiality) for p in ("chi", "beta")]
         described["visits"] = tests
         found = [t for t in tests if t["accepted"]]
@@ -748,11 +752,11 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     base = base_pass(pair, cfg, est, sim, shared, progress, cache)
     where = locate_mismatch(pair, cfg, est, base, drive)
     ev, ranked, fits = fit_candidates(pair, cfg, est, sim, base, drive, where, tried, progress, cache, pool)
-    alpha, revisit = _revisit(pair, cfg, est, sim, base, pair.robot.n_tracks, progress, cache)
+    alpha, revisit, visits = _revisit(pair, cfg, est, sim, base, pair.robot.n_tracks, progress, cache)
     choice = choose_terms(fits, ranked, ev, cfg, base, alpha)
     told = name_cause(base, choice.best, revisit, est.window,
                       *location_verdict(pair, cfg, est, base, drive, where, choice.best))
-    fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, told.named, progress, cache)
+    fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, told.named, visits, progress, cache)
     told = with_learned(told, fit, described)
     return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told, described)
 
