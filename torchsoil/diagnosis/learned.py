@@ -36,6 +36,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 import torch
@@ -163,7 +164,7 @@ class LearnedModel:
         self.anchor: dict[str, torch.Tensor] = {}
         self.counts = PassCounts()
         self._rows: dict[tuple, dict] = {}
-        self.ext = type("LearnedTerm", (), {"id": label})()
+        self.ext = SimpleNamespace(id=label)
 
     @property
     def k(self) -> tuple:
