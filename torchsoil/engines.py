@@ -162,7 +162,9 @@ class LocalEngine:
 
     def __exit__(self, *exc):
         kept, self._kept = self._kept or [], None
-        for pool in kept:
+        for pool in kept:                 # idle: ended at once (an interpreter's own exit takes seconds)
+            for p in list(getattr(pool, "_processes", {}).values()):
+                p.terminate()
             pool.shutdown(wait=True)
         return False
 

@@ -213,11 +213,21 @@ def deposit_drive():
     return pair, s, run_pass(pair, s.estimator, s.sim, offsets=s.diagnosis.offsets)
 
 
-def test_a_deposit_share_following_speed_is_learned_through_the_simulator(deposit_drive):
+def test_a_deposit_share_following_speed_is_learned_through_the_simulator(deposit_drive, tmp_path):
+    from torchsoil.diagnosis.checkpoint import PassCache
     from torchsoil.diagnosis.stats import level_z
 
     pair, s, base = deposit_drive
     fit = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis)
+    # each fold run ahead as a pass pool's task, then read back: the same fit
+    cache = PassCache(tmp_path, {"test": "folds ahead"})
+    for f in (0, 1):
+        L.fold_task(pair, s.estimator, s.sim, base, s.diagnosis, f, cache)
+    ahead = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis, cache)
+    assert cache.hits == 4                               # two folds' choices and models
+    assert [c.term for c in ahead.folds] == [c.term for c in fit.folds] and ahead.held_z == fit.held_z
+    for a, b in zip(ahead.folds, fit.folds, strict=True):
+        assert torch.equal(a.model.w[a.term], b.model.w[b.term])
     assert [c.term for c in fit.folds] == [L.Term("chi", "speed")] * 2 and fit.terms == [L.Term("chi", "speed")]
     # a factor per window's visit: the held-out test alone (phases.learned_check)
     assert fit.held_z > level_z(s.diagnosis.alpha_accept, 2) and fit.improvement > 0

@@ -42,8 +42,9 @@ import numpy as np
 import torch
 
 from torchsoil.diagnosis.catalogue import PassCounts, ground_times, visit_key
+from torchsoil.diagnosis.checkpoint import kept
 from torchsoil.diagnosis.covariates import DriveSignals
-from torchsoil.diagnosis.fit import run_pass, shared_of
+from torchsoil.diagnosis.fit import run_pass, section_of, shared_of
 from torchsoil.diagnosis.revisits import visit_groups
 from torchsoil.diagnosis.stats import effective_n, folds, t_z, term_test, z_two_sided
 from torchsoil.estimate.cost import weighted_l1
@@ -439,6 +440,60 @@ def fit_term(estimator, term: Term, basis: Basis, drive: DriveSignals, robot: Ro
     return model
 
 
+def fold_windows(base, est, block_m: float, fold: int) -> list[int]:
+    """The base pass's windows of one fold (`stats.folds`: blocks of block_m metres)."""
+    lab = folds(len(base.rows), int(round(block_m / est.stride)))
+    return np.flatnonzero(lab == fold).tolist()
+
+
+def _fold_fits(estimator, base, est, block_m: float, fold: int) -> dict[int, torch.Tensor]:
+    return {k: th for k in fold_windows(base, est, block_m, fold)
+            if (th := estimator.free_from_row(base.rows[k])) is not None}
+
+
+def _bases(drive: DriveSignals, robot: Robot, cfg) -> dict[Term, Basis]:
+    return distinct(drive, {t: b for t in all_terms()
+                            if (b := make_basis(t, drive, robot, min_spread=cfg.min_spread)) is not None})
+
+
+def fold_choice(estimator, pair, est, sim, base, drive: DriveSignals, cfg, fold: int, cache=None) -> FoldChoice:
+    """One fold's term (`choose_term` on its windows), kept in `cache` (label learned_choice,
+    by tyre section, dig order and fold; the model left out)."""
+    def compute():
+        return choose_term(estimator, _bases(drive, pair.robot, cfg), drive, pair.robot,
+                           _fold_fits(estimator, base, est, cfg.block_m, fold), cfg.offsets,
+                           base.view or "last_visit", sim.dig_order)
+
+    return kept(cache, "learned_choice", (section_of(pair), sim.dig_order, fold), compute)
+
+
+def fold_model(estimator, pair, est, sim, base, drive: DriveSignals, cfg, fold: int, term: Term,
+               cache=None) -> LearnedModel:
+    """One fold's model of `term` (`fit_term` on its windows), its knot values kept in `cache`
+    (label learned_model, by tyre section, dig order, fold and term)."""
+    view, robot = base.view or "last_visit", pair.robot
+    basis = _bases(drive, robot, cfg)[term]
+
+    def compute():
+        m = fit_term(estimator, term, basis, drive, robot, _fold_fits(estimator, base, est, cfg.block_m, fold),
+                     cfg.offsets, view, sim.dig_order)
+        return m.w[term].detach().numpy()
+
+    w = kept(cache, "learned_model", (section_of(pair), sim.dig_order, fold, term.name), compute)
+    return LearnedModel({term: basis}, drive, robot, {term: w}, view=view, dig_order=sim.dig_order)
+
+
+def fold_task(pair, est, sim, base, cfg, fold: int, cache) -> None:
+    """One fold's term and its model of it (`fold_choice`, `fold_model`), kept in `cache`: a
+    task of a diagnosis's pass pool (parallel.PassPool), run beside the candidates' passes;
+    `learn` reads them back (the model is fitted ahead, whichever term the other fold chooses)."""
+    drive = DriveSignals.from_pair(pair)
+    estimator = Estimator(pair, est, sim, **shared_of(base))
+    choice = fold_choice(estimator, pair, est, sim, base, drive, cfg, fold, cache)
+    if choice.term is not None:
+        fold_model(estimator, pair, est, sim, base, drive, cfg, fold, choice.term, cache)
+
+
 def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=None,
           named: str | None = None) -> LearnedFit:
     """The learned modifier of one drive, cross-validated (module docstring).
@@ -447,32 +502,29 @@ def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=N
     DiagnosisConfig (block_m, offsets, min_spread). The estimator runs with a fold's model only
     where both folds chose the same term with one direction, and its law is not that of the
     catalogue term already `named` (`catalogue_match`: that term's own test stands; the curve is
-    kept, `terms` set, untested)."""
+    kept, `terms` set, untested). Each fold's choice and model are read from `cache` where a
+    pool's `fold_task` kept them."""
     t0 = time.perf_counter()
-    robot, rows = pair.robot, base.rows
+    rows = base.rows
     lab = folds(len(rows), int(round(cfg.block_m / est.stride)))
-    bases = distinct(drive, {t: b for t in all_terms()
-                             if (b := make_basis(t, drive, robot, min_spread=cfg.min_spread)) is not None})
-    view = base.view or "last_visit"
     estimator = Estimator(pair, est, sim, **shared_of(base))
-    choices, fits = [], []
+    choices = []
     for f in (0, 1):
         if progress is not None:
             progress.set_postfix_str(f"learned modifier, fold {f}")
-        fits.append({k: th for k in np.flatnonzero(lab == f).tolist()
-                     if (th := estimator.free_from_row(rows[k])) is not None})
-        choices.append(choose_term(estimator, bases, drive, robot, fits[f], cfg.offsets, view, sim.dig_order))
+        choices.append(fold_choice(estimator, pair, est, sim, base, drive, cfg, f, cache))
     out = LearnedFit(tuple(choices))
     term = choices[0].term
     if term is None or term != choices[1].term:
         out.seconds = time.perf_counter() - t0
         return out
-    for c, fit in zip(choices, fits, strict=True):
-        c.model = fit_term(estimator, term, bases[term], drive, robot, fit, cfg.offsets, view, sim.dig_order)
-    if direction(bases[term], choices[0].model.w[term]) != direction(bases[term], choices[1].model.w[term]):
+    for f, c in enumerate(choices):
+        c.model = fold_model(estimator, pair, est, sim, base, drive, cfg, f, term, cache)
+    basis = choices[0].model.bases[term]
+    if direction(basis, choices[0].model.w[term]) != direction(basis, choices[1].model.w[term]):
         out.seconds = time.perf_counter() - t0
         return out
-    if named is not None and catalogue_match(term, direction(bases[term], choices[0].model.w[term])) == named:
+    if named is not None and catalogue_match(term, direction(basis, choices[0].model.w[term])) == named:
         out.terms, out.seconds = [term], time.perf_counter() - t0
         return out
     passes = [run_pass(pair, est, sim, c.model, profiles=False, offsets=cfg.offsets, cache=cache, **shared_of(base))

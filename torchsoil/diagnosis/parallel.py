@@ -54,9 +54,10 @@ def _windows(files: tuple[str, ...], shared: dict):
 def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, args: tuple) -> None:
     """In a worker: one section score (`fit.section_cost`; kind trial_section: under a candidate
     at a trial coefficient, as `fit.candidate_pass` scores it), one candidate pass
-    (`fit.candidate_pass`), the rest of one candidate's fit (`fit.fit_extension`) or the
+    (`fit.candidate_pass`), the rest of one candidate's fit (`fit.fit_extension`), the
     per-visit pass of the hardening test on ground driven again and its pass-by-pass fit
-    (`phases.hardening_on_visits`), kept in the cache at cache_dir."""
+    (`phases.hardening_on_visits`) or one fold of the learned modifier (`learned.fold_task`),
+    kept in the cache at cache_dir."""
     from torchsoil.diagnosis import catalogue
     from torchsoil.diagnosis.catalogue import ExtensionModel, PassCounts
     from torchsoil.diagnosis.covariates import DriveSignals
@@ -80,6 +81,13 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
         model = ExtensionModel(catalogue.get(ext_id), k, DriveSignals.from_pair(pair), pair.robot,
                                base.view or "last_visit", sim.dig_order, PassCounts())
         section_cost(pair, est, sim, sec, 3, model, {**shared, "store": None}, cache)
+        return
+    if kind == "learned":
+        from torchsoil.diagnosis.learned import fold_task
+
+        est, sim, section, cfg, fold = args
+        base = dataclasses.replace(base, **shared, store=_windows(tuple(files), shared))
+        fold_task(with_section(pair, section), est, sim, base, cfg, fold, cache)
         return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)
