@@ -221,10 +221,12 @@ def test_a_deposit_share_following_speed_is_learned_through_the_simulator(deposi
     fit = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis)
     # each fold run ahead as a pass pool's task, then read back: the same fit
     cache = PassCache(tmp_path, {"test": "folds ahead"})
-    for f in (0, 1):
-        L.fold_task(pair, s.estimator, s.sim, base, s.diagnosis, f, cache)
+    for stage in ("choice", "model"):
+        for f in (0, 1):
+            L.fold_task(pair, s.estimator, s.sim, base, s.diagnosis, f, cache, stage)
+    hits = cache.hits
     ahead = L.learn(pair, s.estimator, s.sim, base, DriveSignals.from_pair(pair), s.diagnosis, cache)
-    assert cache.hits == 4                               # two folds' choices and models
+    assert cache.hits - hits == 4                        # two folds' choices and models read back
     assert [c.term for c in ahead.folds] == [c.term for c in fit.folds] and ahead.held_z == fit.held_z
     for a, b in zip(ahead.folds, fit.folds, strict=True):
         assert torch.equal(a.model.w[a.term], b.model.w[b.term])

@@ -483,15 +483,20 @@ def fold_model(estimator, pair, est, sim, base, drive: DriveSignals, cfg, fold: 
     return LearnedModel({term: basis}, drive, robot, {term: w}, view=view, dig_order=sim.dig_order)
 
 
-def fold_task(pair, est, sim, base, cfg, fold: int, cache) -> None:
-    """One fold's term and its model of it (`fold_choice`, `fold_model`), kept in `cache`: a
-    task of a diagnosis's pass pool (parallel.PassPool), run beside the candidates' passes;
-    `learn` reads them back (the model is fitted ahead, whichever term the other fold chooses)."""
+def fold_task(pair, est, sim, base, cfg, fold: int, cache, stage: str = "choice") -> None:
+    """One fold of the learned modifier as a task of a diagnosis's pass pool
+    (parallel.PassPool), run beside the candidates' passes, its result kept in `cache` for
+    `learn` to read back: stage "choice", the fold's term (`fold_choice`); stage "model",
+    once both folds' choices are kept, its model of the term where both chose the same one
+    (`fold_model`; nothing otherwise, as `learn`)."""
     drive = DriveSignals.from_pair(pair)
     estimator = Estimator(pair, est, sim, **shared_of(base))
-    choice = fold_choice(estimator, pair, est, sim, base, drive, cfg, fold, cache)
-    if choice.term is not None:
-        fold_model(estimator, pair, est, sim, base, drive, cfg, fold, choice.term, cache)
+    if stage == "choice":
+        fold_choice(estimator, pair, est, sim, base, drive, cfg, fold, cache)
+        return
+    terms = [fold_choice(estimator, pair, est, sim, base, drive, cfg, f, cache).term for f in (0, 1)]
+    if terms[0] is not None and terms[0] == terms[1]:
+        fold_model(estimator, pair, est, sim, base, drive, cfg, fold, terms[0], cache)
 
 
 def learn(pair, est, sim, base, drive: DriveSignals, cfg, cache=None, progress=None,

@@ -85,9 +85,9 @@ def _pass_task(files: tuple[str, str], cache_dir: str, every: float, kind: str, 
     if kind == "learned":
         from torchsoil.diagnosis.learned import fold_task
 
-        est, sim, section, cfg, fold = args
+        est, sim, section, cfg, fold, stage = args
         base = dataclasses.replace(base, **shared, store=_windows(tuple(files), shared))
-        fold_task(with_section(pair, section), est, sim, base, cfg, fold, cache)
+        fold_task(with_section(pair, section), est, sim, base, cfg, fold, cache, stage)
         return
     est, sim, section, ext_id, k, offsets, sections, refine_steps, block_m = args
     pair = with_section(pair, section)

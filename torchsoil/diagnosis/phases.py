@@ -483,7 +483,8 @@ def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim
     passes are the slowest (the two-angle relaxation) and its fit the longest chain of passes:
     the section scores of each side's second trial are tasks too (beside its first pass), which
     the rest of its fit waits for (run ahead: the fit needs them where its first trial lowers
-    the cost). Last, each fold of the learned modifier (`learned.fold_task`), with cfg.learned."""
+    the cost). Last, with cfg.learned, each fold's learned term, then each fold's model of it
+    (`learned.fold_task`)."""
     head = (est, sim, section_of(pair))
     tail = (cfg.offsets, tried, cfg.refine_steps, cfg.block_m)
     tasks: list[tuple[str, tuple]] = []
@@ -512,9 +513,11 @@ def _candidate_tasks(pool, pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim
         tasks.append(("refine", (*head, i, None, *tail)))
         after.append(tuple(firsts))
     if cfg.learned:                       # the learned modifier's folds, filling the pool's gaps
-        for fold in (0, 1):
-            tasks.append(("learned", (est, sim, section_of(pair), cfg, fold)))
-            after.append(())
+        choices = (len(tasks), len(tasks) + 1)
+        for stage, wait in (("choice", ()), ("model", choices)):
+            for fold in (0, 1):
+                tasks.append(("learned", (est, sim, section_of(pair), cfg, fold, stage)))
+                after.append(wait)
     if tasks:
         pool.run(tasks[0][0], [], others=tasks, after=after)
 
