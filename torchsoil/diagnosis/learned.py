@@ -440,14 +440,10 @@ def fit_term(estimator, term: Term, basis: Basis, drive: DriveSignals, robot: Ro
     return model
 
 
-def fold_windows(base, est, block_m: float, fold: int) -> list[int]:
-    """The base pass's windows of one fold (`stats.folds`: blocks of block_m metres)."""
-    lab = folds(len(base.rows), int(round(block_m / est.stride)))
-    return np.flatnonzero(lab == fold).tolist()
-
-
 def _fold_fits(estimator, base, est, block_m: float, fold: int) -> dict[int, torch.Tensor]:
-    return {k: th for k in fold_windows(base, est, block_m, fold)
+    """{window: its base fit's free parameters} of one fold's windows (`stats.folds`: blocks of block_m m)."""
+    lab = folds(len(base.rows), int(round(block_m / est.stride)))
+    return {k: th for k in np.flatnonzero(lab == fold).tolist()
             if (th := estimator.free_from_row(base.rows[k])) is not None}
 
 
