@@ -140,3 +140,21 @@ def test_drift_along_the_drive_solved_banded_as_the_dense_robust_fit_would():
         assert np.allclose(got, want, rtol=0, atol=1e-12) and math.isclose(got_sigma, want_sigma, rel_tol=1e-9)
     reached = [0, 1, 2, 5, 6, 7, 8]                            # with a light ridge, the drift put in
     assert np.abs(got[reached] - truth[reached]).max() < 1e-4
+
+
+def test_offset_field_crops_equal_the_whole_grid_and_the_formula():
+    """The lazy map offset: by hand on a 4 x 3 grid, c + c(s) + slope . (x - x0, y - y0) on the
+    cells the drive reaches, 0 elsewhere; any crop is the same cells of the whole grid, bit for bit."""
+    from torchsoil.estimate.nuisance import OffsetField
+
+    s = np.array([[0.0, 1.0, np.nan], [2.0, 3.0, 4.0], [np.nan, 5.0, 6.0], [7.0, 8.0, 9.0]])
+    xs, ys = np.array([0.0, 0.1, 0.2, 0.3]), np.array([1.0, 1.1, 1.2])
+    knots, along = np.array([0.0, 10.0]), np.array([0.0, 0.01])        # c(s) = 0.001 s
+    f = OffsetField(s, xs, ys, [0.002], knots, along, (0.01, -0.02), 0.1, 1.1)
+    whole = np.asarray(f)
+    i, j = 3, 1                                                          # s = 8
+    assert whole[i, j] == pytest.approx(0.002 + 0.008 + 0.01 * (0.3 - 0.1) - 0.02 * (1.1 - 1.1))
+    assert whole[0, 2] == 0.0 and whole[2, 0] == 0.0 and whole.shape == f.shape
+    for sl in [(slice(1, 3), slice(0, 2)), (slice(0, 4), slice(2, 3)), (slice(2, 9), slice(1, 9))]:
+        assert np.array_equal(f[sl], whole[sl])
+    assert np.array_equal(f[np.isfinite(s)], whole[np.isfinite(s)])

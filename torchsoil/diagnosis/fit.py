@@ -270,12 +270,13 @@ class AnySection:
     prepared window does not depend on the dig order, and on the section only through its wheel
     geometries' taper (flat fraction, exponent) and the nominal footprint made from them, so
     each window is prepared once and given the asked section's taper and footprint
-    (`with_taper`), the same as one prepared under that section. Kept in `store` (default: in
-    memory up to 64 MB, beyond that prepared anew, as without a store)."""
+    (`with_taper`), the same as one prepared under that section. Kept in `store` (default: a
+    WindowStore's, in memory up to 16 MB and spilled to disk beyond, so that a long drive's
+    section scores do not hold its every third window in memory)."""
 
     def __init__(self, index, surfaces, store: WindowStore | None = None):
         self.index, self.surfaces = index, surfaces
-        self.store = WindowStore(64 << 20, spill=False) if store is None else store
+        self.store = WindowStore() if store is None else store
 
     def get(self, key: tuple, prepare) -> WindowData | None:
         (f, e, est_json, sim_json, *rest), s0, s1 = key

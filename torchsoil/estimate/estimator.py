@@ -133,7 +133,7 @@ class Estimator:
         if surfaces is None:
             h_back = np.asarray(pair.h_back, np.float64)
             h_start = smooth_heightmap(np.asarray(pair.h_front, np.float64), float(est.front_smoothing))
-            surfaces = (h_start, h_back - self.nuisance.field if self.nuisance is not None else h_back)
+            surfaces = (h_start, h_back - np.asarray(self.nuisance.field) if self.nuisance is not None else h_back)
             release()                  # the whole-grid temporaries of the index, nuisance and smoothing
         self.surfaces = surfaces
         self.h_start, self.h_back = surfaces
@@ -180,7 +180,7 @@ class Estimator:
         digging deeper always looks closer to the next map). Nor do the ruts enter the
         smoothing of the ground beyond."""
         pair, sigma = self.pair, float(self.est.front_smoothing)
-        off = 0.0 if self.nuisance is None else self.nuisance.field
+        off = 0.0 if self.nuisance is None else np.asarray(self.nuisance.field)
         self.visits_per_cell = visit_counts(pair.visit_time)
         self.passes = wheel_passes(pair.poses, pair.wheels, pair.wheel_width, pair.grid, pair.visit_time)
         self.passes_before = passes_before(self.passes)

@@ -28,17 +28,55 @@ from scipy import linalg
 from torchsoil.settings import NuisanceConfig
 
 
+class OffsetField:
+    """The (X, Y) map offset of a MapNuisance [m], 0 outside the drive's reach (NaN s), computed
+    where it is read rather than kept over the whole grid (a 200 m drive's grid is 14 MB of
+    float64 a layer): `field[i0:i1, j0:j1]` a crop, `np.asarray(field)` the whole grid (any
+    other index reads from it). Each
+    cell's value is the same expression on the same numbers either way, so a crop equals the
+    whole grid's cells bit for bit.
+
+    s: (X, Y) the path index's arc length [m] (windows.PathIndex.s, shared, not copied). xs, ys:
+    (X,), (Y,) cell centres [m]. coef: the offset [m] and, with a tilt, the slopes about (x0,
+    y0). knots, along: (K,) the along-drive term's knots [m] and values [m]."""
+
+    def __init__(self, s, xs, ys, coef, knots, along, slope, x0, y0):
+        self.s, self.xs, self.ys = s, xs, ys
+        self.coef0, self.knots, self.along = float(coef[0]), knots, along
+        self.slope, self.x0, self.y0 = slope, x0, y0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.s.shape
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not (isinstance(key, tuple) and len(key) == 2 and all(isinstance(k, slice) for k in key)):
+            return self[:, :][key]             # a mask or indices: read from the whole grid
+        s = self.s[key]
+        reach = np.isfinite(s)
+        X, Y = np.nonzero(reach)
+        out = np.zeros(s.shape, np.float64)
+        out[reach] = (self.coef0 + np.interp(s[reach], self.knots, self.along)
+                      + self.slope[0] * (self.xs[key[0]][X] - self.x0) + self.slope[1] * (self.ys[key[1]][Y] - self.y0))
+        return out
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        out = self[:, :]
+        return out if dtype is None else out.astype(dtype)
+
+
 class MapNuisance(NamedTuple):
     """Fitted offset of H_b relative to H_f.
 
-    field: (X, Y) offset to subtract from H_b, m (0 outside the drive's reach). offset: its
+    field: (X, Y) offset to subtract from H_b, m (0 outside the drive's reach; an OffsetField,
+    read by crops or np.asarray). offset: its
     median over the untouched cells, m. drift: (max - min) of the along-drive term c(s), m.
     slope: (2,) dz/dx, dz/dy of the tilt [-]; tilt_deg: its steepest angle, degrees. n_cells:
     untouched cells used. sigma: robust std of H_b - H_f there after the fit, m. knots: (K,)
     arc lengths of the knots of c(s), m; along: (K,) c at the knots, m.
     """
 
-    field: np.ndarray
+    field: OffsetField
     offset: float
     drift: float
     slope: tuple[float, float]
@@ -154,11 +192,7 @@ def fit_map_nuisance(h_front: np.ndarray, h_back: np.ndarray, grid, index, wheel
     along = np.zeros(len(knots))
     if len(knots) > 1:                       # a knot few cells reach (ground driven again) keeps the offset
         along, sigma = _huber_hats(s, knots, y - A @ coef, ridge=float(cfg.min_cells))
-    reach = np.isfinite(index.s)
-    X, Y = np.nonzero(reach)
-    field = np.zeros(h_back.shape, np.float64)
-    field[reach] = (coef[0] + np.interp(index.s[reach], knots, along)
-                    + slope[0] * (xs[X] - x0) + slope[1] * (ys[Y] - y0))
+    field = OffsetField(index.s, xs, ys, coef, knots, along, slope, x0, y0)
     return MapNuisance(field=field, offset=float(coef[0] + np.median(np.interp(s, knots, along))),
                        drift=float(along.max() - along.min()), slope=slope,
                        tilt_deg=math.degrees(math.atan(math.hypot(*slope))), n_cells=n, sigma=sigma,

@@ -90,6 +90,8 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch:
     wd, _ = cKDTree(wheels.reshape(-1, 2)).query(cells, distance_upper_bound=reach)
     order = np.flatnonzero(np.isfinite(s))
     order = order[np.argsort(s[order], kind="stable")]
+    if len(cells) < 2**31:                    # flat indices: int32 halves the index's largest array
+        order = order.astype(np.int32)
     return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc, order, s[order])
 
 
