@@ -32,9 +32,8 @@ class OffsetField:
     """The (X, Y) map offset of a MapNuisance [m], 0 outside the drive's reach (NaN s), computed
     where it is read rather than kept over the whole grid (a 200 m drive's grid is 14 MB of
     float64 a layer): `field[i0:i1, j0:j1]` a crop, `np.asarray(field)` the whole grid (any
-    other index reads from it). Each
-    cell's value is the same expression on the same numbers either way, so a crop equals the
-    whole grid's cells bit for bit.
+    other index reads from it). Each cell's value is the same expression on the same numbers
+    either way, so a crop equals the whole grid's cells bit for bit.
 
     s: (X, Y) the path index's arc length [m] (windows.PathIndex.s, shared, not copied). xs, ys:
     (X,), (Y,) cell centres [m]. coef: the offset [m] and, with a tilt, the slopes about (x0,
@@ -69,8 +68,8 @@ class MapNuisance(NamedTuple):
     """Fitted offset of H_b relative to H_f.
 
     field: (X, Y) offset to subtract from H_b, m (0 outside the drive's reach; an OffsetField,
-    read by crops or np.asarray). offset: its
-    median over the untouched cells, m. drift: (max - min) of the along-drive term c(s), m.
+    read by crops or np.asarray). offset: its median over the untouched cells, m.
+    drift: (max - min) of the along-drive term c(s), m.
     slope: (2,) dz/dx, dz/dy of the tilt [-]; tilt_deg: its steepest angle, degrees. n_cells:
     untouched cells used. sigma: robust std of H_b - H_f there after the fit, m. knots: (K,)
     arc lengths of the knots of c(s), m; along: (K,) c at the knots, m.
