@@ -76,3 +76,48 @@ def test_visit_layers_are_written(out_and_back_pair, tmp_path):
     for key in ("visit_front", "visit_back", "visit_time"):
         np.testing.assert_array_equal(getattr(back, key), getattr(res.terrain, key))
     assert back.visit_time.dtype == np.float64
+
+
+def test_the_back_lidar_s_view_of_ground_still_to_be_driven_stays_out_of_the_after_layers():
+    """Hand-built rows: row 1 along y = 0 (x 0 -> 8 m), a headland, row 2 back along y = 2.5 m
+    (beyond the visit reach of row 1, so its ground is visited once, by row 2). The back lidar
+    sees row 2's cell (4, 2.5) from row 1 at its untouched 0 m, then behind row 2 dug to -20 mm;
+    a cell at (4, -1.4) m no visit reaches is seen at +10 mm. H_b of the dug cell is -20 mm (not
+    the -10 mm mean of both views), the far cell keeps its +10 mm, and H_f is the untouched
+    ground the front lidar saw."""
+    from types import SimpleNamespace
+
+    from torchsoil.io.bag import Recording
+    from torchsoil.pipeline.online import OnlinePipeline
+    from torchsoil.robot import paper_platform
+    from torchsoil.settings import load_settings
+
+    p = OnlinePipeline(paper_platform(), load_settings().pipeline, Recording([], []))
+    p.L, p.mapper, p.fuse_flags = np.eye(4), SimpleNamespace(stamps=[], flags=[]), []
+    row1 = np.column_stack([np.linspace(0, 8, 81), np.zeros(81)])
+    turn = np.column_stack([np.full(5, 8.0), np.linspace(0.5, 2.0, 5)])
+    row2 = np.column_stack([np.linspace(8, 0, 81), np.full(81, 2.5)])
+    xy = np.vstack([row1, turn, row2])
+    t = np.arange(len(xy)) * 0.1 + 100.0
+    for ti, (x, y) in zip(t, xy, strict=True):
+        T = np.eye(4)
+        T[:2, 3] = x, y
+        p.ok_stamps.append(float(ti)), p.ok_poses.append(T)
+    p._track()
+    t_pass = t[81 + 5 + 40]                                   # row 2 abeam x = 4 m
+
+    def patch(cx, cy, z, n=40):                               # n points spread over the cell
+        g = np.random.default_rng(0).uniform(-0.009, 0.009, (n, 2))
+        return np.column_stack([cx + g[:, 0], cy + g[:, 1], np.full(n, z)])
+
+    p._route("front", patch(4.0, 2.5, 0.0), np.full(40, t[20]))          # front, from row 1
+    p._route("back", patch(4.0, 2.5, 0.0), np.full(40, t[60]))           # back, across from row 1
+    p._route("back", patch(4.0, 2.5, -0.02), np.full(40, t_pass + 1.5))  # back, behind row 2
+    p._route("back", patch(4.0, -1.4, 0.01), np.full(40, t[60]))          # never visited
+    p._route("front", patch(4.0, -1.4, 0.01), np.full(40, t[20]))
+    tp = p.terrain()
+    at = lambda x, y: tuple(tp.grid.index(np.array([[x, y]]))[0])       # noqa: E731
+    assert tp.h_back[at(4.0, 2.5)] == pytest.approx(-0.02, abs=1e-6)
+    assert tp.h_front[at(4.0, 2.5)] == pytest.approx(0.0, abs=1e-6)
+    assert tp.h_back[at(4.0, -1.4)] == pytest.approx(0.01, abs=1e-6)
+    assert tp.extras["measured_back"][at(4.0, -1.4)] and tp.extras["measured_back"][at(4.0, 2.5)]

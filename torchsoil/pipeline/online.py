@@ -68,8 +68,11 @@ class OnlinePipeline:
 
     Visits: `visits` (VisitTracker) follows the registered path (levelled like the tiles). A
     front point at time t on a cell goes to front layer v = the visits of the cell base_link
-    had passed closest by t (the surface before visit v), a back point to back layer
-    max(v - 1, 0) (the surface after visit v - 1); `tiles[stream][v]` holds layer v.
+    had passed closest by t (the surface before visit v), a back point to back layer v - 1
+    (the surface after visit v - 1); `tiles[stream][v]` holds layer v. A back point on ground
+    no visit has passed yet (v = 0: the back lidar looking across at a row still to be driven)
+    goes to `tiles["back_before"][0]`, the H_b of ground never visited: mixed into back layer
+    0 it would blend the surface before the first visit into the one after it.
     """
 
     def __init__(self, robot: Robot, cfg: PipelineConfig, rec: Recording, spill_dir=None):
@@ -98,7 +101,7 @@ class OnlinePipeline:
         self.ok_stamps: list[float] = []
         self.ok_poses: list[np.ndarray] = []
         self.spill_dir = spill_dir
-        self.tiles: dict[str, list[Tiles]] = {n: [] for n in STREAMS}    # per stream, one per visit layer
+        self.tiles: dict[str, list[Tiles]] = {n: [] for n in (*STREAMS, "back_before")}  # one per visit layer
         rc = cfg.raster
         self.visits = VisitTracker(rc.dx, visit_reach(robot, rc.visit_margin),
                                    rc.visit_gap if rc.visit_gap is not None else visit_gap(robot),
@@ -389,7 +392,7 @@ class OnlinePipeline:
 
     def _layer(self, name: str, v: int) -> Tiles:
         """Stream `name`'s tiles of visit layer v (made, with the layers below, when missing)."""
-        layers = self.tiles[name]
+        layers = self.tiles.setdefault(name, [])        # (a checkpoint of before back_before has none)
         while len(layers) <= v:
             k = len(layers)
             sub = name if k == 0 else f"{name}_visit{k}"
@@ -402,7 +405,7 @@ class OnlinePipeline:
         reference-map voxels beyond the mapper's and the re-registration's reach are dropped."""
         xy = np.asarray(self.ok_poses[-10:])[:, :2, 3]
         radius = self.cfg.raster.max_range + self.cfg.raster.corridor_width
-        for tiles in (*self.tiles["front"], *self.tiles["back"], self.visits):
+        for tiles in (*self.tiles["front"], *self.tiles["back"], *self.tiles.get("back_before", ()), self.visits):
             tiles.spill(xy @ self.L[:2, :2].T, radius)
         reach = max(self.cfg.mapping.map_radius, self.cfg.reregister.max_range + 2.0) + 10.0
         self.mapper.local.forget(xy, reach)
@@ -439,13 +442,21 @@ class OnlinePipeline:
         beyond = x > self.keep_beyond[name] if name == "front" else x < self.keep_beyond[name]
         sel = _k.within_range(sw.points, float(self.cfg.raster.max_range))
         sel = sel[beyond[sel]]
-        world = icp.apply(self.L @ T, pts[sel])
-        passed = self.visits.passed(world[:, :2], sw.stamp + sw.t[sel])
-        layer = passed if name == "front" else np.maximum(passed - 1, 0)
-        for v in range(int(layer.max(initial=0)) + 1):
-            self._layer(name, v).add(world if v == 0 and not layer.any() else world[layer == v])
+        self._route(name, icp.apply(self.L @ T, pts[sel]), sw.stamp + sw.t[sel])
         if name == "back":
             self.ground_stamp = sw.stamp
+
+    def _route(self, name: str, world: np.ndarray, t: np.ndarray) -> None:
+        """Stream `name`'s (N, 3) points [m, the tiles' frame] measured at times t (N,) [s] into
+        their visit layers (class docstring): front layer v before visit v, back layer v after
+        it, back_before where no visit had passed yet (the path must be tracked beyond t)."""
+        layer = self.visits.passed(world[:, :2], t)
+        if name == "back":                    # ground no visit has passed yet: back_before
+            before = layer == 0
+            self._layer("back_before", 0).add(world[before])
+            world, layer = world[~before], layer[~before] - 1
+        for v in range(int(layer.max(initial=0)) + 1):
+            self._layer(name, v).add(world if v == 0 and not layer.any() else world[layer == v])
 
     def _target(self, center: np.ndarray) -> icp.Target:
         """The reference map near `center` (mapper frame), rebuilt every metre or 10 sweeps."""
@@ -497,7 +508,7 @@ class OnlinePipeline:
         of the stretch as extras (docs/formats.md section 3).
 
         H_f is the first view (front layer 0); H_b per cell the back layer of its last visit
-        (layer 0 where never visited). Where a cell of the grid was visited twice or more, the
+        (back_before where never visited). Where a cell of the grid was visited twice or more, the
         visit layers too: `visit_front`, `visit_back` (V, X, Y) float32 [m] and `visit_time`
         (V, X, Y) float64 [s, the poses' clock], NaN where a cell has fewer than v + 1 visits.
         The extras valid/measured/count/var_front and _back are those of H_f and H_b."""
@@ -529,6 +540,9 @@ class OnlinePipeline:
         hf = fronts[0]
         last = np.maximum(n - 1, 0)[None]
         hb = Heightmap(*(np.take_along_axis(np.stack(f), last, 0)[0] for f in zip(*backs, strict=True)))
+        before = layer("back_before", 0)             # never visited: the back lidar's view across
+        take = (n == 0) & before.valid
+        hb = Heightmap(*(np.where(take, b, a) for a, b in zip(hb, before, strict=True)))
         visits = {}
         if V > 1:
             there = n[None] > np.arange(V)[:, None, None]
@@ -564,5 +578,5 @@ class OnlinePipeline:
 
     def flush(self) -> None:
         """Every tile to the spill directory (when there is one)."""
-        for tiles in (*self.tiles["front"], *self.tiles["back"], self.visits):
+        for tiles in (*self.tiles["front"], *self.tiles["back"], *self.tiles.get("back_before", ()), self.visits):
             tiles.spill(np.zeros((1, 2)), -np.inf)
