@@ -145,7 +145,7 @@ def test_ground_belongs_to_the_last_pass_whose_wheels_went_over_it(pair):
 
 
 def test_latest_hit_matches_a_search_of_every_point():
-    """The chunked backward search against all (K, N) points at once, on a path that crosses
+    """The binned backward search against all (K, N) points at once, on a path that crosses
     itself (a figure eight, two wheels), with one radius for all cells and one per cell: the
     latest point index within the radius, -1 where none is."""
     rng = np.random.default_rng(3)
@@ -157,7 +157,7 @@ def test_latest_hit_matches_a_search_of_every_point():
     for radius in (0.1, rng.uniform(0.0, 0.4, len(cells))):
         within = (dist <= np.broadcast_to(radius, (len(cells),))[None, :, None]).any(0)
         want = np.where(within.any(1), within.shape[1] - 1 - np.argmax(within[:, ::-1], 1), -1)
-        got = _latest_hit(cells, points, radius, chunk=97)
+        got = _latest_hit(cells, points, radius)
         assert (want >= 0).sum() > 500 and (want < 0).sum() > 100
         np.testing.assert_array_equal(got, want)
 

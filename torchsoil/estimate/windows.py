@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 import tempfile
 from dataclasses import dataclass
-from itertools import chain
 from typing import NamedTuple
 
 import numpy as np
@@ -95,46 +94,32 @@ def path_index(grid: Grid, poses: np.ndarray, robot: Robot, reach: float, touch:
     return PathIndex(s.reshape(grid.shape), d.reshape(grid.shape), wd.reshape(grid.shape), arc, order, s[order])
 
 
-def _latest_hit(cells: np.ndarray, points: np.ndarray, radius, chunk: int = 200) -> np.ndarray:
+def _latest_hit(cells: np.ndarray, points: np.ndarray, radius) -> np.ndarray:
     """(C,) latest index n whose (K, N, 2) points[:, n] came within `radius` [m] (a scalar or one
-    per cell, (C,)) of each (C, 2) cell, -1 where none did. The path is searched backwards
-    `chunk` points at a time, over the cells near that stretch only, and a cell leaves the
-    search at its first hit: the work grows with the drive's length, not with its square."""
-    radius = np.broadcast_to(np.asarray(radius, dtype=float), (len(cells),))
-    n = points.shape[1]
-    last = np.full(len(cells), -1)
+    per cell, (C,)) of each (C, 2) cell, -1 where none did. The path is walked backwards over
+    the cells binned near each point (a compiled loop, `_path_numba.latest_within`), and a cell
+    leaves the search at its first hit: the work grows with the drive's length, not with its
+    square."""
+    from torchsoil.estimate._path_numba import latest_within
+
+    cells = np.ascontiguousarray(cells, dtype=np.float64).reshape(-1, 2)
+    radius = np.ascontiguousarray(np.broadcast_to(np.asarray(radius, dtype=np.float64), (len(cells),)))
     if len(cells) == 0:
-        return last
-    pending = np.ones(len(cells), dtype=bool)
-    cell_tree = cKDTree(cells)
-    r_max = float(radius.max())
-    for b in range(n, 0, -chunk):
-        a = max(0, b - chunk)
-        pts = points[:, a:b].reshape(-1, 2)
-        lo, hi = pts.min(0), pts.max(0)
-        near = np.asarray(cell_tree.query_ball_point((lo + hi) / 2, np.hypot(*(hi - lo)) / 2 + r_max), dtype=np.int64)
-        c = near[pending[near]] if len(near) else near
-        if len(c) == 0:
-            continue
-        hits = cKDTree(pts).query_ball_point(cells[c], r=radius[c], return_sorted=False)
-        counts = np.fromiter(map(len, hits), np.int64, len(hits))
-        sel = np.flatnonzero(counts)
-        if len(sel):
-            flat = np.fromiter(chain.from_iterable(hits), np.int64, int(counts.sum())) % (b - a)
-            last[c[sel]] = np.maximum.reduceat(flat, (np.cumsum(counts) - counts)[sel]) + a
-            pending[c[sel]] = False
-            if not pending.any():
-                break
-    return last
+        return np.full(0, -1, np.int64)
+    span = float(np.ptp(cells, axis=0).max())
+    h = max(float(radius.max()), span / 1000.0, 1e-6)       # at most ~10^6 bins
+    return latest_within(cells, np.ascontiguousarray(points, dtype=np.float64), radius, h)
 
 
 def _last_wheel_pass(cells: np.ndarray, xy: np.ndarray, wheels: np.ndarray, arc: np.ndarray, touch: float,
-                     span: float, nearest: np.ndarray, chunk: int = 20000) -> np.ndarray:
+                     span: float, nearest: np.ndarray) -> np.ndarray:
     """(C,) index of the path point nearest each (C, 2) cell among the (N, 2) points of the
     last pass whose (K, N, 2) wheel positions came within `touch` [m] of it: the points up
     to `span` m of arc before the last one with a wheel that near; -1 where no wheel was.
     `nearest` (C,) is each cell's nearest point on the whole path: where it lies in that
     pass it is the answer, and only the other cells are searched."""
+    from torchsoil.estimate._path_numba import nearest_between
+
     last = _latest_hit(cells, wheels, touch)
     out = np.full(len(cells), -1)
     sel = np.flatnonzero(last >= 0)
@@ -144,12 +129,7 @@ def _last_wheel_pass(cells: np.ndarray, xy: np.ndarray, wheels: np.ndarray, arc:
     sel, lo = sel[~inside], lo[~inside]
     if len(sel) == 0:
         return out
-    width = int((last[sel] - lo).max()) + 1
-    for a in range(0, len(sel), chunk):
-        c, j, lo_c = sel[a:a + chunk], last[sel[a:a + chunk]], lo[a:a + chunk]
-        k = np.minimum(lo_c[:, None] + np.arange(width)[None], j[:, None])        # (C, width) points
-        dist = ((xy[k] - cells[c][:, None]) ** 2).sum(-1)
-        out[c] = k[np.arange(len(c)), np.argmin(dist, 1)]
+    out[sel] = nearest_between(np.ascontiguousarray(cells[sel]), np.ascontiguousarray(xy), lo, last[sel])
     return out
 
 
