@@ -284,10 +284,10 @@ class RasterConfig(Section):
     wheel_margin: float = Field(0.1, ge=0, description="front stream: points ahead of the front wheels' "
                                                        "footprint plus this; back stream: behind the rear "
                                                        "wheels' plus this, m")
-    visit_margin: float = Field(2.0, ge=0, description="a cell is visited while base_link is within the farthest "
-                                                      "wheel centre's distance plus (0.5 + this) wheel widths of "
-                                                      "it: the simulator's reach with its default "
-                                                      "sim.relax_margin")
+    visit_margin: float = Field(2.0, ge=0, description="a cell is visited while base_link is within the outermost "
+                                                      "wheel's |y| plus (0.5 + this) wheel widths of it (the "
+                                                      "simulator's reach with its default sim.relax_margin), or "
+                                                      "within a corner wheel's footprint's reach")
     visit_gap: float | None = Field(None, gt=0, description="base_link travel after which coming back over a cell "
                                                             "is a new visit, m (default: twice the wheelbase plus "
                                                             "a wheel width)")

@@ -28,13 +28,14 @@ BATCH = 4.0    # m of path updated on one block of cells
 
 
 def visit_reach(robot: Robot, margin: float) -> float:
-    """How far from base_link [m] a cell counts as visited: the farthest wheel centre's
-    distance from base_link plus half a wheel width plus `margin` wheel widths of relaxation
-    (the simulator's reach, windows.sim_reach, with sim.relax_margin = margin). Ground a
-    wheel changes lies within this reach of base_link while the wheel is on it, in a turn
-    as on a straight: a corner wheel at (x, y) digs sqrt(x^2 + y^2) from base_link, not
-    |y| (in a turn base_link need never come nearer than that)."""
-    return float(np.hypot(robot.wheels[:, 0], robot.wheels[:, 1]).max() + robot.wheel_width * (0.5 + margin))
+    """How far from base_link [m] a cell counts as visited: the larger of (a) the outermost
+    wheel's |y| plus half a wheel width plus `margin` wheel widths of relaxation (the
+    simulator's reach, windows.sim_reach, with sim.relax_margin = margin: the ground a pass
+    changes beside a straight drive) and (b) the farthest wheel centre's distance from
+    base_link plus half a wheel width (the ground under a corner wheel's footprint: in a
+    pivot or a tight turn base_link need never come nearer to it than that)."""
+    wheels, w = robot.wheels[:, :2], robot.wheel_width
+    return float(max(np.abs(wheels[:, 1]).max() + w * (0.5 + margin), np.hypot(*wheels.T).max() + 0.5 * w))
 
 
 def visit_gap(robot: Robot) -> float:
