@@ -405,7 +405,7 @@ class OnlinePipeline:
         reference-map voxels beyond the mapper's and the re-registration's reach are dropped."""
         xy = np.asarray(self.ok_poses[-10:])[:, :2, 3]
         radius = self.cfg.raster.max_range + self.cfg.raster.corridor_width
-        for tiles in (*self.tiles["front"], *self.tiles["back"], *self.tiles.get("back_before", ()), self.visits):
+        for tiles in (*(t for layers in self.tiles.values() for t in layers), self.visits):
             tiles.spill(xy @ self.L[:2, :2].T, radius)
         reach = max(self.cfg.mapping.map_radius, self.cfg.reregister.max_range + 2.0) + 10.0
         self.mapper.local.forget(xy, reach)
@@ -578,5 +578,5 @@ class OnlinePipeline:
 
     def flush(self) -> None:
         """Every tile to the spill directory (when there is one)."""
-        for tiles in (*self.tiles["front"], *self.tiles["back"], *self.tiles.get("back_before", ()), self.visits):
+        for tiles in (*(t for layers in self.tiles.values() for t in layers), self.visits):
             tiles.spill(np.zeros((1, 2)), -np.inf)
