@@ -12,7 +12,14 @@ from scipy import ndimage
 
 from tests.reference_model import simulate as reference_simulate
 from torchsoil.estimate.estimator import Estimator
-from torchsoil.estimate.visits import multipass_table, passes_before, rut_depth, visit_poses, wheel_passes
+from torchsoil.estimate.visits import (
+    multipass_table,
+    passes_before,
+    rut_depth,
+    visit_poses,
+    visit_stretches,
+    wheel_passes,
+)
 from torchsoil.grid import Grid
 from torchsoil.io.terrain_pair import TerrainPair
 from torchsoil.jobs.estimate import estimate
@@ -72,6 +79,15 @@ def test_visit_poses_span_the_visit_and_its_reach():
     arc = np.arange(len(poses)) * 0.1                      # 1 m/s, never standing still
     got = visit_poses(poses, arc, np.array([2.6, 3.0, 2.8]), reach=0.5)
     assert got[0, 0] == pytest.approx(2.0) and got[-1, 0] == pytest.approx(3.6)   # [2.1, 3.5] and one more each side
+
+
+def test_a_visit_is_the_stretch_of_the_drive_that_passed_most_of_its_ground():
+    nan = np.nan
+    arc = np.array([[1.0, 1.3, 1.1, 12.0, 12.2, nan],      # three cells on one pass, two a turn later
+                    [20.0, 20.5, 21.0, 21.4, 29.0, 30.0]])  # a run of four, then two single cells
+    np.testing.assert_allclose(visit_stretches(arc, gap=0.9), [[1.0, 1.3], [20.0, 21.4]])
+    np.testing.assert_allclose(visit_stretches(np.array([[5.0, 1.0]]), gap=0.9), [[1.0, 1.0]])   # a tie: the earliest
+    assert visit_stretches(np.full((1, 3), nan), gap=0.9).tolist() == [[math.inf, -math.inf]]
 
 
 def test_rut_depth_is_the_mean_drop_on_measured_rut_cells():
@@ -277,6 +293,38 @@ def test_cells_with_another_visit_count_stay_out_of_a_windows_costs(visits_pair)
         counts[v] = np.unique(n[counted]).tolist()
     assert len(visits) in (1, 2) and all(len(c) == 1 for c in counts.values())          # one history per window
     assert all(c == [len(visits)] for c in counts.values())
+
+
+def test_ground_whose_visits_were_other_stretches_of_the_drive_stays_out_of_a_windows_fit():
+    """Beside the ruts, a band of the twice-driven ground is labelled as a neighbouring row's
+    reach leaves it in a field: its first visit the way back, its second a later pass (past the
+    end of the drive). It has two visits as the rest, but its first is another stretch of the
+    drive: counted with the rest, the first visit's poses would run from the way out to the way
+    back and dig both passes into the first visit's maps."""
+    raw, _ = two_visit_pair()
+    ys = raw["origin"][1] + raw["dx"] * np.arange(raw["h_front"].shape[1])
+    band = np.broadcast_to((np.abs(ys) > 0.72) & (np.abs(ys) < 0.84), raw["h_front"].shape) & np.isfinite(
+        raw["visit_time"][1])
+    vt = raw["visit_time"].copy()
+    vt[0][band], vt[1][band] = vt[1][band], 2 * LENGTH + 5.0
+    vf, vb = raw["visit_front"].copy(), raw["visit_back"].copy()
+    vf[0][band], vb[0][band], vf[1][band] = vf[1][band], vb[1][band], vb[1][band]
+    pair = TerrainPair.from_mapping({**raw, "visit_time": vt, "visit_front": vf, "visit_back": vb})
+    s = settings()
+    est = Estimator(pair, s.estimator, s.sim, per_visit=True)
+    ks = return_windows(est)
+    for k in ks:
+        for v, wd in est.visit_data(k).items():
+            i0, i1, j0, j1 = wd.crop
+            assert not (wd.weight.cpu().numpy() > 0)[band[i0:i1, j0:j1]].any(), (k, v)
+            if v == 0:                                     # the way out alone, not on to the way back
+                assert float(wd.geom.poses[:, 0].max()) < LENGTH, k
+    rows = [o.row for o in est.run(start=ks[0], stop=ks[-1] + 1)]
+    assert [r["visit"] for r in rows] == [0, 1] * len(ks)
+    for v, d in ((0, D0), (1, D1)):
+        for r in (r for r in rows if r["visit"] == v):
+            assert r["d1"] == pytest.approx(d, abs=0.003) and r["d2"] == pytest.approx(d, abs=0.003), (v, r)
+    assert max(r["t"] for r in rows if r["visit"] == 0) < LENGTH
 
 
 def test_ground_offset_finds_ruts_moved_sideways():

@@ -20,7 +20,15 @@ from scipy import ndimage
 from torchsoil.estimate.cost import weighted_l1
 from torchsoil.estimate.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.estimate.optimizer import FitResult, fit
-from torchsoil.estimate.visits import passes_before, rut_depth, track_heading, visit_counts, visit_poses, wheel_passes
+from torchsoil.estimate.visits import (
+    passes_before,
+    rut_depth,
+    track_heading,
+    visit_counts,
+    visit_poses,
+    visit_stretches,
+    wheel_passes,
+)
 from torchsoil.estimate.windows import (
     WindowData,
     WindowSpec,
@@ -205,6 +213,7 @@ class Estimator:
                 start = np.where(dug, along, start)
             self.visit_start.append(start)
         self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
+        self.visit_arc = np.interp(pair.visit_time, pair.poses[:, 0], self.index.arc)   # (V, X, Y) m, NaN: none
         self._visit_cache: dict[int, dict[int, WindowData | None]] = {}
 
     def _free_name(self, name: str) -> str:
@@ -341,11 +350,14 @@ class Estimator:
     def visit_data(self, k: int) -> dict[int, WindowData | None]:
         """The visits of window k's ground, visit -> its WindowData (per_visit only).
 
-        A window's visits are those of its cells driven most often (cells with another number
-        of visits stay out of its costs, so that visit v means one stretch of the drive for every
-        cell counted). The visit nearest the window's own time uses the window's poses, as
-        without visits; each other visit uses the poses of its stretch of the drive, told by the
-        cells' `visit_time`. Empty when the window holds no ground."""
+        A window's visits are those of its cells driven most often, each visit the stretch of
+        the drive that passed most of them (`visits.visit_stretches`): cells with another number
+        of visits, or whose v-th visit was another stretch (ground at the edge of a neighbouring
+        row's reach, visited by it but no wheel of it), stay out of its costs, so that visit v
+        means one stretch of the drive for every cell counted. The visit nearest the window's
+        own time uses the window's poses, as without visits; each other visit uses the poses of
+        its stretch of the drive, told by the cells' `visit_time`. Empty when the window holds
+        no ground."""
         if k in self._visit_cache:
             return self._visit_cache[k]
         spec, pair = self.windows[k], self.pair
@@ -354,13 +366,19 @@ class Estimator:
         if len(cells):
             n = self.visits_per_cell[cells[:, 0], cells[:, 1]]
             m = int(np.argmax(np.bincount(n, minlength=2)[1:])) + 1 if (n > 0).any() else 1
+            reach = np.abs(pair.robot.wheels[:, 0]).max() + pair.wheel_width / 2 + 0.1
             mine = cells[n == m] if (n == m).any() else cells
-            keep = self.visits_per_cell == m
+            spans = visit_stretches(self.visit_arc[:m, mine[:, 0], mine[:, 1]], reach)[:, :, None, None]
+            (i0, j0), (i1, j1) = cells.min(0), cells.max(0) + 1          # the costs count cells of the window only
+            arc = self.visit_arc[:m, i0:i1, j0:j1]
+            keep = np.zeros(self.visits_per_cell.shape, bool)
+            keep[i0:i1, j0:j1] = (self.visits_per_cell[i0:i1, j0:j1] == m) & np.all(
+                (arc >= spans[:, 0]) & (arc <= spans[:, 1]), 0)
+            mine = mine[keep[mine[:, 0], mine[:, 1]]]
             times = pair.visit_time[:, mine[:, 0], mine[:, 1]]                         # (V, G)
             t_own = float(np.interp(spec.centre, self.index.arc, pair.poses[:, 0]))
             t_med = [float(np.nanmedian(times[v])) if np.isfinite(times[v]).any() else math.inf for v in range(m)]
             own = int(np.argmin([abs(t - t_own) for t in t_med]))
-            reach = np.abs(pair.robot.wheels[:, 0]).max() + pair.wheel_width / 2 + 0.1
             for v in range(m):
                 if not math.isfinite(t_med[v]):
                     continue

@@ -103,6 +103,27 @@ def visit_poses(poses: np.ndarray, arc: np.ndarray, times: np.ndarray, reach: fl
     return np.asarray(poses[max(sel[0] - 1, 0):sel[-1] + 2], np.float64)
 
 
+def visit_stretches(arc: np.ndarray, gap: float) -> np.ndarray:
+    """The stretch of the drive each visit of some ground is: (V, G) base_link arc lengths [m]
+    at which visit v passed each of G cells -> (V, 2) [first, last] arc length of its main
+    stretch. Sorted, a visit's arc lengths break where two neighbours lie more than `gap` [m]
+    apart (one pass over contiguous ground is contiguous; a cell whose v-th visit was another
+    pass, as ground at the edge of a neighbouring row's reach, lies a turn away); the main
+    stretch is the run holding the most cells (the earliest of equal ones). A visit with no
+    finite arc length gets [inf, -inf]: it holds no cell."""
+    arc = np.asarray(arc, np.float64)
+    out = np.tile([np.inf, -np.inf], (arc.shape[0], 1))
+    for v, a in enumerate(arc):
+        a = np.sort(a[np.isfinite(a)])
+        if len(a) == 0:
+            continue
+        cut = np.flatnonzero(np.diff(a) > gap) + 1
+        starts, ends = np.r_[0, cut], np.r_[cut, len(a)]
+        k = int(np.argmax(ends - starts))
+        out[v] = a[starts[k]], a[ends[k] - 1]
+    return out
+
+
 def rut_depth(h_front: np.ndarray, h_back: np.ndarray, ruts: np.ndarray) -> float:
     """Mean depth [m] of the ruts (positive: the surface went down) on the (X, Y) bool `ruts`
     cells where both (X, Y) surfaces [m] are measured; NaN where none is."""
