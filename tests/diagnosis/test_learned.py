@@ -88,6 +88,36 @@ def test_the_sinkage_factor_at_each_entry_is_exp_of_the_curve_at_its_pose():
     assert np.log(back).mean() == pytest.approx(0.0, abs=1e-12)
 
 
+def test_a_visit_without_entries_or_with_unknown_covariates_gets_no_factor():
+    """An earlier visit none of whose wheels meets the window's cells (a window's ground at a
+    neighbouring row, say), and entries whose covariate is unknown, get f = 0: a factor of 1,
+    not the NaN of a mean over nothing that the simulator refuses."""
+    poses = ramp_poses()
+    drive = DriveSignals.from_poses(poses, ROBOT)
+    d, chi = L.Term("d", "speed"), L.Term("chi", "speed")
+    basis = L.Basis(np.array([0.5, 1.0, 1.5]), anchor=1)
+    w = {d: np.array([math.log(0.5), math.log(2.0)]), chi: np.array([math.log(0.5), math.log(2.0)])}
+    model = L.LearnedModel({d: basis, chi: basis}, drive, ROBOT, w=w)
+    far = wheel_geometry(Grid(0.02, (40.0, 40.0), (20, 20)), poses, ROBOT, dtype=torch.float64)
+    assert len(far.cell) == 0
+    wd = SimpleNamespace(spec=SimpleNamespace(s0=0.0, s1=6.0), crop=(0, 1, 0, 1), geom=far)
+    anchor = model.own_mean(wd)
+    assert {p: float(v) for p, v in anchor.items()} == {"d": 0.0, "chi": 0.0}
+    mods = model.modifiers(wd, torch.zeros(1, 4, dtype=torch.float64))
+    assert mods.depth_scale.shape == (1, 0) and float(mods.chi_scale[0]) == 1.0
+    # speed unknown over the second half of the drive: those entries keep their d
+    _, geom = grid_and_geometry(poses)
+    half = drive.signals["t"] > drive.signals["t"][-1] / 2
+    drive.signals["speed"] = np.where(half, np.nan, drive.signals["speed"])
+    model = L.LearnedModel({d: basis}, drive, ROBOT, w={d: w[d]})
+    wd = SimpleNamespace(spec=SimpleNamespace(s0=0.0, s1=6.0), crop=(0, 1, 0, 1), geom=geom)
+    got = model.modifiers(wd, torch.zeros(1, 4, dtype=torch.float64)).depth_scale[0].numpy()
+    t = geom.poses[:, 0].numpy()[geom.pose.numpy()]
+    late = t > drive.signals["t"][np.argmax(half)]
+    assert np.isfinite(got).all() and late.any() and (got[late] == 1.0).all()
+    assert (got[~late] < 0.99).any()                     # the known half keeps its curve (speed below 1 m/s)
+
+
 def test_deposit_share_and_repose_scales_act_as_the_scaled_parameters():
     poses = ramp_poses(1.0, 1.0)
     _, geom = grid_and_geometry(poses)

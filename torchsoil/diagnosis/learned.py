@@ -183,13 +183,20 @@ class LearnedModel:
 
     def rows(self, wd, geom) -> dict[Term, torch.Tensor]:
         """{term: basis rows}: (E, J - 1) per entry for d terms, (J - 1,) at the visit's mean for
-        chi and beta; kept per visit (the last 64)."""
+        chi and beta; kept per visit (the last 64). An entry whose covariate is not known (NaN),
+        or a visit without entries, gets rows of 0: no factor, f = 0 before the anchor."""
         key = visit_key(wd, geom)
         if key not in self._rows:
             out = {}
             for term, basis in self.bases.items():
-                x = self._entry_x(wd, geom, term)
-                m = basis.matrix(x) if term.parameter in ("d", "d_side") else basis.matrix([np.mean(x)])[0]
+                x = np.asarray(self._entry_x(wd, geom, term), np.float64)
+                ok = np.isfinite(x)
+                if term.parameter in ("d", "d_side"):
+                    m = np.zeros((len(x), len(basis.knots) - 1))
+                    if ok.any():
+                        m[ok] = basis.matrix(x[ok])
+                else:       # a visit no wheel of which meets the window's cells: no factor
+                    m = basis.matrix([np.mean(x[ok])])[0] if ok.any() else np.zeros(len(basis.knots) - 1)
                 out[term] = torch.as_tensor(m, dtype=torch.float64)
             self._rows[key] = out
             if len(self._rows) > 64:
@@ -218,7 +225,8 @@ class LearnedModel:
     def own_mean(self, wd) -> dict[str, torch.Tensor]:
         """{parameter: () f at the window's own ground}: the mean over its own visit's entries for
         d, the value at the visit's mean covariate for chi and beta."""
-        return {p: v.mean() for p, v in self.log_factors(wd, wd.geom).items()}
+        return {p: v.mean() if v.numel() else torch.zeros((), dtype=v.dtype)
+                for p, v in self.log_factors(wd, wd.geom).items()}
 
 
 def smoothness(model: LearnedModel) -> torch.Tensor:
