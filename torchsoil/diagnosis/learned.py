@@ -190,13 +190,11 @@ class LearnedModel:
             out = {}
             for term, basis in self.bases.items():
                 x = np.asarray(self._entry_x(wd, geom, term), np.float64)
-                ok = np.isfinite(x)
+                ok, x0 = np.isfinite(x), basis.knots[basis.anchor]       # at the anchor every row is 0
                 if term.parameter in ("d", "d_side"):
-                    m = np.zeros((len(x), len(basis.knots) - 1))
-                    if ok.any():
-                        m[ok] = basis.matrix(x[ok])
+                    m = basis.matrix(np.where(ok, x, x0))
                 else:       # a visit no wheel of which meets the window's cells: no factor
-                    m = basis.matrix([np.mean(x[ok])])[0] if ok.any() else np.zeros(len(basis.knots) - 1)
+                    m = basis.matrix([np.mean(x[ok]) if ok.any() else x0])[0]
                 out[term] = torch.as_tensor(m, dtype=torch.float64)
             self._rows[key] = out
             if len(self._rows) > 64:

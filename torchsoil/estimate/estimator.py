@@ -213,7 +213,6 @@ class Estimator:
                 start = np.where(dug, along, start)
             self.visit_start.append(start)
         self.visit_back = [np.asarray(h, np.float64) - off for h in pair.visit_back]
-        self.visit_arc = np.interp(pair.visit_time, pair.poses[:, 0], self.index.arc)   # (V, X, Y) m, NaN: none
         self._visit_cache: dict[int, dict[int, WindowData | None]] = {}
 
     def _free_name(self, name: str) -> str:
@@ -368,9 +367,9 @@ class Estimator:
             m = int(np.argmax(np.bincount(n, minlength=2)[1:])) + 1 if (n > 0).any() else 1
             reach = np.abs(pair.robot.wheels[:, 0]).max() + pair.wheel_width / 2 + 0.1
             mine = cells[n == m] if (n == m).any() else cells
-            spans = visit_stretches(self.visit_arc[:m, mine[:, 0], mine[:, 1]], reach)[:, :, None, None]
             (i0, j0), (i1, j1) = cells.min(0), cells.max(0) + 1          # the costs count cells of the window only
-            arc = self.visit_arc[:m, i0:i1, j0:j1]
+            arc = np.interp(pair.visit_time[:m, i0:i1, j0:j1], pair.poses[:, 0], self.index.arc)   # m, NaN: none
+            spans = visit_stretches(arc[:, mine[:, 0] - i0, mine[:, 1] - j0], reach)[:, :, None, None]
             keep = np.zeros(self.visits_per_cell.shape, bool)
             keep[i0:i1, j0:j1] = (self.visits_per_cell[i0:i1, j0:j1] == m) & np.all(
                 (arc >= spans[:, 0]) & (arc <= spans[:, 1]), 0)
