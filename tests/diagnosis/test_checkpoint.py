@@ -145,6 +145,7 @@ def test_a_pass_killed_midway_resumes_from_its_last_window(tmp_path, short_drive
     assert not list((tmp_path / "p").glob("*-partial-*.pkl"))      # dropped once their passes were done
 
 
+@pytest.mark.long
 def test_a_diagnose_killed_with_sigkill_resumes_to_the_straight_run(tmp_path, short_drive):
     """`torchsoil diagnose` killed once a pass in progress has been kept, then `--resume`: the
     diagnosis.json of a run straight through."""

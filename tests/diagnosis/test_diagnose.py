@@ -90,6 +90,7 @@ def test_a_study_record_re_scores_offline_as_the_diagnosis_scored_it(speed_power
     assert none is None
 
 
+@pytest.mark.long
 def test_soil_varying_along_the_path_is_adequate(tmp_path):
     pair, diag = run("watered", 1)
     s = diag.summary
@@ -165,6 +166,7 @@ AS_DESCRIBED = {"sections": (), "dig_orders": ()}
 CATALOGUE_ONLY = {**AS_DESCRIBED, "learned": False}
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("effect, law, seed, cfg, measurement", [
     ("slip_sinkage", {}, 1, AS_DESCRIBED, None),                              # linear world law
     ("lateral_load_transfer", {"form": "saturating", "k": 2.0, "x_s": 0.1}, 2, CATALOGUE_ONLY, None),

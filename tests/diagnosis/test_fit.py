@@ -308,6 +308,7 @@ def test_dig_order_told_from_the_drive(dig):
         assert paper > 1.5 * d
 
 
+@pytest.mark.long
 def test_a_wall_term_chooses_its_own_tyre_section():
     """Steeper walls and a rounder tyre section trade off (a flat tread's box rut relaxed at
     the soil's angle looks like a rounder tyre's rut standing). In a world with a flat tread

@@ -322,6 +322,7 @@ def test_the_verdict_names_the_learned_law_where_the_catalogue_names_none_or_pre
     assert with_learned(unexplained, fit, {**described, "accepted": False}) is unexplained
 
 
+@pytest.mark.long
 def test_the_diagnosis_names_the_learned_deposit_law_and_writes_its_curve(deposit_drive, tmp_path):
     import json
 

@@ -69,6 +69,7 @@ def test_a_pool_needs_a_cache_to_keep_its_passes_in():
         pass
 
 
+@pytest.mark.long
 def test_the_per_visit_pass_runs_on_the_pool_beside_the_candidates(tmp_path, monkeypatch):
     """On a pair with visit layers the hardening test's per-visit pass is a task of the pool too:
     the diagnosis reads it back instead of fitting the visits itself, and tests the same."""

@@ -21,6 +21,10 @@ from torchsoil.settings import load_settings
 from torchsoil.synth.bagwriter import TYPESTORE
 from torchsoil.synth.record import make_recording
 
+# the long tier (`python3 -m pytest -m long`): the streamed drive takes a minute to play; the
+# node's tests (tests/node/test_node_body.py) run the live estimator in the quick tier
+pytestmark = pytest.mark.long
+
 DRIVE = {"name": "soft", "trajectory": {"segments": [{"straight": 13.0, "speed": 1.0}]},
          "terrain": {"margin": 4.0},
          "soil": {"base": {"d": 0.03, "chi": 0.3, "beta_deg": 30.0}},

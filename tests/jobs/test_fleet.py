@@ -220,6 +220,7 @@ def test_estimate_many_on_the_local_engine_then_rerun(drives, tmp_path, capsys):
     assert table["north"]["d1"] and table["north"]["seconds"]            # the earlier run's figures are kept
 
 
+@pytest.mark.long
 def test_diagnose_many_on_the_local_engine(tmp_path):
     from torchsoil.jobs.diagnose import diagnose_input
 
@@ -240,6 +241,7 @@ def test_diagnose_many_on_the_local_engine(tmp_path):
 
 
 # ---------------------------------------------------------------------------- the Ray engine
+@pytest.mark.long
 def test_estimate_many_on_ray_then_rerun_retries_only_the_broken(drives, tmp_path, ray_instance, capsys):
     """Three recordings (a glob), one broken, on a local Ray instance: outputs as single runs,
     the broken one's error in fleet.csv; a rerun retries only the broken one; once it is
@@ -280,6 +282,7 @@ def test_estimate_many_on_ray_then_rerun_retries_only_the_broken(drives, tmp_pat
     assert_same_as_single(out / "broken", single["south"])
 
 
+@pytest.mark.long
 def test_ray_records_a_killed_worker_and_refuses_a_task_no_node_holds(ray_instance):
     with make_engine("ray") as eng:
         got = dict(eng.imap(value_or_kill, [(0,), (1,), (2,)]))
@@ -308,6 +311,7 @@ def _without_time(table: str) -> str:
     return "\n".join(line for line in table.splitlines() if not line.startswith("time per case"))
 
 
+@pytest.mark.long
 def test_study_on_ray_gives_the_serial_table(tmp_path, ray_instance):
     from torchsoil.diagnosis.study import run_study
 
@@ -324,6 +328,7 @@ def test_study_on_ray_gives_the_serial_table(tmp_path, ray_instance):
     assert done[0] == "tiny 1" and sorted(done[1:]) == ["tiny 0", "tiny 2"]
 
 
+@pytest.mark.long
 def test_foreign_study_command_on_the_local_engine(tmp_path, capsys):
     from torchsoil.diagnosis.study import run_foreign
 

@@ -23,6 +23,10 @@ from scipy.spatial.transform import Rotation
 from tests.node.bagfeed import DEMO
 from tests.node.test_node_ros1 import _rows
 
+# the long tier (`python3 -m pytest -m long`): ROS 2's play through rclpy takes most of a minute;
+# the ROS 1 node (tests/node/test_node_ros1.py) runs in the quick tier
+pytestmark = pytest.mark.long
+
 ROOT = Path(__file__).resolve().parents[2]
 ROS2_PYTHON = ROOT / ".ros2" / "bin" / "python"
 PLAY = Path(__file__).with_name("play_ros2.py")
