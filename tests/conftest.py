@@ -33,11 +33,11 @@ SHARED_FIXTURES = {"speed_power": "speed_power", "s_turn": "s_turn", "streamed":
 # the other tests reading them from numba's cache
 SHARED_KERNELS = {"envs": "envs_kernels"}
 
-# the modules whose tests or shared fixtures take longest (tens of seconds each, --durations), run
+# the quick tier's modules whose tests or shared fixtures take longest (--durations), run
 # first, longest first, so that the two workers do not wait at the end on one long test
-LONG_FIRST = ("diagnosis/test_diagnose.py", "node/test_node_ros1.py", "estimate/test_live.py",
-              "node/test_node_ros2.py", "diagnosis/test_checkpoint.py", "node/test_node_body.py",
-              "pipeline/test_synthetic.py", "jobs/test_fleet.py", "diagnosis/test_parallel.py", "test_manual.py")
+LONG_FIRST = ("node/test_node_ros1.py", "diagnosis/test_diagnose.py", "node/test_node_body.py",
+              "diagnosis/test_learned.py", "diagnosis/test_checkpoint.py", "test_manual.py",
+              "pipeline/test_synthetic.py", "jobs/test_fleet.py", "diagnosis/test_parallel.py")
 
 
 @pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads the marks
