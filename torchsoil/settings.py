@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, NonNegativeFloat, ValidationError, field_validator, model_validator
 
 
 class SettingsError(ValueError):
@@ -127,6 +127,9 @@ class EstimatorConfig(Section):
     corridor: float = Field(3.0, gt=0, description="ROI corridor width d_w around the path, m")
     front_smoothing: float = Field(1.0, ge=0, description="the simulation starts from H_f smoothed by a "
                                                           "Gaussian of this sigma, cells")
+    after_blur: float = Field(0.0, ge=0, description="the simulated change is compared with H_b through a "
+                                                     "Gaussian of this sigma, cells: the lidar raster's own "
+                                                     "blur of a rut's walls (0: none; diagnose chooses it)")
     weight_width: float = Field(2.0, gt=0, description="cost weight 1 within this many wheel widths of "
                                                        "each wheel path")
     floor_inner: float = Field(2.5, ge=0, description="noise-floor zone starts this many wheel widths "
@@ -363,6 +366,10 @@ class DiagnosisConfig(Section):
         description="tyre sections (flat fraction f, taper exponent e; sim.sinkage.taper) tried besides the "
                     "robot's own; the best fit on the drive's windows is the base model's section, a nuisance "
                     "(a rounded or crowned tyre is not missing physics); (): the robot's as described, -")
+    blurs: tuple[NonNegativeFloat, ...] = Field(
+        (1.0,), description="raster blurs (estimator.after_blur, a Gaussian's sigma, cells) tried besides the "
+                            "estimator's own; the best fit on the drive's windows is the base model's, a "
+                            "nuisance (a lidar map spreads a rut's walls); (): the estimator's as set")
     dig_orders: tuple[Literal["robot", "wheel"], ...] = Field(
         ("robot", "wheel"), description="dig orders (sim.dig_order) tried, each at its best few sections; the "
                                         "one that fits the drive's windows best is the base model's, a nuisance "

@@ -480,3 +480,20 @@ def test_a_window_prepared_under_one_section_is_the_one_prepared_under_another_o
     first.store = store
     assert _same(first._prepare(first.windows[3]), first.data(3))        # prepared here, kept
     assert _same(via._prepare(via.windows[3]), other.data(3)) and len(store.store) == 1   # read back, retapered
+
+
+@pytest.mark.parametrize("blur", [0.0, 1.0])
+def test_the_rasters_blur_is_fitted_as_a_nuisance(blur):
+    """A drive whose H_b change was measured through scipy's Gaussian of 1 cell is fitted through
+    the blur; a sharp one keeps the estimator's own (none)."""
+    from tests.synthetic_pair import sim_pair
+    from torchsoil.diagnosis.fit import fit_blur
+    from torchsoil.settings import EstimatorConfig, SimConfig
+
+    pair, _ = sim_pair(length=4.4, noise=0.001, blur=blur)
+    est, evidence, shared = fit_blur(pair, EstimatorConfig(), SimConfig(), (1.0, 2.0))
+    assert est.after_blur == blur and evidence["fitted"] == blur and evidence["declared"] == 0.0
+    costs = dict(evidence["residual"])
+    assert costs[blur] < min(c for b, c in costs.items() if b != blur)
+    assert {"index", "nuisance", "view", "surfaces"} <= set(shared)
+    assert fit_blur(pair, est, SimConfig(), ())[1] is None                    # none tried: none fitted

@@ -226,6 +226,39 @@ def test_a_parameter_falling_with_the_passes_on_the_same_ground_is_found_and_a_s
     assert desc["sentence"].startswith("The angle of repose falls with the passes")
 
 
+def visit_costs(minimum_at, n_windows=24, seed=1):
+    """Per-visit pass `later` entries of visit_rows' windows: each later visit's cost [m] over
+    the angle-of-repose factors, a parabola in the log factor with its least at `minimum_at`
+    (None: flat, the angle the maps do not pin down), with 0.005 mm noise."""
+    from torchsoil.diagnosis.revisits import SHARE_FACTORS
+
+    rng = np.random.default_rng(seed)
+    x = np.log(np.array(SHARE_FACTORS))
+    later = {}
+    for k in range(n_windows):
+        bowl = 0.0 if minimum_at is None else 2e-3 * (x - math.log(minimum_at)) ** 2
+        later[(0.4 * k, 1)] = {"passes": 2.0, "share_factor": np.array(SHARE_FACTORS),
+                               "cost_beta": 2e-3 + bowl + rng.normal(0, 5e-6, len(x))}
+    return later
+
+
+def test_a_parameter_that_changes_between_visits_must_predict_the_later_visits_better():
+    """The fits' angle falls x0.9 per pass on every window; where the later visits' costs are
+    least at 0.81 (two passes) the law predicts them better and is kept; where the costs do not
+    change with the angle, the fits wandered on a parameter the maps do not hold, and it is not."""
+    rows = visit_rows(0.9, n_windows=24)
+    held = L.visit_test(rows, "beta", alpha=0.0125, materiality=0.05, later=visit_costs(0.81))
+    assert held["accepted"] and held["cost_gain"] > 0 and held["cost_z"] > held["z_level"]
+    loose = L.visit_test(rows, "beta", alpha=0.0125, materiality=0.05, later=visit_costs(None))
+    assert loose["z"] > loose["z_level"] and not loose["accepted"]
+    wrong = L.visit_test(rows, "beta", alpha=0.0125, materiality=0.05, later=visit_costs(1.2))
+    assert wrong["cost_gain"] < 0 and not wrong["accepted"]
+    # by hand: a visit whose cost is 3 mm at factor 1 and 2 mm at 0.81, linear in the log factor between
+    one = {(0.0, 1): {"passes": 2.0, "share_factor": np.array([0.81, 1.0]), "cost_beta": np.array([2e-3, 3e-3])}}
+    gain, _, _ = L.cross_visit_gain(one, "beta", 0.9)
+    assert gain == pytest.approx(1e-3)
+
+
 @pytest.fixture(scope="module")
 def deposit_drive():
     """The study's drive whose deposit share grows with speed (chi x (1 + 0.8 (v - 1)), the

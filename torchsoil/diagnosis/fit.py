@@ -259,6 +259,39 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
     return best, costs, shared, windows
 
 
+def fit_blur(pair, est: EstimatorConfig, sim: SimConfig, blurs, cache: PassCache | None = None, pool=None,
+             z: float = 1.96) -> tuple[EstimatorConfig, dict | None, dict]:
+    """The raster's blur as a nuisance: the Gaussian (sigma in cells, estimator.after_blur) that
+    the simulated change is seen through before it is compared with H_b (`cost.raster_blur`).
+
+    A lidar heightmap spreads a rut's walls over a cell or two (the sweeps' pose errors, the
+    beams' spots, the de-skew, the cells' own averaging); the simulator digs them sharp. Left
+    alone, the spread reads as a lower angle of repose, or as a wider footprint and a cohesive
+    soil's walls, on ground that follows the model (a null drive's bag named footprint_width).
+    Scored as the tyre section is (`section_cost`: every third window, the base model, the
+    pair's own section, sim's dig order), for est's own blur and each of `blurs`; the own blur
+    stays unless another fits those windows better at a paired z of `z`. pool: a
+    parallel.PassPool that scores the other blurs as tasks (it is given the pair first).
+    Returns (est with the chosen blur, the evidence {declared, fitted, residual: [[sigma,
+    mean residual m]]} or None when none was tried, run_pass's keywords for later passes)."""
+    own = float(est.after_blur)
+    candidates = list(dict.fromkeys([own, *(float(b) for b in blurs)]))
+    if len(candidates) < 2:
+        return est, None, {}
+    sec, ests = section_of(pair), {b: est.replace(after_blur=b) for b in candidates}
+    costs, res = {}, {}
+    costs[own], shared, res[own] = section_cost(pair, est, sim, sec, 3, None, None, cache)
+    if pool is not None:
+        pool.share(pair, shared)
+        pool.run("section", [(ests[b], sim, sec, 3, None) for b in candidates[1:]])
+    for b in candidates[1:]:
+        costs[b], _, res[b] = section_cost(pair, ests[b], sim, sec, 3, None, shared, cache)
+    best = min(candidates, key=lambda b: (costs[b], b != own))
+    if best != own and paired_z(res[own], res[best]) < z:
+        best = own
+    return ests[best], {"declared": own, "fitted": best, "residual": [[b, costs[b]] for b in candidates]}, shared
+
+
 def section_candidates(pair, sections) -> list[TyreSection]:
     """The sections `fit_section` tries: the pair's own first, then `sections`, each once."""
     return list(dict.fromkeys([section_of(pair), *((float(f), float(e)) for f, e in sections)]))
@@ -329,7 +362,7 @@ def section_cost(pair, est: EstimatorConfig, sim: SimConfig, sec: TyreSection, e
     shared = shared or {}
     estimator = Estimator(with_section(pair, sec), est, sim, modifiers=model.modifiers if model is not None else None,
                           **{**shared, "store": section_windows(shared)})
-    what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k))
+    what = (sec, sim.dig_order, every, None if model is None else (model.ext.id, model.k), est.after_blur)
 
     def score() -> list[float]:
         estimator.windows = estimator.windows[::max(1, every)]

@@ -46,7 +46,7 @@ from torchsoil.diagnosis.checkpoint import kept
 from torchsoil.diagnosis.covariates import DriveSignals
 from torchsoil.diagnosis.fit import run_pass, section_of, shared_of
 from torchsoil.diagnosis.revisits import visit_groups
-from torchsoil.diagnosis.stats import effective_n, folds, t_z, term_test, z_two_sided
+from torchsoil.diagnosis.stats import effective_n, folds, paired_improvement, t_z, term_test, z_two_sided
 from torchsoil.estimate.cost import weighted_l1
 from torchsoil.estimate.estimator import Estimator
 from torchsoil.robot import Robot
@@ -647,13 +647,19 @@ def visit_parameters(rows: list[dict], parameter: str) -> list[tuple[float, np.n
     return out
 
 
-def visit_test(rows: list[dict], parameter: str, alpha: float, materiality: float, floor: float = 1e-3) -> dict:
+def visit_test(rows: list[dict], parameter: str, alpha: float, materiality: float, floor: float = 1e-3,
+               later: dict | None = None) -> dict:
     """Does a parameter change with the passes on the same ground? Per window its log factor
     per wheel pass between its first visit and the later ones (least squares through 0; values
     floored at `floor`), their mean tested against 0, two-sided at `alpha`, by a t test on the
     effective number of windows (neighbouring windows share ground). The factor per pass
-    g = exp(mean) must change the parameter by `materiality` at least. Returns {windows,
-    n_eff, g, z, z_level, accepted, direction}."""
+    g = exp(mean) must change the parameter by `materiality` at least, and, given `later` (the
+    per-visit pass's `revisits.VisitPass.later`, with its cost_chi and cost_beta curves), must
+    predict the later visits better than their first visit's soil unchanged does
+    (`cross_visit_gain`, at the same two-sided level): a parameter the maps do not pin down (an
+    angle of repose above every slope the wheels leave) wanders from visit to visit without
+    changing the surface it simulates. Returns {windows, n_eff, g, z, z_level, accepted,
+    direction, and with later: cost_gain (m), cost_z}."""
     wins = visit_parameters(rows, parameter)
     out = {"parameter": parameter, "covariate": "passes", "windows": len(wins), "accepted": False}
     if len(wins) < 4:
@@ -669,8 +675,32 @@ def visit_test(rows: list[dict], parameter: str, alpha: float, materiality: floa
     z = t_z(t, max(n_eff - 1.0, 1.0))
     level = z_two_sided(alpha)
     g = math.exp(float(lg.mean()))
-    return {**out, "n_eff": n_eff, "g": g, "z": z, "z_level": level, "direction": "+" if g > 1 else "-",
-            "accepted": bool(z > level and abs(g - 1.0) >= materiality)}
+    ok = z > level and abs(g - 1.0) >= materiality
+    out = {**out, "n_eff": n_eff, "g": g, "z": z, "z_level": level, "direction": "+" if g > 1 else "-"}
+    if later is not None:
+        gain, _, cost_z = cross_visit_gain(later, parameter, g)
+        out |= {"cost_gain": gain, "cost_z": cost_z}
+        ok = ok and cost_z > level
+    return {**out, "accepted": bool(ok)}
+
+
+def cross_visit_gain(later: dict, parameter: str, g: float) -> tuple[float, float, float]:
+    """How much better the later visits of the ground driven again are simulated from their
+    first visit's soil with `parameter` (chi or beta) scaled by g per wheel pass since that
+    visit than unchanged: `stats.paired_improvement` of their costs (each visit's cost curve
+    over the factors it was simulated at, interpolated in the log factor; factors beyond the
+    curve's held at its ends). later: `revisits.VisitPass.later`. Returns (mean gain m, se, z);
+    NaN without curves."""
+    key = f"cost_{parameter}"
+    visits = [v for v in later.values() if key in v]
+    if not visits:
+        return math.nan, math.nan, math.nan
+    same, scaled = [], []
+    for v in visits:
+        x, y = np.log(np.asarray(v["share_factor"], np.float64)), np.asarray(v[key], np.float64)
+        same.append(float(np.interp(0.0, x, y)))
+        scaled.append(float(np.interp(v["passes"] * math.log(g), x, y)))
+    return paired_improvement(np.array(same), np.array(scaled))
 
 
 

@@ -23,6 +23,7 @@ from torchsoil.diagnosis.fit import (
     CandidateFit,
     Pass,
     accept,
+    fit_blur,
     fit_extension,
     fit_section,
     most_trials,
@@ -217,7 +218,7 @@ def plainest(fits: dict, best: tuple, declared, z: float = 1.96) -> str:
 
 
 def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConfig, progress=None,
-                       cache: PassCache | None = None, pool=None):
+                       cache: PassCache | None = None, pool=None, shared: dict | None = None):
     """The tyre section and the dig order as nuisances (`fit_section`; SimConfig.dig_order):
     the section searched over cfg.sections under sim's order, then each other order of
     cfg.dig_orders at the best few sections; the lowest mean window residual wins, unless the
@@ -225,19 +226,20 @@ def fit_nuisance_model(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: Si
 
     Returns (the pair with that section, sim with that order, section evidence, dig-order
     evidence (None when only one order was tried), run_pass keywords, the sections a footprint
-    or wall term may choose from). pool: a parallel.PassPool that scores the sections first."""
+    or wall term may choose from). pool: a parallel.PassPool that scores the sections first (given
+    the pair, unless `shared`: run_pass's keywords, already known and given to the pool)."""
     section, dig = None, None
     declared = section_of(pair)
     if not cfg.sections and not set(cfg.dig_orders) - {sim.dig_order}:
-        return pair, sim, section, dig, {}, ()
+        return pair, sim, section, dig, shared or {}, ()
 
     def best_few(costs):
         return tuple(dict.fromkeys([*sorted(costs, key=costs.get)[:cfg.footprint_sections], declared]))
 
-    shared = None
     if pool is not None:                  # the pair's own section here, the others as tasks
-        shared = section_cost(pair, est, sim, declared, cache=cache)[1]
-        pool.share(pair, shared)
+        if not shared:
+            shared = section_cost(pair, est, sim, declared, cache=cache)[1]
+            pool.share(pair, shared)
         pool.run("section", [(est, sim, sec, 3, None) for sec in section_candidates(pair, cfg.sections)[1:]])
     best, costs, shared, windows = fit_section(pair, est, sim, cfg.sections, progress=progress, cache=cache,
                                                shared=shared)
@@ -654,7 +656,8 @@ def learned_check(pair, cfg: DiagnosisConfig, est: EstimatorConfig, sim: SimConf
                               "prediction": float(np.nanmean(fit.prediction))}
     if visits is not None:                                 # the deposit and repose on ground driven again
         rows = visits.rows
-        tests = [learned.visit_test(rows, p, cfg.alpha_accept / 4, cfg.effect_materiality) for p in ("chi", "beta")]
+        tests = [learned.visit_test(rows, p, cfg.alpha_accept / 4, cfg.effect_materiality, later=visits.later)
+                 for p in ("chi", "beta")]
         described["visits"] = tests
         found = [t for t in tests if t["accepted"]]
         if found and not fit.accepted:
@@ -698,9 +701,9 @@ def with_learned(told: Verdict, fit: learned.LearnedFit | None, described: dict 
 
 def explain_diagnosis(cfg: DiagnosisConfig, base: Pass, where: Located, ev: dict, fits: list[CandidateFit],
                       choice: Choice, section: dict | None, dig: dict | None, revisit: dict | None,
-                      told: Verdict, learned_report: dict | None = None) -> Diagnosis:
+                      told: Verdict, learned_report: dict | None = None, blur: dict | None = None) -> Diagnosis:
     """The evidence behind the verdict (zones, asymmetry, spectral line, rut shape, the tests'
-    levels, every candidate's location evidence `ev`, the nuisances' fits `section` and `dig`,
+    levels, every candidate's location evidence `ev`, the nuisances' fits `section`, `dig` and `blur`,
     the hardening test `revisit`, what the named gain rests on, the covariates' correlations
     with the sinkage), the diagnosis.json summary (docs/formats.md 4; costs in m) and its
     explanation in words (report.explain). Returns the `Diagnosis`."""
@@ -717,6 +720,7 @@ def explain_diagnosis(cfg: DiagnosisConfig, base: Pass, where: Located, ev: dict
                 "map_nuisance_text": base.nuisance.describe() if base.nuisance is not None else None,
                 "tyre_section": section,
                 "dig_order": dig,
+                "raster_blur": blur,
                 "revisits": revisit,
                 "basis": evidence_basis(base.held_out, best.held_out, s) if best is not None else None,
                 "covariate_tests": {n: asdict(correlation(cov[n], np.array([r["d1"] for r in rows])))
@@ -754,7 +758,8 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
     with the same cache) that runs the independent passes (sections, dig orders, candidates)
     as parallel tasks first; the results are the same."""
     cfg, est, sim = cfg or DiagnosisConfig(), est or EstimatorConfig(), sim or SimConfig()
-    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool)
+    est, blur, shared = fit_blur(pair, est, sim, cfg.blurs, cache, pool)
+    pair, sim, section, dig, shared, tried = fit_nuisance_model(pair, cfg, est, sim, progress, cache, pool, shared)
     drive = DriveSignals.from_pair(pair)
     base = base_pass(pair, cfg, est, sim, shared, progress, cache)
     where = locate_mismatch(pair, cfg, est, base, drive)
@@ -765,7 +770,7 @@ def diagnose(pair, cfg: DiagnosisConfig | None = None, est: EstimatorConfig | No
                       *location_verdict(pair, cfg, est, base, drive, where, choice.best))
     fit, described = learned_check(pair, cfg, est, sim, base, drive, choice, told.named, visits, progress, cache)
     told = with_learned(told, fit, described)
-    return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told, described)
+    return explain_diagnosis(cfg, base, where, ev, fits, choice, section, dig, revisit, told, described, blur)
 
 
 def n_steps(cfg: DiagnosisConfig | None = None) -> int:

@@ -44,6 +44,10 @@ def explain(diag) -> str:
             f, e = best.sections[k]
             note += (f" With {best.ext.id} the tyre section that fits is another: taper flat to {f:.2f} of the "
                      f"radius, exponent {e:.2f}.")
+    blur = diag.evidence.get("raster_blur")
+    if blur is not None and blur["fitted"] > 0:
+        note += (f" The simulated change is compared with H_b through a Gaussian blur of {blur['fitted']:g} cells "
+                 "(fitted as a nuisance: the lidar map spreads a rut's walls).")
     dig = diag.evidence.get("dig_order")
     if dig is not None and dig["fitted"] != dig["declared"]:
         note += (" The wheels dig in turn (sim.dig_order: wheel): each trailing wheel digs again from the rut "

@@ -169,6 +169,8 @@ def ratio_test(wins: list[Revisit], alpha: float, materiality: float) -> dict:
 
 
 FACTORS = tuple(np.round(np.linspace(1.0, 0.0, 21), 3))   # sinkage factors a later visit is simulated at
+# factors on the deposit share and the angle of repose a later visit is simulated at (x0.5 to x2, 1 among them)
+SHARE_FACTORS = tuple(np.round(np.exp(np.linspace(math.log(0.5), math.log(2.0), 13)), 4))
 
 
 @dataclass
@@ -178,7 +180,9 @@ class VisitPass:
     rows: params.csv rows, one per visit of each window. later: {(s, visit): {"factor": (F,),
     "cost": (F,) cost of the visit's maps simulated from its own start with the window's
     first-visit parameters, d scaled by each factor, m; "rut": (F,) the rut depth that
-    simulation digs, m; "rut_measured": m; "floor": the visit's noise floor, m}}."""
+    simulation digs, m; "rut_measured": m; "floor": the visit's noise floor, m; "share_factor":
+    (S,) SHARE_FACTORS; "cost_chi", "cost_beta": (S,) the visit's cost with the first visit's
+    parameters, chi or beta scaled by each of them (within their bounds), m}}."""
 
     rows: list
     later: dict
@@ -213,6 +217,8 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
     e = Estimator(pair, est, sim, per_visit=True, nuisance=nuisance, index=index)
     dmask = torch.tensor([kind(n) == "d" for n in e.free_names], device=e.theta0.device)
     f = torch.tensor(factors, dtype=e.theta0.dtype, device=e.theta0.device)
+    fs = torch.tensor(SHARE_FACTORS, dtype=e.theta0.dtype, device=e.theta0.device)
+    masks = {p: torch.tensor([n == p for n in e.free_names], device=e.theta0.device) for p in ("chi", "beta")}
     rows, later, first, n0, plain = [], {}, None, 0.0, None
     for o in e.run():
         rows.append(o.row)
@@ -225,8 +231,13 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
         if first is None or wd is None or ruts is None or o.fit is None:
             continue
         free = torch.where(dmask[None], first[None] * f[:, None], first[None])
+        shares = {}
         with torch.no_grad():
             h = e.simulate(free, wd).h
+            for p, m in masks.items():
+                scaled = torch.where(m[None], first[None] * fs[:, None], first[None])
+                scaled = torch.minimum(torch.maximum(scaled, e.lower), e.upper)
+                shares[f"cost_{p}"] = weighted_l1(e.simulate(scaled, wd).h, wd.h_back, wd.weight).cpu().numpy()
         cost = weighted_l1(h, wd.h_back, wd.weight).cpu().numpy()
         start = wd.h_measured.cpu().numpy()
         rut = np.array([float(np.mean((start - hb)[ruts])) for hb in h.cpu().numpy()])
@@ -237,7 +248,8 @@ def run_visits(pair, est, sim, nuisance=None, index=None, factors=FACTORS) -> Vi
         later[(round(float(o.row["s"]), 6), v)] = {"factor": np.array(factors), "cost": cost, "rut": rut,
                                                    "rut_measured": float(o.row["rut_depth"]),
                                                    "passes": float(o.row["passes_before"]) - n0,
-                                                   "floor": floor}
+                                                   "floor": floor, "share_factor": np.array(SHARE_FACTORS),
+                                                   **shares}
     return VisitPass(rows, later)
 
 

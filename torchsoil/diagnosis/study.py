@@ -543,14 +543,16 @@ def _median_d(rows: list[dict]) -> float:
 
 
 def _fitted_nuisance(diag, pair, settings: Settings) -> tuple[Settings, tuple[float, float]]:
-    """Settings with the diagnosis' fitted dig order, and its fitted tyre section (f, e)
-    (the pair's own when none was fitted)."""
+    """Settings with the diagnosis' fitted dig order and raster blur, and its fitted tyre section
+    (f, e) (the pair's own when none was fitted)."""
     ev = diag.evidence
-    sim = settings.sim
+    sim, est = settings.sim, settings.estimator
     if ev.get("dig_order"):
         sim = sim.replace(dig_order=ev["dig_order"]["fitted"])
+    if ev.get("raster_blur"):
+        est = est.replace(after_blur=ev["raster_blur"]["fitted"])
     sec = tuple(ev["tyre_section"]["fitted"]) if ev.get("tyre_section") else section_of(pair)
-    return settings.replace(sim=sim), sec
+    return settings.replace(sim=sim, estimator=est), sec
 
 
 def run_foreign(directory: Path, out: Path, settings: Settings | None = None, names: list[str] | None = None,

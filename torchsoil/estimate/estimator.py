@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from torchsoil.estimate.cost import weighted_l1
+from torchsoil.estimate.cost import raster_blur, weighted_l1
 from torchsoil.estimate.nuisance import MapNuisance, fit_map_nuisance
 from torchsoil.estimate.optimizer import FitResult, fit
 from torchsoil.estimate.visits import (
@@ -147,9 +147,11 @@ class Estimator:
         self.h_start, self.h_back = surfaces
         self.arc0 = arc0
         self.store = store
-        # what a prepared window depends on besides its span, the pair and the map nuisance
+        # what a prepared window depends on besides its span, the pair and the map nuisance (not the
+        # blur the simulated change is seen through)
         self._context = (getattr(pair, "wheel_flat_fraction", None), getattr(pair, "wheel_section_exponent", None),
-                         est.model_dump_json(), self.sim.model_dump_json(), self.view, str(self.device), str(dtype),
+                         est.model_dump_json(exclude={"after_blur"}), self.sim.model_dump_json(), self.view,
+                         str(self.device), str(dtype),
                          arc0)
         self.windows: list[WindowSpec] = drive_windows(float(self.index.arc[-1]), est.window, est.stride, arc0)
         ratio = est.window / est.stride
@@ -243,15 +245,18 @@ class Estimator:
     def simulate(self, free: torch.Tensor, wd: WindowData):
         """Simulate window wd for optimizer variables free (B, P_free): its earlier visits in
         turn (`WindowData.earlier`), each settled and digging from the surface it finds (as
-        the recorder's world does), then its own; the result is that of its own visit."""
+        the recorder's world does), then its own; the result is that of its own visit, its change
+        from H_f seen through the raster's blur (estimator.after_blur, `cost.raster_blur`)."""
         theta = self.full_theta(free)
         h, h_ref, again = wd.h_front, wd.h_ref, None
         for g in wd.earlier:
             h = simulate(h, g, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, g), h_ref=h_ref).h
             again = g.domain if again is None else again | g.domain
             h_ref = revisit_reference(h, wd.h_ref, again, self.sim.revisit_ref, self.sim.ref_radius, g.radius, g.dx)
-        return simulate(h, wd.geom, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, wd.geom),
-                        h_ref=h_ref)
+        r = simulate(h, wd.geom, theta, self.sim, self.spec, modifiers=self._modifiers(wd, theta, wd.geom),
+                     h_ref=h_ref)
+        blur = float(self.est.after_blur)
+        return r if blur <= 0 else r._replace(h=wd.h_front + raster_blur(r.h - wd.h_front, blur))
 
     def _modifiers(self, wd: WindowData, theta: torch.Tensor, geom):
         return self.modifiers(wd, theta, geom) if self.modifiers is not None else None
