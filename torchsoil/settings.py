@@ -367,7 +367,7 @@ class DiagnosisConfig(Section):
                     "robot's own; the best fit on the drive's windows is the base model's section, a nuisance "
                     "(a rounded or crowned tyre is not missing physics); (): the robot's as described, -")
     blurs: tuple[NonNegativeFloat, ...] = Field(
-        (1.0,), description="raster blurs (estimator.after_blur, a Gaussian's sigma, cells) tried besides the "
+        (0.5, 0.75, 1.0, 1.5), description="raster blurs (estimator.after_blur, a Gaussian's sigma, cells) tried besides the "
                             "estimator's own; the best fit on the drive's windows is the base model's, a "
                             "nuisance (a lidar map spreads a rut's walls); (): the estimator's as set")
     dig_orders: tuple[Literal["robot", "wheel"], ...] = Field(

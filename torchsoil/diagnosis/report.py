@@ -116,9 +116,13 @@ def learned_note(learned: dict | None) -> str:
     seen = ""
     if visits:
         v = max(visits, key=lambda v: v["z"])
+        cost = ""
+        if v.get("cost_z") is not None and np.isfinite(v["cost_z"]):
+            cost = (f"; with that law the first visit's soil predicts the later visits by "
+                    f"{1e3 * v['cost_gain']:+.3f} mm, z = {v['cost_z']:.2f}")
         seen = (f" On the ground driven again, {WORDS[v['parameter']]} {'rises' if v['g'] > 1 else 'falls'} "
                 f"by x{v['g']:.2f} per wheel pass between the visits (z = {v['z']:.2f} against {v['z_level']:.2f} "
-                f"needed, {v['windows']} windows): not named.")
+                f"needed, {v['windows']} windows{cost}): not named.")
     if not learned.get("terms"):
         return seen
     t = learned["terms"][0]
