@@ -367,9 +367,10 @@ class DiagnosisConfig(Section):
                     "robot's own; the best fit on the drive's windows is the base model's section, a nuisance "
                     "(a rounded or crowned tyre is not missing physics); (): the robot's as described, -")
     blurs: tuple[NonNegativeFloat, ...] = Field(
-        (0.5, 0.75, 1.0, 1.5), description="raster blurs (estimator.after_blur, a Gaussian's sigma, cells) tried besides the "
-                            "estimator's own; the best fit on the drive's windows is the base model's, a "
-                            "nuisance (a lidar map spreads a rut's walls); (): the estimator's as set")
+        (0.5, 0.75, 1.0, 1.5),
+        description="raster blurs (estimator.after_blur, a Gaussian's sigma, cells) tried besides the estimator's "
+                    "own; the best fit on the drive's windows is the base model's, a nuisance (a lidar map "
+                    "spreads a rut's walls); (): the estimator's as set")
     dig_orders: tuple[Literal["robot", "wheel"], ...] = Field(
         ("robot", "wheel"), description="dig orders (sim.dig_order) tried, each at its best few sections; the "
                                         "one that fits the drive's windows best is the base model's, a nuisance "
