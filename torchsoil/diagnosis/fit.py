@@ -251,12 +251,18 @@ def fit_section(pair, est: EstimatorConfig, sim: SimConfig, sections, every: int
         shared = {**found, "store": shared["store"]}
         if progress is not None:
             progress.set_postfix_str(f"tyre section f={sec[0]:.2f} e={sec[1]:.2f}")
-    best = min(candidates, key=lambda c: (costs[c], c != own))
-    if best != own and paired_z(windows[own], windows[best]) < z:
-        best = own
+    best = plainest_choice(own, costs, windows, z)
     if progress is not None:
         progress.update(1)
     return best, costs, shared, windows
+
+
+def plainest_choice(own, costs: dict, windows: dict, z: float = 1.96):
+    """The candidate of least mean cost among `costs` ({candidate: mean window residual, m}), unless
+    it fits its windows (`windows`: {candidate: (W,) residuals, m}) no better than `own` at a
+    paired z of `z` (`stats.paired_z`): then `own`, the setting as declared."""
+    best = min(costs, key=lambda c: (costs[c], c != own))
+    return own if best != own and paired_z(windows[own], windows[best]) < z else best
 
 
 def fit_blur(pair, est: EstimatorConfig, sim: SimConfig, blurs, cache: PassCache | None = None, pool=None,
@@ -286,9 +292,7 @@ def fit_blur(pair, est: EstimatorConfig, sim: SimConfig, blurs, cache: PassCache
         pool.run("section", [(ests[b], sim, sec, 3, None) for b in candidates[1:]])
     for b in candidates[1:]:
         costs[b], _, res[b] = section_cost(pair, ests[b], sim, sec, 3, None, shared, cache)
-    best = min(candidates, key=lambda b: (costs[b], b != own))
-    if best != own and paired_z(res[own], res[best]) < z:
-        best = own
+    best = plainest_choice(own, costs, res, z)
     return ests[best], {"declared": own, "fitted": best, "residual": [[b, costs[b]] for b in candidates]}, shared
 
 
